@@ -1,0 +1,8 @@
+//! Subcommands of the `faultcam` binary.
+
+pub mod apply;
+pub mod bench;
+pub mod diagnose;
+pub mod effects;
+pub mod eval;
+pub mod run;

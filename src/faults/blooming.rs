@@ -1,0 +1,1 @@
+//! `blooming` (not yet implemented).

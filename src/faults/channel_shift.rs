@@ -1,0 +1,1 @@
+//! `channel_shift` (not yet implemented).

@@ -1,0 +1,1 @@
+//! `dark_current` (not yet implemented).

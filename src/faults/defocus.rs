@@ -1,0 +1,1 @@
+//! `defocus` (not yet implemented).

@@ -1,0 +1,1 @@
+//! `gamma` (not yet implemented).

@@ -1,0 +1,1 @@
+//! `gaussian_noise` (not yet implemented).

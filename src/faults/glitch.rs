@@ -1,0 +1,1 @@
+//! `glitch` (not yet implemented).

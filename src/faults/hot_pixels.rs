@@ -1,0 +1,1 @@
+//! `hot_pixels` (not yet implemented).

@@ -1,0 +1,1 @@
+//! `jpeg` (not yet implemented).

@@ -1,0 +1,1 @@
+//! `lens_flare` (not yet implemented).

@@ -1,0 +1,1 @@
+//! `motion_blur` (not yet implemented).

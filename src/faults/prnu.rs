@@ -1,0 +1,1 @@
+//! `prnu` (not yet implemented).

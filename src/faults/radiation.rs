@@ -1,0 +1,1 @@
+//! `radiation` (not yet implemented).

@@ -1,0 +1,49 @@
+//! Every effect faultcam knows, by name. Add one line per effect.
+
+use super::{Effect, EffectInfo};
+
+/// One registered effect.
+pub struct Registration {
+    pub info: &'static EffectInfo,
+    pub create: fn() -> Box<dyn Effect>,
+}
+
+macro_rules! reg {
+    ($m:ident) => {
+        Registration { info: &super::$m::INFO, create: super::$m::create }
+    };
+}
+
+static REGISTRY: &[Registration] = &[
+    // Readout
+    reg!(gain_offset),
+];
+
+/// All effects, in registration order.
+pub fn all() -> &'static [Registration] {
+    REGISTRY
+}
+
+/// Effect by name.
+pub fn find(name: &str) -> Option<&'static Registration> {
+    REGISTRY.iter().find(|r| r.info.name == name)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_are_unique_and_specs_are_sane() {
+        for (i, r) in all().iter().enumerate() {
+            assert!(all()[..i].iter().all(|o| o.info.name != r.info.name), "duplicate {}", r.info.name);
+            assert_eq!((r.create)().info().name, r.info.name);
+            assert!(r.info.params.len() <= super::super::MAX_PARAMS);
+            for p in r.info.params {
+                assert!(p.min <= p.default && p.default <= p.max, "{}.{} default out of range", r.info.name, p.name);
+                assert!(!p.doc.is_empty() && !p.unit.is_empty());
+            }
+            assert!(!r.info.model.is_empty());
+        }
+    }
+}

@@ -1,0 +1,1 @@
+//! `row_noise` (not yet implemented).

@@ -1,0 +1,1 @@
+//! `shot_noise` (not yet implemented).

@@ -1,0 +1,1 @@
+//! `smear` (not yet implemented).

@@ -1,0 +1,1 @@
+//! `stray_light` (not yet implemented).

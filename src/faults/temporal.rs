@@ -1,0 +1,1 @@
+//! `temporal` (not yet implemented).

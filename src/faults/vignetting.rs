@@ -1,0 +1,1 @@
+//! `vignetting` (not yet implemented).

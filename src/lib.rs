@@ -1,0 +1,24 @@
+//! faultcam: physically modelled camera faults for hardware-in-the-loop testing of spacecraft
+//! vision. See README.md for the pipeline and EFFECTS.md (shared) for the effect vocabulary.
+
+pub mod config;
+pub mod control;
+pub mod diagnose;
+pub mod eval;
+pub mod faults;
+pub mod frame;
+pub mod gtlog;
+pub mod masks;
+pub mod metrics;
+pub mod pipeline;
+pub mod rng;
+pub mod schedule;
+pub mod sink;
+pub mod source;
+pub mod trigger;
+
+pub use config::FaultConfig;
+pub use faults::chain::{Chain, FrameReport};
+pub use faults::{Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
+pub use frame::{Frame, FrameData, PixelFormat};
+pub use rng::Rng;

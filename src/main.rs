@@ -1,0 +1,55 @@
+//! `faultcam` command line. Each subcommand lives in `src/cli/<name>.rs` with its `Args` and
+//! `run`; errors are printed with their causes and turned into an exit code.
+
+mod cli;
+
+use clap::{Parser, Subcommand};
+
+/// Physically modelled camera faults for hardware-in-the-loop testing of spacecraft vision.
+#[derive(Parser, Debug)]
+#[command(name = "faultcam", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Stream frames from a source through the fault chain into a sink.
+    Run(cli::run::Args),
+    /// Apply a fault config to every image of a folder (batch, shardable).
+    Apply(cli::apply::Args),
+    /// List effects with their parameters, units and physical models.
+    Effects(cli::effects::Args),
+    /// Measure per-frame latency (p50/p99/max) of effects and chains.
+    Bench(cli::bench::Args),
+    /// Fidelity metrics between images or sets, and the blooming validation protocol.
+    Eval(cli::eval::Args),
+    /// Find the physics a simulation left out, fit it, and report the improvement.
+    Diagnose(cli::diagnose::Args),
+}
+
+fn main() -> std::process::ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Run(a) => cli::run::run(a),
+        Command::Apply(a) => cli::apply::run(a),
+        Command::Effects(a) => cli::effects::run(a),
+        Command::Bench(a) => cli::bench::run(a),
+        Command::Eval(a) => cli::eval::run(a),
+        Command::Diagnose(a) => cli::diagnose::run(a),
+    };
+    match result {
+        Ok(code) => std::process::ExitCode::from(code),
+        Err(e) => {
+            // A closed stdout (e.g. `faultcam effects | head`) is not an error.
+            if let Some(io) = e.downcast_ref::<std::io::Error>()
+                && io.kind() == std::io::ErrorKind::BrokenPipe
+            {
+                return std::process::ExitCode::SUCCESS;
+            }
+            eprintln!("faultcam: error: {e:#}");
+            std::process::ExitCode::from(2)
+        }
+    }
+}

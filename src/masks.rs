@@ -1,0 +1,1 @@
+//! `masks` (not yet implemented).

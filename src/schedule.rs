@@ -1,0 +1,1 @@
+//! `schedule` (not yet implemented).

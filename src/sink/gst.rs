@@ -1,0 +1,1 @@
+//! `gst:` sink (not yet implemented).

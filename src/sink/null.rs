@@ -1,0 +1,1 @@
+//! `null:` sink (not yet implemented).

@@ -1,0 +1,1 @@
+//! `v4l2:` sink (not yet implemented).

@@ -1,0 +1,1 @@
+//! `aravis:` source (not yet implemented).

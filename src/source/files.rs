@@ -1,0 +1,1 @@
+//! `files:` source (not yet implemented).

@@ -1,0 +1,1 @@
+//! `gst:` source (not yet implemented).

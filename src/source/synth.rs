@@ -1,0 +1,1 @@
+//! `synth:` source (not yet implemented).

@@ -1,0 +1,1 @@
+//! `v4l2:` source (not yet implemented).

@@ -1,0 +1,1 @@
+//! `trigger` (not yet implemented).
