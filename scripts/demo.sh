@@ -1,10 +1,21 @@
 #!/usr/bin/env bash
-# The demo: installs system packages if missing, builds faultcam, and streams a synthetic
-# spacecraft scene through the eight faults of the original study into out/demo/.
+# The demo: installs system packages if missing, builds faultcam (release), and streams a
+# synthetic spacecraft scene (with Earth limb) through the eight faults of the original study.
+# Writes out/demo/clean/ (the scene without faults), out/demo/frames/ (faulted frames) and
+# out/demo/groundtruth.jsonl (one record per frame: effects, resolved parameters, seeds).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/install-deps.sh
+. scripts/rust-env.sh
 cargo build --release
-./target/release/faultcam run --source "synth:?width=1280&height=720&frames=30" \
-  --sink files:out/demo/frames --faults hil/campaigns/original8.toml --log out/demo/groundtruth.jsonl
-echo "demo: frames in out/demo/frames, ground truth in out/demo/groundtruth.jsonl"
+FC=./target/release/faultcam
+[ -n "${CARGO_TARGET_DIR:-}" ] && FC="$CARGO_TARGET_DIR/release/faultcam"
+SCENE="synth:?width=1280&height=720&frames=30&earth=true&seed=1"
+rm -rf out/demo
+mkdir -p out/demo
+printf 'seed = 0\n' > out/demo/no-faults.toml
+"$FC" run --source "$SCENE" --sink files:out/demo/clean --faults out/demo/no-faults.toml \
+  --log out/demo/clean.jsonl
+"$FC" run --source "$SCENE" --sink files:out/demo/frames --faults hil/campaigns/original8.toml \
+  --log out/demo/groundtruth.jsonl
+echo "demo: clean scene in out/demo/clean/, faulted frames in out/demo/frames/, ground truth in out/demo/groundtruth.jsonl"

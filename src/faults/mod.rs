@@ -9,6 +9,8 @@
 pub mod chain;
 pub mod registry;
 pub mod util;
+/// Helpers of the physics library: row bands, random lanes, sparse sampling, bench scene.
+pub mod kit;
 
 // Optics
 pub mod channel_shift;

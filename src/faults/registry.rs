@@ -17,6 +17,32 @@ macro_rules! reg {
 static REGISTRY: &[Registration] = &[
     // Readout
     reg!(gain_offset),
+    reg!(gaussian_noise),
+    Registration { info: &super::glitch::INFO_VERTICAL, create: super::glitch::create_vertical },
+    Registration { info: &super::glitch::INFO_HORIZONTAL, create: super::glitch::create_horizontal },
+    reg!(smear),
+    reg!(lens_flare),
+    reg!(channel_shift),
+    reg!(dark_current),
+    reg!(blooming),
+    reg!(row_noise),
+    reg!(gamma),
+    // Physics library (helper physlib)
+    reg!(defocus),
+    reg!(motion_blur),
+    reg!(vignetting),
+    reg!(stray_light),
+    reg!(prnu),
+    reg!(hot_pixels),
+    reg!(shot_noise),
+    Registration { info: &super::radiation::INFO_COSMIC, create: super::radiation::create_cosmic },
+    Registration { info: &super::radiation::INFO_BIT_FLIP, create: super::radiation::create_bit_flip },
+    Registration { info: &super::radiation::INFO_DEAD, create: super::radiation::create_dead },
+    Registration { info: &super::temporal::INFO_DROP, create: super::temporal::create_drop },
+    Registration { info: &super::temporal::INFO_FREEZE, create: super::temporal::create_freeze },
+    Registration { info: &super::temporal::INFO_DELAY, create: super::temporal::create_delay },
+    Registration { info: &super::temporal::INFO_JITTER, create: super::temporal::create_jitter },
+    Registration { info: &super::temporal::INFO_REORDER, create: super::temporal::create_reorder },
 ];
 
 /// All effects, in registration order.

@@ -22,6 +22,29 @@ pub enum SinkError {
     Closed { uri: String },
 }
 
+/// URI schemes [`open`] accepts.
+pub const SCHEMES: &[&str] = &["files", "null", "gst", "v4l2"];
+
+/// Open a sink by URI: `files:DIR?format=png`, `null:`.
+pub fn open(uri: &str) -> Result<Box<dyn Sink>, SinkError> {
+    let (scheme, _, _) = crate::source::split_uri(uri);
+    match scheme {
+        "files" => Ok(Box::new(files::FilesSink::open(uri)?)),
+        "null" => Ok(Box::new(null::NullSink::open(uri)?)),
+        #[cfg(feature = "gst")]
+        "gst" => Ok(Box::new(gst::GstSink::open(uri)?)),
+        #[cfg(feature = "v4l2")]
+        "v4l2" => Ok(Box::new(v4l2::V4l2Sink::open(uri)?)),
+        other => Err(SinkError::BadUri {
+            uri: uri.to_string(),
+            reason: format!(
+                "unknown scheme '{other}:'; accepted: {}",
+                SCHEMES.iter().map(|s| format!("{s}:")).collect::<Vec<_>>().join(", ")
+            ),
+        }),
+    }
+}
+
 /// Where faulted frames go.
 pub trait Sink: Send {
     fn describe(&self) -> String;

@@ -1,0 +1,39 @@
+//! Write the diagnosis corpus (issue 7, part 6) to a folder: `<dir>/<case>/{sim,real}/frame_NN.png`
+//! and `<dir>/<case>/truth.json`.
+//!
+//! `cargo run --example make_corpus -- OUT_DIR [CASE ...]` (all cases when none is named).
+//! The scene renderer and the camera model live in `tests/support/realcam.rs`.
+
+#[path = "../tests/support/realcam.rs"]
+mod realcam;
+
+fn main() -> std::process::ExitCode {
+    let mut args = std::env::args().skip(1);
+    let Some(out) = args.next() else {
+        eprintln!("usage: make_corpus OUT_DIR [CASE ...]");
+        return std::process::ExitCode::from(2);
+    };
+    let wanted: Vec<String> = args.collect();
+    let out = std::path::PathBuf::from(out);
+    let cases: Vec<_> =
+        realcam::corpus().into_iter().filter(|c| wanted.is_empty() || wanted.contains(&c.name)).collect();
+    if cases.is_empty() {
+        let names: Vec<String> = realcam::corpus().into_iter().map(|c| c.name).collect();
+        eprintln!("no such case; known: {}", names.join(", "));
+        return std::process::ExitCode::from(2);
+    }
+    for c in &cases {
+        if let Err(e) = c.write(&out.join(&c.name)) {
+            eprintln!("make_corpus: {e}");
+            return std::process::ExitCode::from(1);
+        }
+        let hidden: Vec<&str> = c.hidden.iter().map(|h| h.name()).collect();
+        println!(
+            "{:24} {:5} {}",
+            c.name,
+            c.fmt.name(),
+            if hidden.is_empty() { "(noise only)".into() } else { hidden.join(", ") }
+        );
+    }
+    std::process::ExitCode::SUCCESS
+}

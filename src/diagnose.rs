@@ -1,1 +1,0 @@
-//! `diagnose` (not yet implemented).

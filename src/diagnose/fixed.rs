@@ -1,0 +1,287 @@
+//! Fixed patterns and noise structure: `prnu` (covariance of the relative high-passed residual
+//! between frames), `hot_pixels` (isolated outliers that recur at the same place) and
+//! `row_noise` (split-half covariance of row offsets).
+//!
+//! All three use the same trick to get an honest null: two measurements that share the effect
+//! but not the noise (two frames for a fixed pattern, even and odd columns for a row offset).
+//! Their covariance is zero without the effect whatever the noise model is, so no noise
+//! calibration can fake a detection.
+
+use super::img::{FS, Pair, Plane};
+use super::locate::Masks;
+use super::noise::NoiseModel;
+use super::stats::{self, Wls};
+use super::{Profile, Signature};
+
+/// Horizontal second difference of the residual at pixel i (requires x in 1..w-1).
+#[inline]
+fn hp(real: &[f32], sim: &[f32], i: usize) -> f32 {
+    (real[i] - sim[i]) - 0.5 * ((real[i - 1] - sim[i - 1]) + (real[i + 1] - sim[i + 1]))
+}
+
+/// PRNU by cross-frame covariance. Returns the signature and the variance coefficient c =
+/// sigma² (0 when not detected) for the noise model.
+pub fn prnu(pairs: &[Pair], masks: &[Masks], noise: &NoiseModel, hot: &[Vec<bool>]) -> (Signature, f64) {
+    let mut sig = Signature::new("prnu");
+    if pairs.len() < 2 {
+        sig.evidence = "a single frame: a fixed pattern cannot be told from noise".into();
+        return (sig, 0.0);
+    }
+    let mut wls = Wls::new(2);
+    let mut npairs = 0;
+    let mut nprod = 0usize;
+    let max_pairs = 45;
+    'outer: for a in 0..pairs.len() {
+        for b in a + 1..pairs.len() {
+            if npairs >= max_pairs {
+                break 'outer;
+            }
+            let (pa, pb) = (&pairs[a], &pairs[b]);
+            if pa.w() != pb.w() || pa.h() != pb.h() || pa.channels() != pb.channels() {
+                continue;
+            }
+            npairs += 1;
+            let (w, h) = (pa.w(), pa.h());
+            let (ma, mb) = (&masks[a], &masks[b]);
+            for c in 0..pa.channels() {
+                let (sa, ra) = (&pa.sim[c].data, &pa.real[c].data);
+                let (sb, rb) = (&pb.sim[c].data, &pb.real[c].data);
+                for y in 0..h {
+                    for x in (3..w - 1).step_by(3) {
+                        let i = y * w + x;
+                        let ok = |m: &Masks, s: &[f32], r: &[f32], hotm: &[bool]| {
+                            m.linear[i - 1]
+                                && m.linear[i]
+                                && m.linear[i + 1]
+                                && !m.sat_near[i]
+                                && s[i] >= 20.0
+                                && !hotm[i - 1]
+                                && !hotm[i]
+                                && !hotm[i + 1]
+                                && r[i - 1] > 0.0
+                                && r[i] < FS
+                                && r[i - 1] < FS
+                                && r[i + 1] < FS
+                        };
+                        if !ok(ma, sa, ra, &hot[a]) || !ok(mb, sb, rb, &hot[b]) {
+                            continue;
+                        }
+                        let (s1, s2) = (sa[i] as f64, sb[i] as f64);
+                        let u1 = hp(ra, sa, i) as f64 / s1;
+                        let u2 = hp(rb, sb, i) as f64 / s2;
+                        let v1 = 1.5 * noise.var(s1) / (s1 * s1);
+                        let v2 = 1.5 * noise.var(s2) / (s2 * s2);
+                        if u1.abs() > 8.0 * v1.sqrt() + 0.5 || u2.abs() > 8.0 * v2.sqrt() + 0.5 {
+                            continue;
+                        }
+                        // E[u1 u2] = 1.5 sigma_p² + 1.5 d² / (s1 s2) (d: additive fixed pattern)
+                        let cl = (npairs as u32) * 10_000 + (y / 16) as u32;
+                        wls.push(&[1.5, 1.5 / (s1 * s2)], u1 * u2, 1.0 / (v1 * v2), cl);
+                        nprod += 1;
+                    }
+                }
+            }
+        }
+    }
+    let Some(f) = wls.fit() else {
+        sig.evidence = format!("too few bright flat pixels shared by two frames ({nprod})");
+        return (sig, 0.0);
+    };
+    let s2 = f.beta[0];
+    let se = f.se(0);
+    let sd = s2.max(0.0).sqrt();
+    sig.z = s2 / se;
+    sig.size = sd;
+    sig.size_unit = "relative gain sigma";
+    sig.set_param("sigma", sd);
+    sig.stderr = vec![("sigma".into(), se / (2.0 * sd.max(1e-3)))];
+    sig.where_ = format!("bright flat regions shared by {npairs} frame pairs ({nprod} pixel products)");
+    sig.evidence = format!(
+        "relative residual correlates between frames: sigma² = {s2:.3e} ± {se:.1e} (z = {:.1}), additive fixed pattern {:.3} DN²",
+        sig.z, f.beta[1]
+    );
+    let c = if sig.z > 4.0 { s2.max(0.0) } else { 0.0 };
+    (sig, c)
+}
+
+/// Hot pixels: isolated positive outliers far above the noise, recurring in several frames.
+/// Returns the signature, the per-frame outlier masks (to exclude them elsewhere), and the mean
+/// excess of the hot pixels (DN).
+pub fn hot_pixels(pairs: &[Pair], masks: &[Masks], q: &[Vec<Plane>], noise: &NoiseModel) -> (Signature, Vec<Vec<bool>>, f64) {
+    let mut sig = Signature::new("hot_pixels");
+    let mut cand: Vec<Vec<bool>> = Vec::new();
+    let mut eligible: Vec<Vec<bool>> = Vec::new();
+    let mut excess = Vec::new();
+    for (k, p) in pairs.iter().enumerate() {
+        let m = &masks[k];
+        let (w, h) = (p.w(), p.h());
+        let mut cm = vec![false; w * h];
+        let mut el = vec![false; w * h];
+        let z = |c: usize, i: usize| -> f64 {
+            let qv = q[k][c].data[i] as f64;
+            (p.real[c].data[i] as f64 - qv) / noise.sd(qv)
+        };
+        for y in 1..h - 1 {
+            for x in 1..w - 1 {
+                let i = y * w + x;
+                if !m.linear[i] || m.dist_sat[i] <= 3.0 || m.dist_edge[i] <= 2.0 {
+                    continue;
+                }
+                el[i] = true;
+                for c in 0..p.channels() {
+                    let zc = z(c, i);
+                    if zc < 7.0 || (p.real[c].data[i] as f64 - q[k][c].data[i] as f64) < 6.0 {
+                        continue;
+                    }
+                    // isolated: the 8 neighbours are ordinary
+                    let mut iso = true;
+                    for (dx, dy) in [(-1isize, -1isize), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)] {
+                        let j = ((y as isize + dy) as usize) * w + (x as isize + dx) as usize;
+                        if z(c, j) > 4.0 {
+                            iso = false;
+                            break;
+                        }
+                    }
+                    if iso {
+                        cm[i] = true;
+                        excess.push(p.real[c].data[i] as f64 - q[k][c].data[i] as f64);
+                    }
+                }
+            }
+        }
+        cand.push(cm);
+        eligible.push(el);
+    }
+    let n = pairs.len();
+    let same_size = pairs.iter().all(|p| p.w() == pairs[0].w() && p.h() == pairs[0].h());
+    let npix = pairs[0].w() * pairs[0].h();
+    let (count, elig, recurrence) = if n >= 2 && same_size {
+        let mut count = 0usize;
+        let mut elig = 0usize;
+        for i in 0..npix {
+            let ne = (0..n).filter(|&k| eligible[k][i]).count();
+            if ne >= 2 {
+                elig += 1;
+                let nc = (0..n).filter(|&k| cand[k][i]).count();
+                if nc >= 2 && nc * 2 >= ne {
+                    count += 1;
+                }
+            }
+        }
+        (count, elig, true)
+    } else {
+        let count: usize = cand.iter().map(|c| c.iter().filter(|&&b| b).count()).sum();
+        let elig: usize = eligible.iter().map(|c| c.iter().filter(|&&b| b).count()).sum();
+        (count, elig, false)
+    };
+    // Expected false candidates: Gaussian tail beyond 7 sigma with a large safety factor for
+    // non-Gaussian tails; with recurrence, the square of a per-frame rate.
+    let chans = pairs[0].channels() as f64;
+    let p1 = 1e-9 * chans;
+    let lambda0 = if recurrence { elig as f64 * (p1 * 1e3).powi(2) * n as f64 } else { elig as f64 * p1 * 100.0 };
+    let min_count = if recurrence { 3.0 } else { 10.0 };
+    sig.z = if (count as f64) < min_count { 0.0 } else { (count as f64 - lambda0) / (lambda0 + 1.0).sqrt() };
+    let rate = if elig > 0 { count as f64 / elig as f64 } else { 0.0 };
+    let mean_excess = if excess.is_empty() { 0.0 } else { stats::median(&excess) };
+    sig.size = rate;
+    sig.size_unit = "fraction of pixels";
+    sig.set_param("rate", rate);
+    sig.set_param("offset_dn", mean_excess);
+    sig.stderr = vec![("rate".into(), (count as f64).sqrt().max(1.0) / elig.max(1) as f64)];
+    sig.where_ = format!("{count} isolated pixels{}", if recurrence { " recurring across frames" } else { "" });
+    sig.evidence = format!(
+        "{count} of {elig} eligible pixels are isolated outliers above 7 sigma{} (median excess {mean_excess:.1} DN; expected by chance {lambda0:.2})",
+        if recurrence { " in at least two frames" } else { "" }
+    );
+    (sig, cand, mean_excess)
+}
+
+/// Row noise by split-half covariance of detrended row means.
+pub fn row_noise(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], q: &[Vec<Plane>], noise: &NoiseModel) -> Signature {
+    let mut sig = Signature::new("row_noise");
+    let lo = 3.0 * noise.sd(0.0);
+    let mut prods = Vec::new();
+    let mut prof = Vec::new();
+    for (k, p) in pairs.iter().enumerate() {
+        let m = &masks[k];
+        let (w, h) = (p.w(), p.h());
+        for c in 0..p.channels() {
+            let rr = &r1[k][c].data;
+            let qq = &q[k][c].data;
+            let mut me = vec![f64::NAN; h];
+            let mut mo = vec![f64::NAN; h];
+            for y in 0..h {
+                let (mut se, mut ne, mut so, mut no) = (0.0, 0usize, 0.0, 0usize);
+                for x in 0..w {
+                    let i = y * w + x;
+                    if !m.flat[i] || m.dist_sat[i] <= 6.0 || m.dist_edge[i] <= 3.0 {
+                        continue;
+                    }
+                    let qv = qq[i] as f64;
+                    if qv < lo || p.real[c].data[i] >= FS {
+                        continue;
+                    }
+                    let v = rr[i] as f64;
+                    if v.abs() > 6.0 * noise.sd(qv) {
+                        continue;
+                    }
+                    if x % 2 == 0 {
+                        se += v;
+                        ne += 1;
+                    } else {
+                        so += v;
+                        no += 1;
+                    }
+                }
+                if ne >= 8 && no >= 8 {
+                    me[y] = se / ne as f64;
+                    mo[y] = so / no as f64;
+                }
+            }
+            for y in (1..h.saturating_sub(1)).step_by(3) {
+                let d2 = |m: &[f64]| m[y + 1] - 2.0 * m[y] + m[y - 1];
+                let (a, b) = (d2(&me), d2(&mo));
+                if a.is_finite() && b.is_finite() {
+                    prods.push(a * b);
+                    if k == 0 && c == 0 {
+                        prof.push((y as f64, 0.5 * (me[y] + mo[y]), me[y], mo[y]));
+                    }
+                }
+            }
+        }
+    }
+    if prods.len() < 30 {
+        sig.evidence = format!("too few rows with flat unclipped pixels ({})", prods.len());
+        return sig;
+    }
+    // Winsorise the products at the 1 % tails (rows crossing structures).
+    let mut sorted = prods.clone();
+    let lo_q = stats::quantile_mut(&mut sorted, 0.01);
+    let hi_q = stats::quantile_mut(&mut sorted, 0.99);
+    let wins: Vec<f64> = prods.iter().map(|v| v.clamp(lo_q, hi_q)).collect();
+    let (m, se) = stats::mean_se(&wins);
+    let s2 = m / 6.0;
+    let se2 = se / 6.0;
+    let sd = s2.max(0.0).sqrt();
+    sig.z = s2 / se2;
+    sig.size = sd;
+    sig.size_unit = "DN row offset sigma";
+    sig.set_param("sigma_dn", sd);
+    sig.stderr = vec![("sigma_dn".into(), se2 / (2.0 * sd.max(0.05)))];
+    sig.where_ = format!("{} row triples in all frames", prods.len());
+    sig.evidence = format!(
+        "row offsets shared by even and odd columns: sigma² = {s2:.4} ± {se2:.4} DN² (z = {:.1})",
+        sig.z
+    );
+    sig.profiles.push(Profile {
+        title: "row noise: row means of the residual, even vs odd columns (first frame)".into(),
+        x_label: "row y (px)".into(),
+        y_label: "row mean residual (DN)".into(),
+        x: prof.iter().map(|p| p.0).collect(),
+        series: vec![
+            ("even columns".into(), prof.iter().map(|p| p.2).collect()),
+            ("odd columns".into(), prof.iter().map(|p| p.3).collect()),
+        ],
+    });
+    sig
+}

@@ -1,0 +1,165 @@
+//! Diagnosis: find the physics a simulation left out, fit it with the effect library's forward
+//! models, and show the fit improve (EFFECTS.md, "Diagnosis contract").
+//!
+//! Pipeline (`diagnose_dirs`):
+//!
+//! 1. **Load** sim/real pairs by file name ([`img`]); everything is analysed in 8-bit DN floats.
+//! 2. **Locate** ([`locate`]): masks from the sim image (saturation, flat and linear regions,
+//!    edges), a first noise model, then one signature test per effect, each a statistic with a
+//!    null distribution: tone/spatial photometric regression ([`photometric`]: gain_offset,
+//!    gamma, vignetting, stray_light, dark level), edge-derivative regression ([`edges`]:
+//!    defocus, motion_blur, channel_shift), saturation neighbourhoods ([`saturation`]: blooming
+//!    plateau and halo, smear column/row profiles, lens_flare ghosts on the source–centre line),
+//!    fixed pattern and noise structure ([`fixed`]: prnu by cross-frame covariance, hot pixels
+//!    by recurrence, row noise by split-half covariance), JPEG by the DCT quantisation lattice
+//!    ([`jpeg`]) and camera noise (variance against signal, [`noise`]).
+//! 3. **Select and fit** ([`fit`]): significant candidates are fitted jointly on the library's
+//!    forward models (`faults::create`, `Effect::apply` on copies of the sim frames with a fixed
+//!    seed) with a Huber loss on noise-normalised residuals; stochastic effects by moment
+//!    matching through the same forward models. Each finding must survive a drop-one test.
+//! 4. **Report** ([`report`]): `report.json`, `fitted.toml`, `report.md` with residual maps and
+//!    evidence plots ([`plot`]).
+//!
+//! `--unpaired` ([`unpaired`]) compares statistics instead of pixels.
+
+pub mod edges;
+pub mod fit;
+pub mod fixed;
+pub mod img;
+pub mod jpeg;
+pub mod locate;
+pub mod moments;
+pub mod noise;
+pub mod photometric;
+pub mod plot;
+pub mod report;
+pub mod saturation;
+pub mod stats;
+pub mod unpaired;
+
+use crate::faults::FaultError;
+use std::path::{Path, PathBuf};
+use thiserror::Error;
+
+/// Errors of diagnosis (each names the file concerned).
+#[derive(Debug, Error)]
+pub enum DiagnoseError {
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: cannot decode image: {message}")]
+    Decode { path: PathBuf, message: String },
+    #[error("{name}: sim is {sim} but real ({real_path}) is {real}; pairs must have the same size and channels")]
+    SizeMismatch { name: String, sim: String, real: String, real_path: PathBuf },
+    #[error("no pairs: no file name of {sim} is also in {real} (images are paired by file name)")]
+    NoPairs { sim: PathBuf, real: PathBuf },
+    #[error("{dir}: no images (accepted: png, jpg, tif, pgm, ppm)")]
+    NoImages { dir: PathBuf },
+    #[error("{path}: cannot write: {message}")]
+    Write { path: PathBuf, message: String },
+    #[error(transparent)]
+    Fault(#[from] FaultError),
+}
+
+/// Options of a diagnosis run.
+#[derive(Debug, Clone)]
+pub struct Options {
+    /// Sim and real show different scenes: compare statistics.
+    pub unpaired: bool,
+    /// Significance (one-sided normal z) a signature must reach to become a candidate.
+    pub z_threshold: f64,
+    /// Largest number of pairs used by the joint forward-model fit (all pairs are used by the
+    /// signature tests).
+    pub fit_frames: usize,
+    /// Seed of the forward models' generators.
+    pub seed: u64,
+    /// Write report.md with plots and residual maps.
+    pub write_markdown: bool,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options { unpaired: false, z_threshold: 6.0, fit_frames: 4, seed: 1, write_markdown: true }
+    }
+}
+
+/// A curve that gave evidence (plotted in report.md).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Profile {
+    pub title: String,
+    pub x_label: String,
+    pub y_label: String,
+    pub x: Vec<f64>,
+    /// (label, values); values may be NaN where there is no data.
+    pub series: Vec<(String, Vec<f64>)>,
+}
+
+/// Outcome of one signature test.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Signature {
+    /// Effect name from EFFECTS.md.
+    pub effect: &'static str,
+    /// Significance as a one-sided normal z (large = strong evidence against "absent").
+    pub z: f64,
+    /// Passed the significance test and the minimum effect size.
+    pub detected: bool,
+    /// Initial canonical parameter estimates from the signature (before the forward-model fit).
+    pub params: Vec<(String, f64)>,
+    /// Choice parameters (e.g. smear direction).
+    pub choices: Vec<(String, String)>,
+    /// Standard errors of the estimates, where known.
+    pub stderr: Vec<(String, f64)>,
+    /// Effect size in the unit of `size_unit`, for ranking and the practical threshold.
+    pub size: f64,
+    pub size_unit: &'static str,
+    #[serde(rename = "where")]
+    pub where_: String,
+    pub evidence: String,
+    #[serde(skip)]
+    pub profiles: Vec<Profile>,
+}
+
+impl Signature {
+    pub fn new(effect: &'static str) -> Signature {
+        Signature {
+            effect,
+            z: 0.0,
+            detected: false,
+            params: Vec::new(),
+            choices: Vec::new(),
+            stderr: Vec::new(),
+            size: 0.0,
+            size_unit: "",
+            where_: String::new(),
+            evidence: String::new(),
+            profiles: Vec::new(),
+        }
+    }
+    pub fn param(&self, name: &str) -> Option<f64> {
+        self.params.iter().find(|(n, _)| n == name).map(|(_, v)| *v)
+    }
+    pub fn set_param(&mut self, name: &str, v: f64) {
+        if let Some(p) = self.params.iter_mut().find(|(n, _)| n == name) {
+            p.1 = v;
+        } else {
+            self.params.push((name.to_string(), v));
+        }
+    }
+}
+
+/// Run a diagnosis on two folders and write the report into `out`.
+pub fn diagnose_dirs(sim: &Path, real: &Path, out: &Path, opts: &Options) -> Result<report::Report, DiagnoseError> {
+    std::fs::create_dir_all(out).map_err(|source| DiagnoseError::Io { path: out.to_path_buf(), source })?;
+    if opts.unpaired {
+        let sims = img::load_folder(sim)?;
+        let reals = img::load_folder(real)?;
+        let rep = unpaired::run(&sims, &reals, opts)?;
+        report::write_unpaired(&rep, out, opts)?;
+        return Ok(rep.report);
+    }
+    let (pairs, notes) = img::load_pairs(sim, real)?;
+    let located = locate::locate(&pairs, opts);
+    let fitted = fit::fit(&pairs, &located, opts)?;
+    let rep = report::build(&pairs, &located, &fitted, notes, opts);
+    report::write(&rep, &pairs, &located, &fitted, out, opts)?;
+    Ok(rep)
+}

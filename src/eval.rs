@@ -1,1 +1,0 @@
-//! `eval` (not yet implemented).

@@ -1,0 +1,557 @@
+//! The original study's blooming validation protocol (`faultcam eval blooming`).
+//!
+//! Question: does the `blooming` effect make the bright zones of generated (simulated) images look
+//! like the blooming zones of real camera images? Protocol:
+//!
+//! 1. **Select** generated images with a bright region: at least `min_area` pixels at or above
+//!    `threshold` (250 in 8-bit DN).
+//! 2. **Apply blooming** (`faults::create("blooming")`, parameters from the command line).
+//! 3. **Crop** the bounding box of the brightest blooming zone: the largest 8-connected region at
+//!    or above the zone level ([`zones::zone_level`]: the threshold, or just below the image's
+//!    own saturation plateau when that is lower), in every bloomed generated image and every
+//!    real image. Boxes smaller than `min_crop` are grown about their centre to `min_crop` px
+//!    (inside the image) so that ORB has room for its patch. The *control* crop is the same box
+//!    in the generated image before blooming.
+//! 4. **Centre-crop** every crop to the common shape: the smallest width and the smallest height
+//!    over all bloomed and real crops.
+//! 5. **Score** each generated crop against every real crop: FQI (ORB, see
+//!    [`crate::metrics::fqi`]) and histogram correlation ([`crate::metrics::hist_correlation`]).
+//!    An undefined FQI (no keypoints or no match) scores 0. The **best match** is the real crop
+//!    with the largest `FQI + correlation`; its two scores are the image's scores.
+//! 6. **Accept** an image when `FQI >= fqi_min` (0.80) and `correlation >= corr_min` (0.90);
+//!    report the acceptance rate and the score distributions (mean, median, std, min, max).
+//! 7. **Control**: steps 5-6 on the control crops (same boxes, before blooming).
+
+use super::zones::{self, Zone};
+use super::{EvalError, Stats, list_images, load_frame, plot, save_grey_png};
+use crate::faults::{self, EffectCtx, Params};
+use crate::frame::Frame;
+use crate::metrics::{self, Grey, OrbConfig};
+use rayon::prelude::*;
+use std::path::{Path, PathBuf};
+
+/// Where generated images come from.
+#[derive(Debug, Clone)]
+pub enum Generated {
+    /// A folder of images.
+    Dir(PathBuf),
+    /// A source URI (`synth:?...`, `files:DIR`), read until its end or `max_generated` frames.
+    Uri(String),
+}
+
+impl Generated {
+    /// `synth:...`/`files:...`/any `scheme:` with a known scheme is a URI, anything else a folder.
+    pub fn parse(s: &str) -> Generated {
+        let scheme = s.split_once(':').map(|(a, _)| a).unwrap_or("");
+        if crate::source::SCHEMES.contains(&scheme) { Generated::Uri(s.to_string()) } else { Generated::Dir(s.into()) }
+    }
+}
+
+/// Settings of the protocol.
+#[derive(Debug, Clone)]
+pub struct BloomingConfig {
+    /// Bright level (8-bit DN) for selection and zones.
+    pub threshold: f32,
+    /// Pixels at or above the threshold a generated image needs to be selected, and smallest
+    /// zone kept.
+    pub min_area: usize,
+    /// Smallest crop side (px) before centre-cropping to the common shape.
+    pub min_crop: usize,
+    pub fqi_min: f64,
+    pub corr_min: f64,
+    pub orb: OrbConfig,
+    /// Parameters of the `blooming` effect.
+    pub blooming: Option<Params>,
+    /// Seed of the effect generators (per image: derived from seed and image index).
+    pub seed: u64,
+    /// Most generated images read (a source may be endless).
+    pub max_generated: usize,
+    /// Real images are used only if their file name contains one of these (all if empty).
+    pub real_include: Vec<String>,
+    /// Write the crops as PNG under `out/crops`.
+    pub save_crops: bool,
+}
+
+impl Default for BloomingConfig {
+    fn default() -> Self {
+        BloomingConfig {
+            threshold: 250.0,
+            min_area: 10,
+            min_crop: 96,
+            fqi_min: 0.80,
+            corr_min: 0.90,
+            orb: OrbConfig::default(),
+            blooming: None,
+            seed: 1,
+            max_generated: 210,
+            real_include: Vec::new(),
+            save_crops: true,
+        }
+    }
+}
+
+/// A crop that took part in the comparison.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CropInfo {
+    pub name: String,
+    /// Zone found (before growing to `min_crop`).
+    pub zone: Zone,
+    /// Box cropped (after growing), before the common centre crop.
+    pub crop: Zone,
+}
+
+/// Scores of one generated crop against its best real match.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct MatchScore {
+    pub best_real: String,
+    /// `None` by the no-feature rule (scored as 0).
+    pub fqi: Option<f64>,
+    pub hist_corr: f64,
+    pub keypoints: usize,
+    pub accepted: bool,
+}
+
+/// Per generated image.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct GeneratedResult {
+    #[serde(flatten)]
+    pub crop: CropInfo,
+    pub bloomed: MatchScore,
+    pub control: MatchScore,
+}
+
+/// Acceptance and score distributions of one arm (bloomed or control).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ArmSummary {
+    pub accepted: usize,
+    pub total: usize,
+    pub acceptance_rate: f64,
+    /// Best-match FQI, undefined FQI counted as 0.
+    pub fqi: Option<Stats>,
+    pub fqi_undefined: usize,
+    pub hist_corr: Option<Stats>,
+}
+
+/// The original study's published numbers, for side-by-side reporting.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct StudyNumbers {
+    pub accepted: usize,
+    pub total: usize,
+    pub mean_fqi: f64,
+    pub mean_hist_corr: f64,
+    pub control_mean_fqi: f64,
+    pub control_mean_hist_corr: f64,
+}
+
+pub const STUDY: StudyNumbers = StudyNumbers {
+    accepted: 189,
+    total: 210,
+    mean_fqi: 0.908,
+    mean_hist_corr: 0.996,
+    control_mean_fqi: 0.846,
+    control_mean_hist_corr: 0.054,
+};
+
+/// Everything `report.json` holds.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct BloomingReport {
+    pub generated_source: String,
+    pub real_dir: PathBuf,
+    pub threshold: f32,
+    pub min_area: usize,
+    pub min_crop: usize,
+    pub fqi_min: f64,
+    pub corr_min: f64,
+    pub orb: OrbConfig,
+    pub blooming_params: serde_json::Value,
+    pub seed: u64,
+    pub generated_read: usize,
+    /// Generated images skipped, with the reason (no bright region, unreadable, ...).
+    pub generated_skipped: Vec<(String, String)>,
+    pub real_used: Vec<CropInfo>,
+    pub real_skipped: Vec<(String, String)>,
+    /// Common crop shape (width, height) px.
+    pub crop_shape: (usize, usize),
+    pub bloomed: ArmSummary,
+    pub control: ArmSummary,
+    pub study: StudyNumbers,
+    pub per_image: Vec<GeneratedResult>,
+    pub plots: Vec<String>,
+}
+
+struct GenCrop {
+    info: CropInfo,
+    bloomed: Grey,
+    control: Grey,
+}
+
+/// Run the protocol and write `report.json`, the plots and (optionally) the crops into `out`.
+pub fn run_protocol(
+    generated: &Generated,
+    real_dir: &Path,
+    out: &Path,
+    cfg: &BloomingConfig,
+) -> Result<BloomingReport, EvalError> {
+    std::fs::create_dir_all(out).map_err(|source| EvalError::Io { path: out.to_path_buf(), source })?;
+    let params = match cfg.blooming {
+        Some(p) => p,
+        None => faults::default_params("blooming")?,
+    };
+    // Fails early, naming the known effects, if `blooming` is not registered.
+    let mut effect = faults::create("blooming")?;
+
+    // Generated: select, bloom, crop.
+    let mut skipped = Vec::new();
+    let mut gens = Vec::new();
+    let mut read = 0usize;
+    let mut handle = |name: String, mut frame: Frame, skipped: &mut Vec<(String, String)>| -> Result<(), EvalError> {
+        let index = read as u64;
+        read += 1;
+        let before = Grey::from_frame(&frame);
+        let bright = zones::count_at_or_above(&before, cfg.threshold);
+        if bright < cfg.min_area {
+            skipped.push((name, format!("{bright} px >= {} (needs {})", cfg.threshold, cfg.min_area)));
+            return Ok(());
+        }
+        if !effect.info().accepts(frame.format) {
+            frame = before.to_frame();
+        }
+        frame.seq = index;
+        let mut ctx = EffectCtx::new(cfg.seed, index, 0);
+        effect.apply(&mut frame, &params, &mut ctx)?;
+        let after = Grey::from_frame(&frame);
+        let Some(zone) = zones::blooming_zone(&after, cfg.threshold, cfg.min_area) else {
+            skipped.push((name, "no blooming zone after blooming".to_string()));
+            return Ok(());
+        };
+        let crop = zone.expanded(cfg.min_crop, cfg.min_crop, after.width, after.height);
+        let cut = |g: &Grey| g.crop(crop.x0, crop.y0, crop.width(), crop.height());
+        if let (Some(bloomed), Some(control)) = (cut(&after), cut(&before)) {
+            gens.push(GenCrop { info: CropInfo { name, zone, crop }, bloomed, control });
+        }
+        Ok(())
+    };
+    let source_name = match generated {
+        Generated::Dir(d) => {
+            for p in list_images(d)?.into_iter().take(cfg.max_generated) {
+                let name = file_name(&p);
+                match load_frame(&p) {
+                    Ok(f) => handle(name, f, &mut skipped)?,
+                    Err(e) => skipped.push((name, e.to_string())),
+                }
+            }
+            d.display().to_string()
+        }
+        Generated::Uri(uri) => {
+            let err = |e: crate::source::SourceError| EvalError::Source { uri: uri.clone(), message: e.to_string() };
+            let mut src = crate::source::open(uri).map_err(err)?;
+            let mut n = 0usize;
+            while n < cfg.max_generated {
+                match src.next_frame() {
+                    Ok(Some(f)) => {
+                        let name = src.item_name().map(str::to_string).unwrap_or_else(|| format!("frame{n:06}"));
+                        handle(name, f, &mut skipped)?;
+                    }
+                    Ok(None) => break,
+                    Err(e) if e.recoverable() => skipped.push((format!("item{n:06}"), e.to_string())),
+                    Err(e) => return Err(err(e)),
+                }
+                n += 1;
+            }
+            uri.clone()
+        }
+    };
+
+    // Real crops.
+    let mut real_skipped = Vec::new();
+    let mut reals: Vec<(CropInfo, Grey)> = Vec::new();
+    for p in list_images(real_dir)? {
+        let name = file_name(&p);
+        if !cfg.real_include.is_empty() && !cfg.real_include.iter().any(|s| name.contains(s.as_str())) {
+            continue;
+        }
+        let g = match load_frame(&p) {
+            Ok(f) => Grey::from_frame(&f),
+            Err(e) => {
+                real_skipped.push((name, e.to_string()));
+                continue;
+            }
+        };
+        let Some(zone) = zones::blooming_zone(&g, cfg.threshold, cfg.min_area) else {
+            real_skipped.push((name, format!("no zone of {} px at or above {}", cfg.min_area, cfg.threshold)));
+            continue;
+        };
+        let crop = zone.expanded(cfg.min_crop, cfg.min_crop, g.width, g.height);
+        if let Some(c) = g.crop(crop.x0, crop.y0, crop.width(), crop.height()) {
+            reals.push((CropInfo { name, zone, crop }, c));
+        }
+    }
+    if reals.is_empty() {
+        return Err(EvalError::Invalid {
+            what: format!(
+                "{}: no real image with a blooming zone (>= {} px at or above {}); skipped: {}",
+                real_dir.display(),
+                cfg.min_area,
+                cfg.threshold,
+                real_skipped.iter().map(|(n, r)| format!("{n} ({r})")).collect::<Vec<_>>().join("; ")
+            ),
+        });
+    }
+    if gens.is_empty() {
+        return Err(EvalError::Invalid {
+            what: format!(
+                "{source_name}: no generated image with >= {} px at or above {} ({read} read)",
+                cfg.min_area, cfg.threshold
+            ),
+        });
+    }
+
+    // Common shape.
+    let cw = gens.iter().map(|g| g.bloomed.width).chain(reals.iter().map(|r| r.1.width)).min().unwrap_or(1);
+    let ch = gens.iter().map(|g| g.bloomed.height).chain(reals.iter().map(|r| r.1.height)).min().unwrap_or(1);
+    for g in gens.iter_mut() {
+        g.bloomed = g.bloomed.centre_crop(cw, ch);
+        g.control = g.control.centre_crop(cw, ch);
+    }
+    for r in reals.iter_mut() {
+        r.1 = r.1.centre_crop(cw, ch);
+    }
+    if cfg.save_crops {
+        let dir = out.join("crops");
+        std::fs::create_dir_all(&dir).map_err(|source| EvalError::Io { path: dir.clone(), source })?;
+        for g in &gens {
+            let stem = stem_of(&g.info.name);
+            save_grey_png(&g.bloomed, &dir.join(format!("gen_{stem}_bloomed.png")))?;
+            save_grey_png(&g.control, &dir.join(format!("gen_{stem}_control.png")))?;
+        }
+        for r in &reals {
+            save_grey_png(&r.1, &dir.join(format!("real_{}.png", stem_of(&r.0.name))))?;
+        }
+    }
+
+    // Scores.
+    let real_scores = score_set(reals.iter().map(|r| &r.1), &cfg.orb)?;
+    let bloomed = score_set(gens.iter().map(|g| &g.bloomed), &cfg.orb)?;
+    let control = score_set(gens.iter().map(|g| &g.control), &cfg.orb)?;
+    let per_image: Vec<GeneratedResult> = gens
+        .iter()
+        .enumerate()
+        .map(|(i, g)| -> Result<GeneratedResult, EvalError> {
+            Ok(GeneratedResult {
+                crop: g.info.clone(),
+                bloomed: best_match(&bloomed[i], &real_scores, &reals, cfg)?,
+                control: best_match(&control[i], &real_scores, &reals, cfg)?,
+            })
+        })
+        .collect::<Result<_, _>>()?;
+    let bloomed_sum = summarise(per_image.iter().map(|r| &r.bloomed));
+    let control_sum = summarise(per_image.iter().map(|r| &r.control));
+
+    // Plots.
+    let mut plots = Vec::new();
+    let fq = |f: fn(&GeneratedResult) -> &MatchScore| -> Vec<f64> {
+        per_image.iter().map(|r| f(r).fqi.unwrap_or(0.0)).collect()
+    };
+    let hc = |f: fn(&GeneratedResult) -> &MatchScore| -> Vec<f64> { per_image.iter().map(|r| f(r).hist_corr).collect() };
+    let (fb, fc) = (plot::bin_counts(&fq(|r| &r.bloomed), 25, 0.0, 1.0), plot::bin_counts(&fq(|r| &r.control), 25, 0.0, 1.0));
+    plot::BarPlot {
+        title: "FQI of best real match (count)",
+        x_label: "FQI",
+        x_range: (0.0, 1.0),
+        series: vec![
+            plot::Series { label: "bloomed", colour: [214, 96, 20], values: &fb },
+            plot::Series { label: "control", colour: [60, 110, 200], values: &fc },
+        ],
+        marker: Some(cfg.fqi_min),
+    }
+    .save(&out.join("fqi_hist.png"))?;
+    plots.push("fqi_hist.png".to_string());
+    let (hb, hcc) =
+        (plot::bin_counts(&hc(|r| &r.bloomed), 40, -1.0, 1.0), plot::bin_counts(&hc(|r| &r.control), 40, -1.0, 1.0));
+    plot::BarPlot {
+        title: "histogram correlation of best real match (count)",
+        x_label: "correlation",
+        x_range: (-1.0, 1.0),
+        series: vec![
+            plot::Series { label: "bloomed", colour: [214, 96, 20], values: &hb },
+            plot::Series { label: "control", colour: [60, 110, 200], values: &hcc },
+        ],
+        marker: Some(cfg.corr_min),
+    }
+    .save(&out.join("hist_corr_hist.png"))?;
+    plots.push("hist_corr_hist.png".to_string());
+    let grey_mean = |gs: &mut dyn Iterator<Item = &Grey>| -> Vec<f64> {
+        let mut acc = vec![0.0; 32];
+        let mut n = 0.0;
+        for g in gs {
+            for (i, v) in metrics::histogram(g).iter().enumerate() {
+                acc[i / 8] += v;
+            }
+            n += 1.0;
+        }
+        acc.iter().map(|v| v / f64::max(n, 1.0)).collect()
+    };
+    let (gr, gb, gc) = (
+        grey_mean(&mut reals.iter().map(|r| &r.1)),
+        grey_mean(&mut gens.iter().map(|g| &g.bloomed)),
+        grey_mean(&mut gens.iter().map(|g| &g.control)),
+    );
+    plot::BarPlot {
+        title: "mean grey histogram of the crops (fraction, 8 levels per bin)",
+        x_label: "grey level (8-bit DN)",
+        x_range: (0.0, 256.0),
+        series: vec![
+            plot::Series { label: "real", colour: [40, 40, 40], values: &gr },
+            plot::Series { label: "bloomed", colour: [214, 96, 20], values: &gb },
+            plot::Series { label: "control", colour: [60, 110, 200], values: &gc },
+        ],
+        marker: Some(cfg.threshold as f64),
+    }
+    .save(&out.join("grey_hist.png"))?;
+    plots.push("grey_hist.png".to_string());
+
+    let report = BloomingReport {
+        generated_source: source_name,
+        real_dir: real_dir.to_path_buf(),
+        threshold: cfg.threshold,
+        min_area: cfg.min_area,
+        min_crop: cfg.min_crop,
+        fqi_min: cfg.fqi_min,
+        corr_min: cfg.corr_min,
+        orb: cfg.orb,
+        blooming_params: serde_json::to_value(params).unwrap_or(serde_json::Value::Null),
+        seed: cfg.seed,
+        generated_read: read,
+        generated_skipped: skipped,
+        real_used: reals.iter().map(|r| r.0.clone()).collect(),
+        real_skipped,
+        crop_shape: (cw, ch),
+        bloomed: bloomed_sum,
+        control: control_sum,
+        study: STUDY,
+        per_image,
+        plots,
+    };
+    let path = out.join("report.json");
+    let text = serde_json::to_string_pretty(&report)
+        .map_err(|e| EvalError::Invalid { what: format!("{}: cannot serialise: {e}", path.display()) })?;
+    std::fs::write(&path, text).map_err(|source| EvalError::Io { path, source })?;
+    Ok(report)
+}
+
+fn file_name(p: &Path) -> String {
+    p.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()
+}
+
+fn stem_of(name: &str) -> String {
+    Path::new(name).file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| name.to_string())
+}
+
+/// Per crop: its grey histogram and, with OpenCV, its ORB features.
+struct Scored {
+    hist: [f64; 256],
+    #[cfg(feature = "opencv")]
+    orb: metrics::OrbFeatures,
+}
+
+fn score_set<'a>(crops: impl Iterator<Item = &'a Grey>, orb: &OrbConfig) -> Result<Vec<Scored>, EvalError> {
+    let crops: Vec<&Grey> = crops.collect();
+    crops
+        .par_iter()
+        .map(|g| -> Result<Scored, EvalError> {
+            #[cfg(not(feature = "opencv"))]
+            let _ = orb;
+            Ok(Scored {
+                hist: metrics::histogram(g),
+                #[cfg(feature = "opencv")]
+                orb: metrics::orb_features(g, orb)
+                    .map_err(|source| EvalError::Metrics { context: "ORB on a crop".to_string(), source })?,
+            })
+        })
+        .collect()
+}
+
+fn best_match(
+    g: &Scored,
+    reals: &[Scored],
+    real_info: &[(CropInfo, Grey)],
+    cfg: &BloomingConfig,
+) -> Result<MatchScore, EvalError> {
+    let mut best: Option<(f64, MatchScore)> = None;
+    for (r, info) in reals.iter().zip(real_info) {
+        #[cfg(feature = "opencv")]
+        let fqi = g.orb.fqi(&r.orb).map_err(|source| EvalError::Metrics { context: info.0.name.clone(), source })?.value;
+        #[cfg(not(feature = "opencv"))]
+        let fqi: Option<f64> = None;
+        let corr = metrics::hist_correlation_hist(&g.hist, &r.hist);
+        let score = fqi.unwrap_or(0.0) + corr;
+        if best.as_ref().is_none_or(|(s, _)| score > *s) {
+            let accepted = fqi.unwrap_or(0.0) >= cfg.fqi_min && corr >= cfg.corr_min;
+            #[cfg(feature = "opencv")]
+            let keypoints = g.orb.keypoints;
+            #[cfg(not(feature = "opencv"))]
+            let keypoints = 0;
+            best = Some((score, MatchScore { best_real: info.0.name.clone(), fqi, hist_corr: corr, keypoints, accepted }));
+        }
+    }
+    best.map(|b| b.1).ok_or_else(|| EvalError::Invalid { what: "no real crop to compare with".to_string() })
+}
+
+fn summarise<'a>(scores: impl Iterator<Item = &'a MatchScore>) -> ArmSummary {
+    let scores: Vec<&MatchScore> = scores.collect();
+    let total = scores.len();
+    let accepted = scores.iter().filter(|s| s.accepted).count();
+    let fqi: Vec<f64> = scores.iter().map(|s| s.fqi.unwrap_or(0.0)).collect();
+    let corr: Vec<f64> = scores.iter().map(|s| s.hist_corr).collect();
+    ArmSummary {
+        accepted,
+        total,
+        acceptance_rate: if total > 0 { accepted as f64 / total as f64 } else { 0.0 },
+        fqi: Stats::of(&fqi),
+        fqi_undefined: scores.iter().filter(|s| s.fqi.is_none()).count(),
+        hist_corr: Stats::of(&corr),
+    }
+}
+
+impl BloomingReport {
+    /// Plain-text summary next to the study's numbers.
+    pub fn summary(&self) -> String {
+        let arm = |a: &ArmSummary| {
+            let f = a.fqi.map(|s| format!("{:.3}/{:.3}/{:.3}/{:.3}", s.mean, s.median, s.std, s.min)).unwrap_or_default();
+            let c = a
+                .hist_corr
+                .map(|s| format!("{:.3}/{:.3}/{:.3}/{:.3}", s.mean, s.median, s.std, s.min))
+                .unwrap_or_default();
+            format!(
+                "{:>4}/{:<4} ({:5.1}%)  FQI {f}  corr {c}  (FQI undefined: {})",
+                a.accepted,
+                a.total,
+                100.0 * a.acceptance_rate,
+                a.fqi_undefined
+            )
+        };
+        let s = &self.study;
+        format!(
+            "generated read {}, selected {}, real crops {} ({} skipped), crop {}x{} px\n\
+             accepted at FQI >= {} and corr >= {}; scores mean/median/std/min\n\
+             bloomed: {}\ncontrol: {}\n\
+             study:   {}/{} accepted, mean FQI {}, mean corr {}; control mean FQI {}, mean corr {}\n",
+            self.generated_read,
+            self.bloomed.total,
+            self.real_used.len(),
+            self.real_skipped.len(),
+            self.crop_shape.0,
+            self.crop_shape.1,
+            self.fqi_min,
+            self.corr_min,
+            arm(&self.bloomed),
+            arm(&self.control),
+            s.accepted,
+            s.total,
+            s.mean_fqi,
+            s.mean_hist_corr,
+            s.control_mean_fqi,
+            s.control_mean_hist_corr
+        )
+    }
+}

@@ -1,0 +1,376 @@
+//! Building blocks of the physics library (helper "physlib"): parallel row bands with
+//! thread-count-independent randomness, a multi-lane random generator for per-sample noise,
+//! sparse Bernoulli sampling, fixed-point gain maps and the seeded benchmark scene.
+//!
+//! Determinism: work is split into bands of [`ROWS_PER_TASK`] rows whatever the thread count;
+//! band `k` draws from `ctx.rng.derive(k)`, so the bytes never depend on how rayon schedules.
+
+use crate::frame::{Frame, PixelFormat, Sample};
+use crate::rng::Rng;
+use rayon::prelude::*;
+
+pub use super::util::ROWS_PER_TASK;
+
+/// Run `f(band, first_row, rows)` over bands of [`ROWS_PER_TASK`] rows in parallel. `rows` is the
+/// band's slice of `data` (rows of `stride` samples; the last row of the frame may be shorter
+/// than `stride` but is at least one row long). No allocation.
+pub fn par_bands<T: Send>(data: &mut [T], stride: usize, height: usize, f: impl Fn(usize, usize, &mut [T]) + Sync) {
+    let used = used_len(data.len(), stride, height);
+    data[..used]
+        .par_chunks_mut(stride * ROWS_PER_TASK)
+        .enumerate()
+        .for_each(|(k, band)| f(k, k * ROWS_PER_TASK, band));
+}
+
+/// Like [`par_bands`], with a second per-band slice (scratch) handed to each band: `scratch`
+/// is split into chunks of `per_band` elements, one per band (it must hold `bands(height)` chunks).
+pub fn par_bands_with<T: Send, S: Send>(
+    data: &mut [T],
+    stride: usize,
+    height: usize,
+    scratch: &mut [S],
+    per_band: usize,
+    f: impl Fn(usize, usize, &mut [T], &mut [S]) + Sync,
+) {
+    let used = used_len(data.len(), stride, height);
+    data[..used]
+        .par_chunks_mut(stride * ROWS_PER_TASK)
+        .zip(scratch.par_chunks_mut(per_band.max(1)))
+        .enumerate()
+        .for_each(|(k, (band, s))| f(k, k * ROWS_PER_TASK, band, s));
+}
+
+/// Number of bands for a frame height.
+pub fn bands(height: usize) -> usize {
+    height.div_ceil(ROWS_PER_TASK)
+}
+
+fn used_len(len: usize, stride: usize, height: usize) -> usize {
+    len.min(stride * height)
+}
+
+/// Rows of a band (each without padding).
+pub fn band_rows<T>(band: &mut [T], stride: usize, row_len: usize) -> impl Iterator<Item = &mut [T]> {
+    band.chunks_mut(stride).map(move |r| &mut r[..row_len])
+}
+
+/// Four interleaved xoshiro256++ streams stepped together: the same algorithm as [`Rng`], laid
+/// out so the compiler can keep the four states in vector registers. Each lane is seeded from
+/// `parent.derive(lane)`, so the stream is a pure function of the parent's seed.
+#[derive(Clone, Debug)]
+pub struct RngLanes {
+    s: [[u64; 4]; 4],
+}
+
+impl RngLanes {
+    pub fn new(parent: &Rng) -> RngLanes {
+        let mut s = [[0u64; 4]; 4];
+        for lane in 0..4 {
+            let mut child = parent.derive(lane as u64);
+            // Burn-in is unnecessary (SplitMix seeding); take the state through the public stream.
+            let st = [child.next_u64(), child.next_u64(), child.next_u64(), child.next_u64()];
+            for j in 0..4 {
+                s[j][lane] = st[j] | if j == 0 { 1 } else { 0 };
+            }
+        }
+        RngLanes { s }
+    }
+
+    /// Four 64-bit outputs.
+    #[inline(always)]
+    pub fn next4(&mut self) -> [u64; 4] {
+        let [s0, s1, s2, s3] = &mut self.s;
+        let mut out = [0u64; 4];
+        for l in 0..4 {
+            out[l] = s0[l].wrapping_add(s3[l]).rotate_left(23).wrapping_add(s0[l]);
+            let t = s1[l] << 17;
+            s2[l] ^= s0[l];
+            s3[l] ^= s1[l];
+            s1[l] ^= s2[l];
+            s0[l] ^= s3[l];
+            s2[l] ^= t;
+            s3[l] = s3[l].rotate_left(45);
+        }
+        out
+    }
+
+    /// Fill `out` with uniform 32-bit words.
+    #[inline]
+    pub fn fill_u32(&mut self, out: &mut [u32]) {
+        let mut chunks = out.chunks_exact_mut(8);
+        for c in &mut chunks {
+            let r = self.next4();
+            for l in 0..4 {
+                c[2 * l] = r[l] as u32;
+                c[2 * l + 1] = (r[l] >> 32) as u32;
+            }
+        }
+        let rest = chunks.into_remainder();
+        if !rest.is_empty() {
+            let r = self.next4();
+            for (i, v) in rest.iter_mut().enumerate() {
+                *v = (r[i / 2] >> (32 * (i % 2))) as u32;
+            }
+        }
+    }
+}
+
+/// Visit the indices `i < n` of a Bernoulli(p) process (each index independently with
+/// probability `p`) by geometric skipping: one uniform draw per selected index, so sparse
+/// faults cost O(p·n). Exact in distribution up to f64 resolution.
+pub fn for_each_bernoulli(rng: &mut Rng, n: usize, p: f64, mut f: impl FnMut(usize, &mut Rng)) {
+    if p <= 0.0 || n == 0 {
+        return;
+    }
+    if p >= 1.0 {
+        for i in 0..n {
+            f(i, rng);
+        }
+        return;
+    }
+    let ln_q = (-p).ln_1p(); // ln(1 - p) < 0
+    let mut i = 0usize;
+    loop {
+        // Number of failures before the next success: floor(ln(U) / ln(1 - p)), U in (0, 1].
+        let u = 1.0 - rng.uniform();
+        let skip = (u.ln() / ln_q).floor();
+        if !skip.is_finite() || skip >= (n - i) as f64 {
+            return;
+        }
+        i += skip as usize;
+        f(i, rng);
+        i += 1;
+        if i >= n {
+            return;
+        }
+    }
+}
+
+/// Fixed-point gain maps: `Q` fractional bits. `apply_gain_q` computes round(v·g) with the
+/// gain stored as round(g·2^Q) in a `u32`, saturating at the sample maximum.
+pub const GAIN_Q: u32 = 16;
+
+/// Gain → fixed point (clamped to [0, 65535.99]).
+#[inline]
+pub fn gain_to_q(g: f64) -> u32 {
+    (g.clamp(0.0, 65535.0) * (1u64 << GAIN_Q) as f64).round() as u32
+}
+
+/// round(v · g) with `g` in Q16, saturating. Exact for 8-bit samples and gains that are
+/// multiples of 2^-16; for 16-bit samples the product is formed in 64 bits.
+#[inline(always)]
+pub fn mul_gain_q<T: Sample>(v: T, gq: u32) -> T {
+    let p = v.to_u32() as u64 * gq as u64 + (1u64 << (GAIN_Q - 1));
+    T::from_u32_sat((p >> GAIN_Q).min(u32::MAX as u64) as u32)
+}
+
+/// Point-wise lookup tables for both sample widths, rebuilt only when their key changes.
+#[derive(Default, Debug)]
+pub struct Lut {
+    key: Option<(u64, u64, u64, bool)>,
+    // allocation: once per parameter change
+    pub t8: Vec<u8>,
+    pub t16: Vec<u16>,
+}
+
+impl Lut {
+    /// Make sure the table for `key` and the frame's sample width exists; `f(v, fs)` maps a
+    /// sample value to the output value in DN (rounded and clamped here).
+    pub fn ensure(&mut self, key: (u64, u64, u64), wide: bool, f: impl Fn(f64, f64) -> f64) {
+        let full = (key.0, key.1, key.2, wide);
+        if self.key == Some(full) {
+            return;
+        }
+        if wide {
+            self.t16.clear();
+            self.t16.extend((0..=65535u32).map(|v| f(v as f64, 65535.0).round().clamp(0.0, 65535.0) as u16));
+        } else {
+            self.t8.clear();
+            self.t8.extend((0..=255u32).map(|v| f(v as f64, 255.0).round().clamp(0.0, 255.0) as u8));
+        }
+        self.key = Some(full);
+    }
+
+    /// Apply the table to every sample of the frame (parallel over row bands).
+    pub fn apply(&self, frame: &mut Frame) {
+        let (stride, height, row_len) = (frame.stride, frame.height as usize, frame.row_len());
+        match &mut frame.data {
+            crate::frame::FrameData::U8(d) => {
+                let Ok(t) = <&[u8; 256]>::try_from(&self.t8[..]) else { return };
+                par_bands(d, stride, height, |_, _, band| {
+                    for row in band_rows(band, stride, row_len) {
+                        for v in row.iter_mut() {
+                            *v = t[*v as usize];
+                        }
+                    }
+                });
+            }
+            crate::frame::FrameData::U16(d) => {
+                let Ok(t) = <&[u16; 65536]>::try_from(&self.t16[..]) else { return };
+                par_bands(d, stride, height, |_, _, band| {
+                    for row in band_rows(band, stride, row_len) {
+                        for v in row.iter_mut() {
+                            *v = t[*v as usize];
+                        }
+                    }
+                });
+            }
+        }
+    }
+}
+
+/// A fixed sparse pixel pattern (hot pixels, dead pixels) that is *nested* in its rate: the
+/// candidates are drawn once per (pixel count, seed) at the parameter's maximum rate, each with
+/// a uniform key in [0, max_rate); the pattern for rate r is the candidates with key < r. So
+/// every pixel is in the pattern independently with probability r, and raising r only adds
+/// pixels (a fitter sees a monotone, continuous response).
+#[derive(Default, Debug)]
+pub struct SparsePattern {
+    cand_key: Option<(usize, u64, u64)>,
+    // allocation: once per (size, seed): about max_rate · pixels entries
+    cand: Vec<(u32, f64)>,
+    active_key: Option<u64>,
+    // allocation: once per rate change
+    active: Vec<u32>,
+}
+
+impl SparsePattern {
+    /// Pixel indices (y·width + x, increasing) of the pattern.
+    pub fn ensure(&mut self, pixels: usize, seed: u64, max_rate: f64, rate: f64) -> &[u32] {
+        let ck = (pixels, seed, max_rate.to_bits());
+        if self.cand_key != Some(ck) {
+            self.cand.clear();
+            let mut rng = Rng::new(seed);
+            let cand = &mut self.cand;
+            for_each_bernoulli(&mut rng, pixels.min(u32::MAX as usize), max_rate, |i, r| {
+                cand.push((i as u32, r.uniform() * max_rate));
+            });
+            self.cand_key = Some(ck);
+            self.active_key = None;
+        }
+        if self.active_key != Some(rate.to_bits()) {
+            self.active.clear();
+            self.active.extend(self.cand.iter().filter(|c| c.1 < rate).map(|c| c.0));
+            self.active_key = Some(rate.to_bits());
+        }
+        &self.active
+    }
+}
+
+/// A seeded synthetic test scene for benchmarks and tests: a dark sky gradient with a lit
+/// spacecraft-like body (textured), a few saturated specular spots (value FS) and a row of
+/// stars. Deterministic in (size, format, seed).
+pub fn bench_scene(width: u32, height: u32, format: PixelFormat, seed: u64) -> Result<Frame, crate::frame::FrameError> {
+    let mut f = Frame::new(width, height, format)?;
+    let fs = format.full_scale();
+    let (w, h) = (width as f32, height as f32);
+    let ch = format.channels();
+    let mut rng = Rng::new(seed);
+    // Saturated spots: (x, y, radius) in pixels.
+    let spots: Vec<(f32, f32, f32)> = (0..6)
+        .map(|_| {
+            (
+                (0.25 + 0.5 * rng.uniform_f32()) * w,
+                (0.25 + 0.5 * rng.uniform_f32()) * h,
+                (2.0 + 6.0 * rng.uniform_f32()) * (w / 1280.0).max(0.25),
+            )
+        })
+        .collect();
+    let stars: Vec<(usize, usize)> =
+        (0..64).map(|_| (rng.below(width as u64) as usize, rng.below(height as u64) as usize)).collect();
+    let tint = [1.0f32, 0.92, 0.8];
+    let (cx, cy, rx, ry) = (0.5 * w, 0.55 * h, 0.3 * w, 0.2 * h);
+    let texture_seed = rng.next_u64();
+    crate::with_image_mut!(f, img => {
+        for y in 0..img.height {
+            let mut trng = Rng::new(texture_seed).derive(y as u64);
+            let row = img.row_mut(y);
+            for x in 0..(width as usize) {
+                let (xf, yf) = (x as f32, y as f32);
+                let mut v = 0.04 + 0.04 * yf / h;
+                let (dx, dy) = ((xf - cx) / rx, (yf - cy) / ry);
+                let d2 = dx * dx + dy * dy;
+                if d2 < 1.0 {
+                    // Lit body, brighter towards the upper left, with panel texture.
+                    let panel = if ((x / 24) + (y / 24)) % 2 == 0 { 0.08 } else { 0.0 };
+                    v = 0.35 + 0.3 * (1.0 - d2) - 0.15 * dx - 0.1 * dy + panel + 0.03 * trng.uniform_f32();
+                }
+                for &(sx, sy, r) in &spots {
+                    let q = ((xf - sx) * (xf - sx) + (yf - sy) * (yf - sy)) / (r * r);
+                    if q < 1.0 {
+                        v = 1.5; // saturated
+                    } else if q < 4.0 {
+                        v = v.max(1.0 - 0.3 * (q - 1.0));
+                    }
+                }
+                for c in 0..ch {
+                    row[x * ch + c] = Sample::from_f32(v.min(1.0) * fs * if v >= 1.0 { 1.0 } else { tint[c % 3] });
+                }
+            }
+        }
+        for &(x, y) in &stars {
+            for c in 0..ch {
+                img.row_mut(y)[x * ch + c] = Sample::from_f32(0.8 * fs);
+            }
+        }
+    });
+    Ok(f)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lanes_are_reproducible_and_uniform() {
+        let p = Rng::new(3);
+        let mut a = RngLanes::new(&p);
+        let mut b = RngLanes::new(&p);
+        let mut va = vec![0u32; 1003];
+        let mut vb = vec![0u32; 1003];
+        a.fill_u32(&mut va);
+        b.fill_u32(&mut vb);
+        assert_eq!(va, vb);
+        let mut big = vec![0u32; 200_000];
+        a.fill_u32(&mut big);
+        let mean = big.iter().map(|&v| v as f64 / 4294967296.0).sum::<f64>() / big.len() as f64;
+        // Uniform mean 0.5, std 0.2887/sqrt(n) = 6.5e-4; 5 sigma.
+        assert!((mean - 0.5).abs() < 3.3e-3, "{mean}");
+        // Every bit is set about half of the time (binomial std 112; 6 sigma).
+        for bit in 0..32 {
+            let ones = big.iter().filter(|&&v| v >> bit & 1 == 1).count() as f64;
+            assert!((ones - 100_000.0).abs() < 672.0, "bit {bit}: {ones}");
+        }
+    }
+
+    #[test]
+    fn bernoulli_skipping_has_binomial_count() {
+        let mut rng = Rng::new(11);
+        let n = 1_000_000;
+        for &p in &[1e-4, 0.01, 0.3] {
+            let mut count = 0usize;
+            let mut last = None;
+            for_each_bernoulli(&mut rng, n, p, |i, _| {
+                assert!(i < n && last.is_none_or(|l| i > l));
+                last = Some(i);
+                count += 1;
+            });
+            let sd = (n as f64 * p * (1.0 - p)).sqrt();
+            assert!((count as f64 - n as f64 * p).abs() < 5.0 * sd, "p {p}: {count}");
+        }
+        let mut count = 0;
+        for_each_bernoulli(&mut rng, 10, 1.0, |_, _| count += 1);
+        assert_eq!(count, 10);
+    }
+
+    #[test]
+    fn fixed_point_gain_rounds_like_floats() {
+        for v in 0..=255u8 {
+            for &g in &[0.0, 0.5, 0.75, 1.0, 1.3, 2.0] {
+                let want = (v as f64 * g).round().min(255.0) as u8;
+                assert_eq!(mul_gain_q(v, gain_to_q(g)), want, "{v} * {g}");
+            }
+        }
+        assert_eq!(mul_gain_q(65535u16, gain_to_q(2.0)), 65535);
+    }
+}

@@ -1,1 +1,0 @@
-//! `pipeline` (not yet implemented).

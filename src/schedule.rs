@@ -1,1 +1,0 @@
-//! `schedule` (not yet implemented).

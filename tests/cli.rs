@@ -1,0 +1,315 @@
+//! CLI tests: the real `faultcam` binary on inputs generated in temporary folders.
+
+use assert_cmd::Command;
+use faultcam::faults::registry;
+use faultcam::sink::{Sink, files::FilesSink};
+use faultcam::source::Source;
+use faultcam::source::synth::SynthSource;
+use std::collections::BTreeMap;
+use std::path::Path;
+
+fn faultcam() -> Command {
+    Command::cargo_bin("faultcam").unwrap()
+}
+
+/// Write `n` synthetic frames (PNG) named img_000.png, ... into `dir`.
+fn make_inputs(dir: &Path, n: usize, opts: &str) {
+    let mut src = SynthSource::open(&format!("synth:?width=96&height=64&frames={n}&spin_dps=20&{opts}")).unwrap();
+    let mut sink = FilesSink::open(&format!("files:{}", dir.display())).unwrap();
+    let mut i = 0;
+    while let Some(f) = src.next_frame().unwrap() {
+        sink.write_frame(&f, Some(&format!("img_{i:03}.png"))).unwrap();
+        i += 1;
+    }
+}
+
+/// File name → bytes of every image file (not logs) in `dir`.
+fn images(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "png"))
+        .map(|p| (p.file_name().unwrap().to_string_lossy().into_owned(), std::fs::read(&p).unwrap()))
+        .collect()
+}
+
+fn log_records(path: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(path).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+}
+
+fn count(records: &[serde_json::Value], kind: &str) -> usize {
+    records.iter().filter(|r| r["record"] == kind).count()
+}
+
+const NOISE: &str = "seed = 3\n\n[[effects]]\nname = \"gaussian_noise\"\nsigma_dn = 6.0\n\n[[effects]]\nname = \"gain_offset\"\ngain = 1.2\noffset_dn = 4\n";
+
+#[test]
+fn effects_lists_every_registered_effect_with_units() {
+    let out = faultcam().arg("effects").assert().success().get_output().stdout.clone();
+    let text = String::from_utf8(out).unwrap();
+    for r in registry::all() {
+        assert!(text.contains(&format!("{} [{} stage", r.info.name, r.info.stage.name())), "{} missing", r.info.name);
+        for p in r.info.params {
+            assert!(
+                text.contains(&format!("{}", p.name)) && text.contains(&format!("[{}]", p.unit)),
+                "{}.{}",
+                r.info.name,
+                p.name
+            );
+            assert!(text.contains(&p.range_text()), "{}.{} range", r.info.name, p.name);
+        }
+    }
+    let out = faultcam().args(["effects", "--json"]).assert().success().get_output().stdout.clone();
+    let v: serde_json::Value = serde_json::from_slice(&out).unwrap();
+    let arr = v.as_array().unwrap();
+    assert_eq!(arr.len(), registry::all().len());
+    for (e, r) in arr.iter().zip(registry::all()) {
+        assert_eq!(e["name"], r.info.name);
+        assert_eq!(e["params"].as_array().unwrap().len(), r.info.params.len());
+        for (p, s) in e["params"].as_array().unwrap().iter().zip(r.info.params) {
+            assert_eq!(p["unit"], s.unit);
+            assert_eq!(p["min"], s.min);
+            assert_eq!(p["max"], s.max);
+        }
+    }
+    let out = faultcam().args(["effects", "--name", "gain_offset"]).assert().success().get_output().stdout.clone();
+    let text = String::from_utf8(out).unwrap();
+    assert!(
+        text.starts_with("gain_offset [readout stage") && text.contains("offset_dn  [DN]  -255..=255 DN"),
+        "{text}"
+    );
+    let err = faultcam().args(["effects", "--name", "nope"]).assert().code(2).get_output().stderr.clone();
+    assert!(String::from_utf8(err).unwrap().contains("known effects: gain_offset"));
+}
+
+#[test]
+fn bad_faults_file_exits_2_naming_file_line_parameter_and_range() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("bad.toml");
+    std::fs::write(&cfg, "seed = 1\n\n[[effects]]\nname = \"gain_offset\"\ngain = 9.0\n").unwrap();
+    let inp = dir.path().join("in");
+    std::fs::create_dir(&inp).unwrap();
+    make_inputs(&inp, 1, "");
+    let out = faultcam()
+        .args(["apply", "--in"])
+        .arg(&inp)
+        .arg("--out")
+        .arg(dir.path().join("out"))
+        .arg("--faults")
+        .arg(&cfg)
+        .assert()
+        .code(2)
+        .get_output()
+        .stderr
+        .clone();
+    let err = String::from_utf8(out).unwrap();
+    assert!(err.contains(&format!("{}:5:", cfg.display())), "{err}");
+    assert!(err.contains("gain_offset.gain") && err.contains("0..=4"), "{err}");
+    // The same for `run`.
+    let out = faultcam()
+        .args(["run", "--source", "synth:?frames=1", "--sink", "null:", "--faults"])
+        .arg(&cfg)
+        .assert()
+        .code(2)
+        .get_output()
+        .stderr
+        .clone();
+    assert!(String::from_utf8(out).unwrap().contains("bad.toml:5:"));
+    // A bad URI is exit 2 too.
+    faultcam().args(["run", "--source", "synth:?width=2", "--sink", "null:", "--faults"]).arg(&cfg).assert().code(2);
+}
+
+#[test]
+fn run_synth_to_files_writes_n_frames_and_n_records() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("f.toml");
+    std::fs::write(&cfg, NOISE).unwrap();
+    let out = dir.path().join("frames");
+    let log = dir.path().join("gt.jsonl");
+    faultcam()
+        .args(["run", "--source", "synth:?width=96&height=64&frames=5", "--sink"])
+        .arg(format!("files:{}", out.display()))
+        .arg("--faults")
+        .arg(&cfg)
+        .arg("--log")
+        .arg(&log)
+        .assert()
+        .success();
+    let imgs = images(&out);
+    assert_eq!(
+        imgs.keys().cloned().collect::<Vec<_>>(),
+        (0..5).map(|i| format!("frame_{i:06}.png")).collect::<Vec<_>>()
+    );
+    let recs = log_records(&log);
+    assert_eq!(count(&recs, "frame"), 5);
+    let frames: Vec<_> = recs.iter().filter(|r| r["record"] == "frame").collect();
+    for (i, r) in frames.iter().enumerate() {
+        assert_eq!(r["seq"], i as u64);
+        assert_eq!(r["status"], "delivered");
+        assert!(r["output"].as_str().unwrap().ends_with(&format!("frame_{i:06}.png")));
+        let effects = r["effects"].as_array().unwrap();
+        // Physical order: gaussian_noise (readout, order 10) before gain_offset (readout, order 50).
+        assert_eq!(
+            effects.iter().map(|e| e["name"].as_str().unwrap()).collect::<Vec<_>>(),
+            ["gaussian_noise", "gain_offset"]
+        );
+        assert_eq!(effects[0]["params"]["sigma_dn"], 6.0);
+    }
+    let summary = recs.iter().find(|r| r["record"] == "summary").unwrap();
+    assert_eq!((summary["frames_in"].as_u64(), summary["delivered"].as_u64()), (Some(5), Some(5)));
+    // --frames limits the input; default log goes next to a files: sink.
+    let out2 = dir.path().join("frames2");
+    faultcam()
+        .args(["run", "--source", "synth:?width=64&height=48&frames=0", "--frames", "3", "--sink"])
+        .arg(format!("files:{}", out2.display()))
+        .arg("--faults")
+        .arg(&cfg)
+        .assert()
+        .success();
+    assert_eq!(images(&out2).len(), 3);
+    assert_eq!(count(&log_records(&out2.join("groundtruth.jsonl")), "frame"), 3);
+}
+
+#[test]
+fn run_files_logs_skipped_inputs_and_keeps_names() {
+    let dir = tempfile::tempdir().unwrap();
+    let inp = dir.path().join("in");
+    std::fs::create_dir(&inp).unwrap();
+    make_inputs(&inp, 3, "");
+    std::fs::write(inp.join("img_001.png"), b"broken").unwrap();
+    let cfg = dir.path().join("f.toml");
+    std::fs::write(&cfg, NOISE).unwrap();
+    let out = dir.path().join("out");
+    faultcam()
+        .args(["run", "--source"])
+        .arg(format!("files:{}", inp.display()))
+        .arg("--sink")
+        .arg(format!("files:{}", out.display()))
+        .arg("--faults")
+        .arg(&cfg)
+        .assert()
+        .success();
+    assert_eq!(images(&out).keys().cloned().collect::<Vec<_>>(), ["img_000.png", "img_002.png"]);
+    let recs = log_records(&out.join("groundtruth.jsonl"));
+    assert_eq!(count(&recs, "frame"), 2);
+    let skip = recs.iter().find(|r| r["record"] == "skip").unwrap();
+    assert!(skip["item"].as_str().unwrap().ends_with("img_001.png"));
+    let summary = recs.iter().find(|r| r["record"] == "summary").unwrap();
+    assert_eq!(summary["skipped"], 1);
+}
+
+fn apply(inp: &Path, out: &Path, cfg: &Path, extra: &[&str]) {
+    faultcam()
+        .args(["apply", "--in"])
+        .arg(inp)
+        .arg("--out")
+        .arg(out)
+        .arg("--faults")
+        .arg(cfg)
+        .args(extra)
+        .assert()
+        .success();
+}
+
+#[test]
+fn apply_shards_reproduce_the_unsharded_output_exactly() {
+    let dir = tempfile::tempdir().unwrap();
+    let inp = dir.path().join("in");
+    std::fs::create_dir(&inp).unwrap();
+    make_inputs(&inp, 10, "");
+    // A corrupt and a wrong-size file: skipped (and logged) by whichever shard owns them.
+    std::fs::write(inp.join("img_004.png"), b"\x89PNG\r\n\x1a\ntruncated").unwrap();
+    let mut small = SynthSource::open("synth:?width=32&height=32&frames=1").unwrap();
+    FilesSink::open(&format!("files:{}", inp.display()))
+        .unwrap()
+        .write_frame(&small.next_frame().unwrap().unwrap(), Some("img_007.png"))
+        .unwrap();
+    let cfg = dir.path().join("f.toml");
+    std::fs::write(&cfg, NOISE).unwrap();
+
+    let whole = dir.path().join("whole");
+    apply(&inp, &whole, &cfg, &["--threads", "2"]);
+    let expected = images(&whole);
+    assert_eq!(expected.len(), 8, "10 inputs, one corrupt, one wrong size: {:?}", expected.keys());
+    assert!(!expected.contains_key("img_004.png") && !expected.contains_key("img_007.png"));
+    let recs = log_records(&whole.join("groundtruth.jsonl"));
+    assert_eq!((count(&recs, "frame"), count(&recs, "skip")), (8, 2));
+    let skips: Vec<String> = recs.iter().filter(|r| r["record"] == "skip").map(|r| r["reason"].to_string()).collect();
+    assert!(skips[1].contains("expected 96x64 mono8, got 32x32 mono8"), "{skips:?}");
+    // Input names are kept and seq is the index in the listing.
+    let r5 = recs.iter().find(|r| r["record"] == "frame" && r["input"] == "img_005.png").unwrap();
+    assert_eq!(r5["seq"], 5);
+
+    let sharded = dir.path().join("sharded");
+    let mut frames = 0;
+    for k in 0..3 {
+        apply(&inp, &sharded, &cfg, &["--threads", "1", "--shard", &format!("{k}/3")]);
+        let log = sharded.join(format!("groundtruth.shard-{k}-of-3.jsonl"));
+        frames += count(&log_records(&log), "frame");
+    }
+    assert_eq!(frames, 8);
+    let got = images(&sharded);
+    assert_eq!(got.keys().collect::<Vec<_>>(), expected.keys().collect::<Vec<_>>());
+    for (name, bytes) in &expected {
+        assert!(got[name] == *bytes, "{name}: sharded output differs from the unsharded one");
+    }
+    // The faults did something: outputs differ from inputs.
+    assert_ne!(std::fs::read(inp.join("img_000.png")).unwrap(), expected["img_000.png"]);
+}
+
+#[test]
+fn apply_same_seed_same_bytes_on_1_and_2_threads_and_seed_matters() {
+    let dir = tempfile::tempdir().unwrap();
+    let inp = dir.path().join("in");
+    std::fs::create_dir(&inp).unwrap();
+    make_inputs(&inp, 5, "format=rgb8");
+    let cfg = dir.path().join("f.toml");
+    std::fs::write(&cfg, NOISE).unwrap();
+    let (a, b, c) = (dir.path().join("a"), dir.path().join("b"), dir.path().join("c"));
+    apply(&inp, &a, &cfg, &["--threads", "1", "--seed", "11"]);
+    apply(&inp, &b, &cfg, &["--threads", "2", "--seed", "11"]);
+    apply(&inp, &c, &cfg, &["--threads", "2", "--seed", "12"]);
+    let (ia, ib, ic) = (images(&a), images(&b), images(&c));
+    assert_eq!(ia.len(), 5);
+    assert!(ia == ib, "--threads 1 and --threads 2 differ");
+    for (name, bytes) in &ia {
+        assert!(ic[name] != *bytes, "{name}: a different seed gave the same bytes");
+    }
+    // The log records the seed of every effect's generator.
+    let recs = log_records(&a.join("groundtruth.jsonl"));
+    let start = recs.iter().find(|r| r["record"] == "event").unwrap();
+    assert_eq!(start["seed"], 11);
+}
+
+#[test]
+fn apply_refuses_to_overwrite_its_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let inp = dir.path().join("in");
+    std::fs::create_dir(&inp).unwrap();
+    make_inputs(&inp, 1, "");
+    let cfg = dir.path().join("f.toml");
+    std::fs::write(&cfg, NOISE).unwrap();
+    let err = faultcam()
+        .args(["apply", "--in"])
+        .arg(&inp)
+        .arg("--out")
+        .arg(&inp)
+        .arg("--faults")
+        .arg(&cfg)
+        .assert()
+        .code(2)
+        .get_output()
+        .stderr
+        .clone();
+    assert!(String::from_utf8(err).unwrap().contains("input folder"));
+    faultcam()
+        .args(["apply", "--in"])
+        .arg(&inp)
+        .arg("--out")
+        .arg(dir.path().join("o"))
+        .arg("--faults")
+        .arg(&cfg)
+        .args(["--shard", "3/3"])
+        .assert()
+        .code(2);
+}

@@ -1,0 +1,1328 @@
+//! realcam: an independent "real camera" and procedural scene generator for the diagnosis corpus
+//! (issue 7, part 6).
+//!
+//! This module is deliberately written WITHOUT reading `src/faults/*` or `src/diagnose*`: it
+//! shares only the effect names, canonical parameters, units and sign conventions of
+//! `shared/EFFECTS.md`. Where physics allows, the functional forms differ from the library's:
+//!
+//! | effect | realcam form | canonical truth recorded |
+//! |---|---|---|
+//! | `vignetting` | cos⁴ law `g(r) = 1/(1+(r/f)²)²`, `f` chosen so that the corners get `1−s` | `strength = s` |
+//! | `defocus` | pillbox (uniform disc) PSF of radius R, pixel-area weights | `sigma_px` = the kernel's per-axis standard deviation |
+//! | `channel_shift` | separable Lanczos-3 resampling of R and B | `dx_r, dy_r, dx_b, dy_b` |
+//! | `stray_light` | Cauchy/Moffat lobe (β = 1.5) from a source outside the frame | `amplitude_dn` = maximum inside the frame |
+//! | `prnu` | uniform (not Gaussian) per-pixel gain with the same std | `sigma` |
+//! | `smear` | per-column (or per-row) count of saturated pixels × strength·FS | `strength`, `direction` |
+//! | `dark_current` | Poisson electrons at the camera's gain (+ optional hot pixels) | `mean_dn`, `hot_pixel_rate` |
+//! | `row_noise` | Gaussian row offsets, new per frame | `sigma_dn` |
+//! | `gamma` | `FS·(v/FS)^γ` after clipping | `gamma` |
+//! | `jpeg` | `image` crate JPEG encoder round trip | `quality` |
+//!
+//! Camera noise is always present: Poisson photo-electrons at `gain_e_per_dn`, Gaussian read noise
+//! `sigma_dn`, rounding to integers and clipping to [0, 255]. A pixel whose expected signal reaches
+//! full scale is saturated and reads exactly 255 (the ADC range ends below the full well).
+//! The random generator is our own (SplitMix64 + polar normal + PTRS Poisson), not `faultcam::Rng`.
+#![allow(dead_code)]
+
+use std::path::Path;
+
+/// Full scale of the 8-bit corpus images.
+pub const FS: f64 = 255.0;
+
+// ---------------------------------------------------------------------------------------------
+// Random numbers (independent of faultcam::Rng)
+// ---------------------------------------------------------------------------------------------
+
+/// SplitMix64 stream with Gaussian (Marsaglia polar) and Poisson (Knuth / Hörmann PTRS) draws.
+#[derive(Clone, Debug)]
+pub struct Prng {
+    state: u64,
+    spare: Option<f64>,
+}
+
+fn mix64(mut z: u64) -> u64 {
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+impl Prng {
+    pub fn new(seed: u64) -> Self {
+        Prng { state: mix64(seed ^ 0x5eed_cafe_f00d_d00d), spare: None }
+    }
+    /// Independent child stream `k` (e.g. one per frame).
+    pub fn fork(&self, k: u64) -> Self {
+        Prng::new(mix64(self.state ^ mix64(k.wrapping_add(0x1234_5678_9abc_def1))))
+    }
+    pub fn next_u64(&mut self) -> u64 {
+        self.state = self.state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        mix64(self.state)
+    }
+    /// Uniform in the open interval (0, 1).
+    pub fn unif(&mut self) -> f64 {
+        ((self.next_u64() >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    }
+    pub fn range(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.unif()
+    }
+    pub fn below(&mut self, n: usize) -> usize {
+        ((self.unif() * n as f64) as usize).min(n.saturating_sub(1))
+    }
+    /// Standard normal (Marsaglia polar method, caching the second value).
+    pub fn normal(&mut self) -> f64 {
+        if let Some(s) = self.spare.take() {
+            return s;
+        }
+        loop {
+            let u = 2.0 * self.unif() - 1.0;
+            let v = 2.0 * self.unif() - 1.0;
+            let s = u * u + v * v;
+            if s > 0.0 && s < 1.0 {
+                let f = (-2.0 * s.ln() / s).sqrt();
+                self.spare = Some(v * f);
+                return u * f;
+            }
+        }
+    }
+    /// Poisson draw: multiplication method below mean 12, PTRS (Hörmann 1993) above.
+    pub fn poisson(&mut self, mean: f64) -> f64 {
+        if mean <= 0.0 {
+            return 0.0;
+        }
+        if mean < 12.0 {
+            let l = (-mean).exp();
+            let mut k = 0.0;
+            let mut p = self.unif();
+            while p > l {
+                k += 1.0;
+                p *= self.unif();
+            }
+            return k;
+        }
+        let slam = mean.sqrt();
+        let loglam = mean.ln();
+        let b = 0.931 + 2.53 * slam;
+        let a = -0.059 + 0.02483 * b;
+        let inv_alpha = 1.1239 + 1.1328 / (b - 3.4);
+        let vr = 0.9277 - 3.6224 / (b - 2.0);
+        loop {
+            let u = self.unif() - 0.5;
+            let v = self.unif();
+            let us = 0.5 - u.abs();
+            let k = ((2.0 * a / us + b) * u + mean + 0.43).floor();
+            if us >= 0.07 && v <= vr {
+                return k;
+            }
+            if k < 0.0 || (us < 0.013 && v > us) {
+                continue;
+            }
+            if v.ln() + inv_alpha.ln() - (a / (us * us) + b).ln() <= -mean + k * loglam - ln_factorial(k) {
+                return k;
+            }
+        }
+    }
+}
+
+/// ln(k!) exactly for small k, Stirling series above.
+fn ln_factorial(k: f64) -> f64 {
+    if k < 20.0 {
+        let mut s = 0.0;
+        let mut i = 2.0;
+        while i <= k {
+            s += f64::ln(i);
+            i += 1.0;
+        }
+        s
+    } else {
+        let x = k + 1.0;
+        (x - 0.5) * x.ln() - x + 0.5 * (2.0 * std::f64::consts::PI).ln() + 1.0 / (12.0 * x) - 1.0 / (360.0 * x * x * x)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Images
+// ---------------------------------------------------------------------------------------------
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Fmt {
+    Mono8,
+    Rgb8,
+}
+
+impl Fmt {
+    pub fn channels(self) -> usize {
+        match self {
+            Fmt::Mono8 => 1,
+            Fmt::Rgb8 => 3,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Fmt::Mono8 => "mono8",
+            Fmt::Rgb8 => "rgb8",
+        }
+    }
+}
+
+/// Interleaved floating-point image in DN.
+#[derive(Clone, Debug)]
+pub struct Img {
+    pub w: usize,
+    pub h: usize,
+    pub c: usize,
+    pub v: Vec<f64>,
+}
+
+impl Img {
+    pub fn new(w: usize, h: usize, c: usize) -> Self {
+        Img { w, h, c, v: vec![0.0; w * h * c] }
+    }
+    #[inline]
+    pub fn at(&self, x: usize, y: usize, ch: usize) -> f64 {
+        self.v[(y * self.w + x) * self.c + ch]
+    }
+    #[inline]
+    pub fn set(&mut self, x: usize, y: usize, ch: usize, val: f64) {
+        self.v[(y * self.w + x) * self.c + ch] = val;
+    }
+    /// Clamped read (replicated border).
+    #[inline]
+    pub fn at_clamped(&self, x: isize, y: isize, ch: usize) -> f64 {
+        let x = x.clamp(0, self.w as isize - 1) as usize;
+        let y = y.clamp(0, self.h as isize - 1) as usize;
+        self.at(x, y, ch)
+    }
+    pub fn to_u8(&self) -> Vec<u8> {
+        self.v.iter().map(|&x| x.round().clamp(0.0, 255.0) as u8).collect()
+    }
+    pub fn from_u8(w: usize, h: usize, c: usize, d: &[u8]) -> Self {
+        Img { w, h, c, v: d.iter().map(|&x| x as f64).collect() }
+    }
+    pub fn save_png(&self, path: &Path) -> Result<(), String> {
+        let ct = if self.c == 1 { image::ExtendedColorType::L8 } else { image::ExtendedColorType::Rgb8 };
+        image::save_buffer_with_format(path, &self.to_u8(), self.w as u32, self.h as u32, ct, image::ImageFormat::Png)
+            .map_err(|e| format!("{}: {e}", path.display()))
+    }
+    pub fn load_png(path: &Path) -> Result<Self, String> {
+        let im = image::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let (w, h) = (im.width() as usize, im.height() as usize);
+        match im {
+            image::DynamicImage::ImageLuma8(b) => Ok(Img::from_u8(w, h, 1, b.as_raw())),
+            other => Ok(Img::from_u8(w, h, 3, other.to_rgb8().as_raw())),
+        }
+    }
+    pub fn mean(&self) -> f64 {
+        self.v.iter().sum::<f64>() / self.v.len() as f64
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Procedural scene ("sim" renders), independent of src/source/synth.rs
+// ---------------------------------------------------------------------------------------------
+
+fn hash2(ix: i64, iy: i64, seed: u64) -> f64 {
+    let h = mix64((ix as u64).wrapping_mul(0x9e37_79b9) ^ (iy as u64).wrapping_mul(0x85eb_ca6b) ^ seed);
+    (h >> 11) as f64 / (1u64 << 53) as f64
+}
+
+/// Smooth value noise in [0, 1].
+fn value_noise(x: f64, y: f64, seed: u64) -> f64 {
+    let (fx, fy) = (x.floor(), y.floor());
+    let (ix, iy) = (fx as i64, fy as i64);
+    let (tx, ty) = (x - fx, y - fy);
+    let sx = tx * tx * (3.0 - 2.0 * tx);
+    let sy = ty * ty * (3.0 - 2.0 * ty);
+    let a = hash2(ix, iy, seed);
+    let b = hash2(ix + 1, iy, seed);
+    let c = hash2(ix, iy + 1, seed);
+    let d = hash2(ix + 1, iy + 1, seed);
+    let top = a + (b - a) * sx;
+    let bot = c + (d - c) * sx;
+    top + (bot - top) * sy
+}
+
+/// A specular glint: saturated elliptical core (screen-aligned, taller than wide so whole
+/// columns saturate) with a soft halo.
+#[derive(Clone, Debug)]
+pub struct Glint {
+    /// Anchor in spacecraft-local coordinates.
+    pub lx: f64,
+    pub ly: f64,
+    /// Core half-width and half-height in px (screen).
+    pub a: f64,
+    pub b: f64,
+}
+
+/// Randomised spacecraft design for one case; poses vary per frame.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub w: usize,
+    pub h: usize,
+    pub seed: u64,
+    body_w: f64,
+    body_h: f64,
+    boom: f64,
+    panel_len: f64,
+    panel_w: f64,
+    cell_w: f64,
+    cell_h: f64,
+    body_rgb: [f64; 3],
+    cell_rgb: [f64; 3],
+    earth: Option<(f64, f64, f64)>,
+    stars: Vec<(usize, usize, f64)>,
+    pub glints: Vec<Glint>,
+}
+
+/// Per-frame pose: screen position of the body centre, rotation (rad), scale.
+#[derive(Clone, Copy, Debug)]
+pub struct Pose {
+    pub cx: f64,
+    pub cy: f64,
+    pub angle: f64,
+    pub scale: f64,
+}
+
+impl Scene {
+    pub fn new(w: usize, h: usize, seed: u64, earth: bool) -> Self {
+        let mut r = Prng::new(seed ^ 0x5ce7e);
+        let body_w = r.range(56.0, 72.0);
+        let body_h = r.range(40.0, 52.0);
+        let stars = (0..12).map(|_| (r.below(w), r.below(h), r.range(30.0, 140.0))).collect::<Vec<_>>();
+        let earth = if earth {
+            // A big disc whose limb crosses the lower part of the frame.
+            let rad = r.range(260.0, 340.0);
+            Some((w as f64 * r.range(0.3, 0.7), h as f64 * 0.72 + rad, rad))
+        } else {
+            None
+        };
+        let glints = vec![
+            Glint { lx: -body_w * 0.30, ly: -body_h * 0.20, a: r.range(1.3, 2.0), b: r.range(3.5, 5.5) },
+            Glint { lx: body_w * 0.25, ly: body_h * 0.25, a: r.range(1.2, 1.8), b: r.range(2.5, 4.5) },
+            Glint { lx: 0.0, ly: -body_h * 0.5 - 10.0, a: r.range(1.5, 2.2), b: r.range(3.0, 5.0) },
+        ];
+        Scene {
+            w,
+            h,
+            seed,
+            body_w,
+            body_h,
+            boom: r.range(8.0, 14.0),
+            panel_len: r.range(48.0, 62.0),
+            panel_w: r.range(22.0, 30.0),
+            cell_w: r.range(7.0, 10.0),
+            cell_h: r.range(5.0, 7.5),
+            body_rgb: [r.range(180.0, 210.0), r.range(140.0, 165.0), r.range(50.0, 80.0)],
+            cell_rgb: [r.range(25.0, 45.0), r.range(45.0, 65.0), r.range(100.0, 130.0)],
+            earth,
+            stars,
+            glints,
+        }
+    }
+
+    /// Pose of frame `i` of `n`: a slow drift and roll.
+    pub fn pose(&self, i: usize, n: usize) -> Pose {
+        let t = if n > 1 { i as f64 / (n - 1) as f64 - 0.5 } else { 0.0 };
+        let mut r = Prng::new(self.seed ^ 0x905e);
+        let (ox, oy, oa) = (r.range(-6.0, 6.0), r.range(-5.0, 5.0), r.range(-0.3, 0.3));
+        Pose {
+            cx: self.w as f64 * 0.5 + ox + 14.0 * t,
+            cy: self.h as f64 * 0.42 + oy - 6.0 * t,
+            angle: oa + 0.12 * t,
+            scale: 0.92 + 0.06 * t,
+        }
+    }
+
+    fn local(&self, p: &Pose, x: f64, y: f64) -> (f64, f64) {
+        let (dx, dy) = (x - p.cx, y - p.cy);
+        let (s, c) = p.angle.sin_cos();
+        ((c * dx + s * dy) / p.scale, (-s * dx + c * dy) / p.scale)
+    }
+
+    fn screen(&self, p: &Pose, lx: f64, ly: f64) -> (f64, f64) {
+        let (s, c) = p.angle.sin_cos();
+        let (x, y) = (lx * p.scale, ly * p.scale);
+        (p.cx + c * x - s * y, p.cy + s * x + c * y)
+    }
+
+    /// Colour (linear DN, unclipped) at a screen point.
+    fn shade(&self, p: &Pose, x: f64, y: f64, glints: &[(f64, f64, f64, f64)]) -> [f64; 3] {
+        let mut col = [2.0, 2.0, 3.0];
+        if let Some((ex, ey, er)) = self.earth {
+            let d = ((x - ex).powi(2) + (y - ey).powi(2)).sqrt();
+            if d < er {
+                let mu = (1.0 - (d / er).powi(2)).max(0.0).sqrt();
+                let cloud = value_noise(x / 22.0, y / 9.0, self.seed ^ 0xea) * 0.7
+                    + value_noise(x / 7.0, y / 4.0, self.seed ^ 0xeb) * 0.3;
+                let cl = ((cloud - 0.45) * 3.0).clamp(0.0, 1.0);
+                let ocean = [45.0, 75.0, 125.0];
+                let cloud_rgb = [190.0, 192.0, 198.0];
+                let limb = 0.55 + 0.45 * mu.powf(0.4);
+                for k in 0..3 {
+                    col[k] = (ocean[k] * (1.0 - cl) + cloud_rgb[k] * cl) * limb;
+                }
+            }
+        }
+        let (lx, ly) = self.local(p, x, y);
+        let hw = self.body_w * 0.5;
+        let hh = self.body_h * 0.5;
+        // Booms.
+        if ly.abs() <= 1.2 && lx.abs() > hw && lx.abs() <= hw + self.boom {
+            col = [165.0, 165.0, 170.0];
+        }
+        // Solar panels with a cell grid.
+        let px = lx.abs() - hw - self.boom;
+        if ly.abs() <= self.panel_w * 0.5 && px >= 0.0 && px <= self.panel_len {
+            let u = px / self.cell_w;
+            let v = (ly + self.panel_w * 0.5) / self.cell_h;
+            let fu = u - u.floor();
+            let fv = v - v.floor();
+            let line_u = 0.9 / self.cell_w;
+            let line_v = 0.9 / self.cell_h;
+            let frame = px < 1.2 || px > self.panel_len - 1.2 || ly.abs() > self.panel_w * 0.5 - 1.2;
+            if frame || fu < line_u || fv < line_v {
+                col = [150.0, 150.0, 158.0];
+            } else {
+                let var =
+                    0.85 + 0.3 * hash2(u.floor() as i64 + if lx < 0.0 { 1000 } else { 0 }, v.floor() as i64, self.seed);
+                col = [self.cell_rgb[0] * var, self.cell_rgb[1] * var, self.cell_rgb[2] * var];
+            }
+        }
+        // Body side face (shaded) below the front face.
+        if lx.abs() <= hw && ly > hh && ly <= hh + 9.0 {
+            let t = 0.45 + 0.1 * value_noise(lx / 5.0, ly / 5.0, self.seed ^ 0x51);
+            col = [self.body_rgb[0] * t, self.body_rgb[1] * t, self.body_rgb[2] * t];
+        }
+        // Body front face: crinkled MLI with seams.
+        if lx.abs() <= hw && ly.abs() <= hh {
+            let crinkle = 0.72
+                + 0.18 * value_noise(lx / 6.0, ly / 6.0, self.seed ^ 0xb0)
+                + 0.10 * value_noise(lx / 2.0, ly / 2.5, self.seed ^ 0xb1);
+            let seam = ((lx + hw) % 16.0) < 1.0 || ((ly + hh) % 14.0) < 1.0;
+            let t = if seam { crinkle * 0.45 } else { crinkle };
+            col = [self.body_rgb[0] * t, self.body_rgb[1] * t, self.body_rgb[2] * t];
+        }
+        // Dish on top: bright grey ellipse with radial shading.
+        let (dx, dy) = (lx / 17.0, (ly + hh + 10.0) / 6.5);
+        let rr = dx * dx + dy * dy;
+        if rr <= 1.0 {
+            let t = 0.75 + 0.2 * (1.0 - rr);
+            col = [210.0 * t, 208.0 * t, 200.0 * t];
+        }
+        // Glints (screen-aligned cores).
+        for &(gx, gy, a, b) in glints {
+            let e = ((x - gx) / a).powi(2) + ((y - gy) / b).powi(2);
+            if e <= 1.0 {
+                col = [FS, FS, FS];
+            } else {
+                let halo = 170.0 * (-(e.sqrt() - 1.0) * 1.6).exp();
+                for c in col.iter_mut() {
+                    *c = c.max(halo);
+                }
+            }
+        }
+        col
+    }
+
+    /// Render frame `i` of `n` in `fmt`: 3x3 supersampled, rounded and clipped to 8 bits.
+    pub fn render(&self, i: usize, n: usize, fmt: Fmt) -> Img {
+        let p = self.pose(i, n);
+        let glints: Vec<(f64, f64, f64, f64)> = self
+            .glints
+            .iter()
+            .map(|g| {
+                let (x, y) = self.screen(&p, g.lx, g.ly);
+                (x.round() + 0.5, y.round() + 0.5, g.a, g.b)
+            })
+            .collect();
+        let c = fmt.channels();
+        let mut img = Img::new(self.w, self.h, c);
+        const SS: usize = 3;
+        for y in 0..self.h {
+            for x in 0..self.w {
+                let mut acc = [0.0; 3];
+                for sy in 0..SS {
+                    for sx in 0..SS {
+                        let fx = x as f64 + (sx as f64 + 0.5) / SS as f64;
+                        let fy = y as f64 + (sy as f64 + 0.5) / SS as f64;
+                        let col = self.shade(&p, fx, fy, &glints);
+                        for k in 0..3 {
+                            acc[k] += col[k];
+                        }
+                    }
+                }
+                let n2 = (SS * SS) as f64;
+                let rgb = [acc[0] / n2, acc[1] / n2, acc[2] / n2];
+                if c == 1 {
+                    img.set(x, y, 0, 0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]);
+                } else {
+                    for k in 0..3 {
+                        img.set(x, y, k, rgb[k]);
+                    }
+                }
+            }
+        }
+        for &(sx, sy, val) in &self.stars {
+            for k in 0..c {
+                let v = img.at(sx, sy, k);
+                img.set(sx, sy, k, v.max(val));
+            }
+        }
+        for v in img.v.iter_mut() {
+            *v = v.round().clamp(0.0, FS);
+        }
+        img
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The independent camera model
+// ---------------------------------------------------------------------------------------------
+
+/// Camera noise every "real" image has.
+#[derive(Clone, Copy, Debug)]
+pub struct Camera {
+    /// Conversion gain in electrons per 8-bit DN (shot noise variance = signal / gain).
+    pub gain_e_per_dn: f64,
+    /// Read noise standard deviation in DN.
+    pub read_sigma_dn: f64,
+}
+
+/// Hidden effects, parameterised in realcam's own forms (see the module table).
+#[derive(Clone, Debug)]
+pub enum Hidden {
+    /// cos⁴-law vignetting with corner gain `1 − strength`.
+    Vignetting { strength: f64 },
+    /// Pillbox PSF of radius `radius_px`.
+    Defocus { radius_px: f64 },
+    /// Lanczos-3 shift of the red and blue planes (+dx right, +dy down).
+    ChannelShift { dx_r: f64, dy_r: f64, dx_b: f64, dy_b: f64 },
+    /// Moffat-like lobe from a source at (`src_x`, `src_y`) px (may be outside the frame), core
+    /// width `width_px`, scaled so its maximum inside the frame is `amplitude_dn`.
+    StrayLight { amplitude_dn: f64, src_x: f64, src_y: f64, width_px: f64 },
+    /// Uniformly distributed per-pixel gain with standard deviation `sigma`, fixed per case.
+    Prnu { sigma: f64 },
+    /// Charge `strength·FS` per saturated pixel of the column (vertical) or row (horizontal).
+    Smear { strength: f64, vertical: bool },
+    /// Poisson dark electrons of mean `mean_dn` (in DN), plus fixed hot pixels at `hot_rate`
+    /// with dark signal uniform in [40, 120] DN.
+    DarkCurrent { mean_dn: f64, hot_rate: f64 },
+    /// Gaussian row offsets of std `sigma_dn`, new per frame.
+    RowNoise { sigma_dn: f64 },
+    /// Tone curve after clipping.
+    Gamma { gamma: f64 },
+    /// JPEG round trip through the `image` crate encoder.
+    Jpeg { quality: u8 },
+}
+
+impl Hidden {
+    /// Canonical EFFECTS.md name.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Hidden::Vignetting { .. } => "vignetting",
+            Hidden::Defocus { .. } => "defocus",
+            Hidden::ChannelShift { .. } => "channel_shift",
+            Hidden::StrayLight { .. } => "stray_light",
+            Hidden::Prnu { .. } => "prnu",
+            Hidden::Smear { .. } => "smear",
+            Hidden::DarkCurrent { .. } => "dark_current",
+            Hidden::RowNoise { .. } => "row_noise",
+            Hidden::Gamma { .. } => "gamma",
+            Hidden::Jpeg { .. } => "jpeg",
+        }
+    }
+
+    /// Canonical numeric parameters in EFFECTS.md units (the truth a diagnosis should recover).
+    pub fn canonical(&self) -> Vec<(&'static str, f64)> {
+        match *self {
+            Hidden::Vignetting { strength } => vec![("strength", strength)],
+            Hidden::Defocus { radius_px } => vec![("sigma_px", pillbox_sigma(radius_px))],
+            Hidden::ChannelShift { dx_r, dy_r, dx_b, dy_b } => {
+                vec![("dx_r", dx_r), ("dy_r", dy_r), ("dx_b", dx_b), ("dy_b", dy_b)]
+            }
+            Hidden::StrayLight { amplitude_dn, .. } => vec![("amplitude_dn", amplitude_dn)],
+            Hidden::Prnu { sigma } => vec![("sigma", sigma)],
+            Hidden::Smear { strength, .. } => vec![("strength", strength)],
+            Hidden::DarkCurrent { mean_dn, hot_rate } => vec![("mean_dn", mean_dn), ("hot_pixel_rate", hot_rate)],
+            Hidden::RowNoise { sigma_dn } => vec![("sigma_dn", sigma_dn)],
+            Hidden::Gamma { gamma } => vec![("gamma", gamma)],
+            Hidden::Jpeg { quality } => vec![("quality", quality as f64)],
+        }
+    }
+
+    /// Non-numeric canonical parameters.
+    pub fn canonical_choices(&self) -> Vec<(&'static str, &'static str)> {
+        match *self {
+            Hidden::Smear { vertical, .. } => vec![("direction", if vertical { "vertical" } else { "horizontal" })],
+            _ => vec![],
+        }
+    }
+
+    /// realcam's own description of the form used (for the truth file and notes).
+    pub fn form(&self) -> String {
+        match *self {
+            Hidden::Vignetting { .. } => "cos^4 law 1/(1+(r/f)^2)^2".into(),
+            Hidden::Defocus { radius_px } => format!("pillbox PSF radius {radius_px:.2} px"),
+            Hidden::ChannelShift { .. } => "separable Lanczos-3 shift".into(),
+            Hidden::StrayLight { src_x, src_y, width_px, .. } => {
+                format!("Moffat(beta=1.5) lobe from ({src_x:.0},{src_y:.0}) width {width_px:.0} px")
+            }
+            Hidden::Prnu { .. } => "uniform per-pixel gain, fixed per case".into(),
+            Hidden::Smear { .. } => "per-line saturated-pixel count x strength x FS".into(),
+            Hidden::DarkCurrent { .. } => "Poisson electrons at camera gain; hot pixels 40-120 DN".into(),
+            Hidden::RowNoise { .. } => "Gaussian row offsets per frame".into(),
+            Hidden::Gamma { .. } => "FS*(v/FS)^gamma after clip".into(),
+            Hidden::Jpeg { .. } => "image crate JPEG encoder".into(),
+        }
+    }
+}
+
+/// Pixel-area-weighted pillbox kernel of radius `r` (odd size), normalised to sum 1.
+pub fn pillbox_kernel(r: f64) -> (Vec<f64>, usize) {
+    let half = r.ceil() as usize;
+    let n = 2 * half + 1;
+    let mut k = vec![0.0; n * n];
+    const SUB: usize = 16;
+    for j in 0..n {
+        for i in 0..n {
+            let mut inside = 0usize;
+            for sj in 0..SUB {
+                for si in 0..SUB {
+                    let x = i as f64 - half as f64 - 0.5 + (si as f64 + 0.5) / SUB as f64;
+                    let y = j as f64 - half as f64 - 0.5 + (sj as f64 + 0.5) / SUB as f64;
+                    if x * x + y * y <= r * r {
+                        inside += 1;
+                    }
+                }
+            }
+            k[j * n + i] = inside as f64;
+        }
+    }
+    let s: f64 = k.iter().sum();
+    for v in k.iter_mut() {
+        *v /= s;
+    }
+    (k, half)
+}
+
+/// Per-axis standard deviation of the discrete pillbox kernel: the "equivalent Gaussian sigma"
+/// (same second moment) recorded as the `defocus.sigma_px` truth.
+pub fn pillbox_sigma(r: f64) -> f64 {
+    let (k, half) = pillbox_kernel(r);
+    let n = 2 * half + 1;
+    let mut m2 = 0.0;
+    for j in 0..n {
+        for i in 0..n {
+            let x = i as f64 - half as f64;
+            m2 += k[j * n + i] * x * x;
+        }
+    }
+    m2.sqrt()
+}
+
+fn convolve2d(img: &Img, k: &[f64], half: usize) -> Img {
+    let n = 2 * half + 1;
+    let mut out = Img::new(img.w, img.h, img.c);
+    for y in 0..img.h {
+        for x in 0..img.w {
+            for ch in 0..img.c {
+                let mut acc = 0.0;
+                for j in 0..n {
+                    for i in 0..n {
+                        let w = k[j * n + i];
+                        if w != 0.0 {
+                            acc += w * img.at_clamped(
+                                x as isize + i as isize - half as isize,
+                                y as isize + j as isize - half as isize,
+                                ch,
+                            );
+                        }
+                    }
+                }
+                out.set(x, y, ch, acc);
+            }
+        }
+    }
+    out
+}
+
+fn lanczos3(t: f64) -> f64 {
+    let t = t.abs();
+    if t < 1e-12 {
+        1.0
+    } else if t >= 3.0 {
+        0.0
+    } else {
+        let pt = std::f64::consts::PI * t;
+        3.0 * pt.sin() * (pt / 3.0).sin() / (pt * pt)
+    }
+}
+
+/// Shift channel `ch` by (dx, dy) px with separable Lanczos-3 (+dx moves content right):
+/// out(x) = in(x − dx). Borders replicate.
+pub fn lanczos_shift(img: &mut Img, ch: usize, dx: f64, dy: f64) {
+    let (w, h) = (img.w, img.h);
+    let taps = |d: f64| -> (isize, [f64; 7]) {
+        // out(x) = Σ_j L(x − d − j) in(j); j runs over floor(x − d) − 2 ..= floor(x − d) + 3.
+        let base = (-d).floor();
+        let frac = -d - base;
+        let mut wts = [0.0; 7];
+        let mut s = 0.0;
+        for (m, wt) in wts.iter_mut().enumerate() {
+            let j = m as f64 - 3.0;
+            *wt = lanczos3(frac - j);
+            s += *wt;
+        }
+        for wt in wts.iter_mut() {
+            *wt /= s;
+        }
+        (base as isize - 3, wts)
+    };
+    let (ox, wx) = taps(dx);
+    let (oy, wy) = taps(dy);
+    let mut tmp = vec![0.0; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let mut acc = 0.0;
+            for (m, wt) in wx.iter().enumerate() {
+                acc += wt * img.at_clamped(x as isize + ox + m as isize, y as isize, ch);
+            }
+            tmp[y * w + x] = acc;
+        }
+    }
+    for y in 0..h {
+        for x in 0..w {
+            let mut acc = 0.0;
+            for (m, wt) in wy.iter().enumerate() {
+                let yy = (y as isize + oy + m as isize).clamp(0, h as isize - 1) as usize;
+                acc += wt * tmp[yy * w + x];
+            }
+            img.set(x, y, ch, acc);
+        }
+    }
+}
+
+/// cos⁴-law vignetting gain at pixel centre (x, y): 1 at the image centre, `1 − s` at the corners.
+pub fn cos4_gain(x: f64, y: f64, w: usize, h: usize, s: f64) -> f64 {
+    if s <= 0.0 {
+        return 1.0;
+    }
+    let (cx, cy) = ((w as f64 - 1.0) * 0.5, (h as f64 - 1.0) * 0.5);
+    let rc2 = cx * cx + cy * cy;
+    // (1 + rc²/f²)² = 1/(1−s)  ⇒  1/f² = ((1−s)^(−1/2) − 1) / rc².
+    let inv_f2 = ((1.0 - s).powf(-0.5) - 1.0) / rc2;
+    let r2 = (x - cx).powi(2) + (y - cy).powi(2);
+    let t = 1.0 + r2 * inv_f2;
+    1.0 / (t * t)
+}
+
+/// Unit-maximum stray-light lobe over the frame.
+pub fn stray_field(w: usize, h: usize, sx: f64, sy: f64, width: f64) -> Vec<f64> {
+    let mut f = vec![0.0; w * h];
+    let mut mx: f64 = 0.0;
+    for y in 0..h {
+        for x in 0..w {
+            let d2 = ((x as f64 - sx).powi(2) + (y as f64 - sy).powi(2)) / (width * width);
+            let v = (1.0 + d2).powf(-1.5);
+            f[y * w + x] = v;
+            mx = mx.max(v);
+        }
+    }
+    for v in f.iter_mut() {
+        *v /= mx;
+    }
+    f
+}
+
+/// Fixed-pattern state of one camera (same on every frame of a case).
+pub struct FixedPattern {
+    prnu: Option<Vec<f64>>,
+    hot: Option<Vec<f64>>,
+    stray: Option<Vec<f64>>,
+    kernel: Option<(Vec<f64>, usize)>,
+}
+
+impl FixedPattern {
+    pub fn new(w: usize, h: usize, c: usize, hidden: &[Hidden], seed: u64) -> Self {
+        let mut fp = FixedPattern { prnu: None, hot: None, stray: None, kernel: None };
+        let mut r = Prng::new(seed ^ 0xf1c5ed);
+        for hd in hidden {
+            match *hd {
+                Hidden::Prnu { sigma } => {
+                    let half_width = sigma * 3f64.sqrt();
+                    fp.prnu = Some((0..w * h * c).map(|_| 1.0 + r.range(-half_width, half_width)).collect());
+                }
+                Hidden::DarkCurrent { hot_rate, .. } if hot_rate > 0.0 => {
+                    let mut m = vec![0.0; w * h * c];
+                    // A hot pixel is hot in all its channels (one photosite group).
+                    for px in 0..w * h {
+                        if r.unif() < hot_rate {
+                            let v = r.range(40.0, 120.0);
+                            for ch in 0..c {
+                                m[px * c + ch] = v;
+                            }
+                        }
+                    }
+                    fp.hot = Some(m);
+                }
+                Hidden::StrayLight { src_x, src_y, width_px, .. } => {
+                    fp.stray = Some(stray_field(w, h, src_x, src_y, width_px));
+                }
+                Hidden::Defocus { radius_px } => fp.kernel = Some(pillbox_kernel(radius_px)),
+                _ => {}
+            }
+        }
+        fp
+    }
+}
+
+/// Expose the sim image `sim` through the camera with the hidden effects; `rng` is this frame's
+/// generator. Returns the 8-bit "real" image (as f64 integer values).
+pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng: &mut Prng) -> Img {
+    let (w, h, c) = (sim.w, sim.h, sim.c);
+    // ---- optics: irradiance in DN ----
+    let mut irr = match &fp.kernel {
+        Some((k, half)) => convolve2d(sim, k, *half),
+        None => sim.clone(),
+    };
+    for hd in hidden {
+        if let Hidden::ChannelShift { dx_r, dy_r, dx_b, dy_b } = *hd
+            && c == 3
+        {
+            lanczos_shift(&mut irr, 0, dx_r, dy_r);
+            lanczos_shift(&mut irr, 2, dx_b, dy_b);
+        }
+    }
+    for hd in hidden {
+        if let Hidden::Vignetting { strength } = *hd {
+            for y in 0..h {
+                for x in 0..w {
+                    let g = cos4_gain(x as f64, y as f64, w, h, strength);
+                    for ch in 0..c {
+                        let v = irr.at(x, y, ch);
+                        irr.set(x, y, ch, v * g);
+                    }
+                }
+            }
+        }
+    }
+    for hd in hidden {
+        if let (Hidden::StrayLight { amplitude_dn, .. }, Some(f)) = (hd, &fp.stray) {
+            for y in 0..h {
+                for x in 0..w {
+                    for ch in 0..c {
+                        let v = irr.at(x, y, ch);
+                        irr.set(x, y, ch, v + amplitude_dn * f[y * w + x]);
+                    }
+                }
+            }
+        }
+    }
+    // ---- sensor: photo signal in DN ----
+    if let Some(g) = &fp.prnu {
+        for (v, gi) in irr.v.iter_mut().zip(g) {
+            *v *= gi;
+        }
+    }
+    // Saturated photosites: expected signal at or above full scale.
+    let saturated: Vec<bool> = irr.v.iter().map(|&v| v >= FS - 0.5).collect();
+    for hd in hidden {
+        if let Hidden::Smear { strength, vertical } = *hd {
+            let per = strength * FS;
+            for ch in 0..c {
+                if vertical {
+                    for x in 0..w {
+                        let n = (0..h).filter(|&y| saturated[(y * w + x) * c + ch]).count() as f64;
+                        if n > 0.0 {
+                            for y in 0..h {
+                                let v = irr.at(x, y, ch);
+                                irr.set(x, y, ch, v + per * n);
+                            }
+                        }
+                    }
+                } else {
+                    for y in 0..h {
+                        let n = (0..w).filter(|&x| saturated[(y * w + x) * c + ch]).count() as f64;
+                        if n > 0.0 {
+                            for x in 0..w {
+                                let v = irr.at(x, y, ch);
+                                irr.set(x, y, ch, v + per * n);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    let dark_mean =
+        hidden.iter().map(|hd| if let Hidden::DarkCurrent { mean_dn, .. } = *hd { mean_dn } else { 0.0 }).sum::<f64>();
+    let row_sigma =
+        hidden.iter().map(|hd| if let Hidden::RowNoise { sigma_dn } = *hd { sigma_dn } else { 0.0 }).sum::<f64>();
+    let gamma = hidden.iter().find_map(|hd| if let Hidden::Gamma { gamma } = *hd { Some(gamma) } else { None });
+    let g = cam.gain_e_per_dn;
+    let mut out = Img::new(w, h, c);
+    for y in 0..h {
+        let row_off = if row_sigma > 0.0 { row_sigma * rng.normal() } else { 0.0 };
+        for x in 0..w {
+            for ch in 0..c {
+                let i = (y * w + x) * c + ch;
+                let mu = irr.v[i];
+                if saturated[i] || mu >= FS - 0.5 {
+                    out.v[i] = FS;
+                    continue;
+                }
+                // Electrons: photo (Poisson) + dark (Poisson) + hot-pixel dark (Poisson).
+                let mut dark = dark_mean;
+                if let Some(hm) = &fp.hot {
+                    dark += hm[i];
+                }
+                let electrons = rng.poisson(mu.max(0.0) * g) + rng.poisson(dark * g);
+                let mut v = electrons / g + cam.read_sigma_dn * rng.normal() + row_off;
+                v = v.clamp(0.0, FS);
+                if let Some(gm) = gamma {
+                    v = FS * (v / FS).powf(gm);
+                }
+                out.v[i] = v.round();
+            }
+        }
+    }
+    for hd in hidden {
+        if let Hidden::Jpeg { quality } = *hd {
+            out = jpeg_round_trip(&out, quality);
+        }
+    }
+    out
+}
+
+/// JPEG encode and decode with the `image` crate.
+pub fn jpeg_round_trip(img: &Img, quality: u8) -> Img {
+    let mut buf = Vec::new();
+    let ct = if img.c == 1 { image::ExtendedColorType::L8 } else { image::ExtendedColorType::Rgb8 };
+    let enc = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut buf, quality);
+    let raw = img.to_u8();
+    image::ImageEncoder::write_image(enc, &raw, img.w as u32, img.h as u32, ct).expect("jpeg encode");
+    let dec = image::load_from_memory_with_format(&buf, image::ImageFormat::Jpeg).expect("jpeg decode");
+    if img.c == 1 {
+        Img::from_u8(img.w, img.h, 1, dec.to_luma8().as_raw())
+    } else {
+        Img::from_u8(img.w, img.h, 3, dec.to_rgb8().as_raw())
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Corpus cases
+// ---------------------------------------------------------------------------------------------
+
+/// One corpus case: a scene, a camera and the hidden effects.
+#[derive(Clone, Debug)]
+pub struct Case {
+    pub name: String,
+    pub fmt: Fmt,
+    pub frames: usize,
+    pub w: usize,
+    pub h: usize,
+    pub seed: u64,
+    pub earth: bool,
+    pub camera: Camera,
+    pub hidden: Vec<Hidden>,
+}
+
+impl Case {
+    pub fn is_negative_control(&self) -> bool {
+        self.hidden.is_empty()
+    }
+
+    /// Truth record (JSON) in EFFECTS.md names and units.
+    pub fn truth_json(&self) -> serde_json::Value {
+        let hidden: Vec<serde_json::Value> = self
+            .hidden
+            .iter()
+            .map(|hd| {
+                let mut params = serde_json::Map::new();
+                for (k, v) in hd.canonical() {
+                    params.insert(k.into(), serde_json::json!(v));
+                }
+                for (k, v) in hd.canonical_choices() {
+                    params.insert(k.into(), serde_json::json!(v));
+                }
+                serde_json::json!({"effect": hd.name(), "params": params, "form": hd.form()})
+            })
+            .collect();
+        serde_json::json!({
+            "case": self.name,
+            "format": self.fmt.name(),
+            "frames": self.frames,
+            "width": self.w,
+            "height": self.h,
+            "seed": self.seed,
+            "camera": {
+                "shot_noise": {"gain_e_per_dn": self.camera.gain_e_per_dn},
+                "gaussian_noise": {"sigma_dn": self.camera.read_sigma_dn},
+                "quantisation": "round to integer DN, clip [0,255]; saturated photosites read 255"
+            },
+            "hidden": hidden,
+        })
+    }
+
+    /// Write `dir/sim/frame_NN.png`, `dir/real/frame_NN.png` and `dir/truth.json`.
+    pub fn write(&self, dir: &Path) -> Result<(), String> {
+        let sim_dir = dir.join("sim");
+        let real_dir = dir.join("real");
+        for d in [&sim_dir, &real_dir] {
+            std::fs::create_dir_all(d).map_err(|e| format!("{}: {e}", d.display()))?;
+        }
+        let scene = Scene::new(self.w, self.h, self.seed, self.earth);
+        let fp = FixedPattern::new(self.w, self.h, self.fmt.channels(), &self.hidden, self.seed);
+        let base = Prng::new(self.seed ^ 0xca3e7a);
+        for i in 0..self.frames {
+            let sim = scene.render(i, self.frames, self.fmt);
+            let mut rng = base.fork(i as u64);
+            let real = expose(&sim, &self.camera, &self.hidden, &fp, &mut rng);
+            let name = format!("frame_{i:02}.png");
+            sim.save_png(&sim_dir.join(&name))?;
+            real.save_png(&real_dir.join(&name))?;
+        }
+        let truth = serde_json::to_string_pretty(&self.truth_json()).map_err(|e| e.to_string())?;
+        std::fs::write(dir.join("truth.json"), truth).map_err(|e| format!("truth.json: {e}"))
+    }
+}
+
+fn case(name: &str, fmt: Fmt, seed: u64, earth: bool, gain: f64, read: f64, hidden: Vec<Hidden>) -> Case {
+    Case {
+        name: name.into(),
+        fmt,
+        frames: 6,
+        w: 256,
+        h: 192,
+        seed,
+        earth,
+        camera: Camera { gain_e_per_dn: gain, read_sigma_dn: read },
+        hidden,
+    }
+}
+
+/// The full corpus: negative controls, one-effect cases and two-effect cases. Strengths are
+/// below what the eye sees and comparable to the per-pixel noise (see README, "Diagnosis corpus
+/// results", for the signal-to-noise argument).
+pub fn corpus() -> Vec<Case> {
+    use Fmt::{Mono8, Rgb8};
+    use Hidden::*;
+    vec![
+        // Negative controls: camera noise only.
+        case("neg_mono_a", Mono8, 101, true, 6.0, 1.5, vec![]),
+        case("neg_rgb_b", Rgb8, 102, true, 4.0, 2.0, vec![]),
+        case("neg_mono_c", Mono8, 103, false, 10.0, 1.0, vec![]),
+        case("neg_rgb_d", Rgb8, 104, false, 8.0, 1.2, vec![]),
+        // One hidden effect.
+        case("vignetting_mono", Mono8, 201, true, 6.0, 1.5, vec![Vignetting { strength: 0.12 }]),
+        case("vignetting_rgb", Rgb8, 202, true, 5.0, 1.5, vec![Vignetting { strength: 0.09 }]),
+        case("defocus_mono", Mono8, 203, true, 6.0, 1.2, vec![Defocus { radius_px: 2.0 }]),
+        case("defocus_rgb", Rgb8, 204, false, 6.0, 1.5, vec![Defocus { radius_px: 1.6 }]),
+        case("dark_current_mono", Mono8, 205, true, 6.0, 1.2, vec![DarkCurrent { mean_dn: 3.0, hot_rate: 0.0 }]),
+        case("dark_hot_rgb", Rgb8, 206, false, 5.0, 1.5, vec![DarkCurrent { mean_dn: 3.0, hot_rate: 4e-4 }]),
+        case(
+            "channel_shift_rgb",
+            Rgb8,
+            207,
+            true,
+            6.0,
+            1.5,
+            vec![ChannelShift { dx_r: 0.9, dy_r: -0.5, dx_b: -0.7, dy_b: 0.6 }],
+        ),
+        case(
+            "channel_shift_rgb_b",
+            Rgb8,
+            208,
+            false,
+            8.0,
+            1.2,
+            vec![ChannelShift { dx_r: -1.1, dy_r: 0.0, dx_b: 0.4, dy_b: 1.0 }],
+        ),
+        case("smear_mono", Mono8, 209, true, 6.0, 1.5, vec![Smear { strength: 0.006, vertical: true }]),
+        case("smear_rgb", Rgb8, 210, false, 6.0, 1.5, vec![Smear { strength: 0.004, vertical: true }]),
+        case("prnu_mono", Mono8, 211, true, 10.0, 1.2, vec![Prnu { sigma: 0.02 }]),
+        case("prnu_rgb", Rgb8, 212, true, 8.0, 1.5, vec![Prnu { sigma: 0.025 }]),
+        case(
+            "stray_light_mono",
+            Mono8,
+            213,
+            false,
+            6.0,
+            1.5,
+            vec![StrayLight { amplitude_dn: 6.0, src_x: -60.0, src_y: -40.0, width_px: 140.0 }],
+        ),
+        case("row_noise_mono", Mono8, 214, true, 6.0, 1.2, vec![RowNoise { sigma_dn: 1.2 }]),
+        case("gamma_mono", Mono8, 215, true, 6.0, 1.5, vec![Gamma { gamma: 0.92 }]),
+        // Two hidden effects.
+        case(
+            "vignetting_dark_mono",
+            Mono8,
+            301,
+            true,
+            6.0,
+            1.5,
+            vec![Vignetting { strength: 0.10 }, DarkCurrent { mean_dn: 3.0, hot_rate: 0.0 }],
+        ),
+        case("defocus_prnu_mono", Mono8, 302, true, 8.0, 1.2, vec![Defocus { radius_px: 2.0 }, Prnu { sigma: 0.02 }]),
+        case(
+            "shift_vignetting_rgb",
+            Rgb8,
+            303,
+            true,
+            6.0,
+            1.5,
+            vec![ChannelShift { dx_r: 0.8, dy_r: 0.3, dx_b: -0.6, dy_b: -0.8 }, Vignetting { strength: 0.12 }],
+        ),
+        case(
+            "smear_dark_mono",
+            Mono8,
+            304,
+            false,
+            6.0,
+            1.5,
+            vec![Smear { strength: 0.005, vertical: true }, DarkCurrent { mean_dn: 3.0, hot_rate: 0.0 }],
+        ),
+    ]
+}
+
+/// The always-on subset: one optical, one colour and one fixed-pattern-free sensor case, plus a
+/// negative control.
+pub fn subset_names() -> &'static [&'static str] {
+    &["neg_mono_a", "vignetting_mono", "channel_shift_rgb"]
+}
+
+// ---------------------------------------------------------------------------------------------
+// Unit tests of the generator itself
+// ---------------------------------------------------------------------------------------------
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn mean_var(xs: &[f64]) -> (f64, f64) {
+        let n = xs.len() as f64;
+        let m = xs.iter().sum::<f64>() / n;
+        (m, xs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0))
+    }
+
+    #[test]
+    fn poisson_mean_and_variance_match() {
+        // n = 20000 draws: the sample mean has std sqrt(λ/n); the sample variance of a Poisson has
+        // std ≈ λ·sqrt(2/n) (plus a small excess-kurtosis term). Bounds are 5 standard errors.
+        let mut r = Prng::new(7);
+        for &lam in &[0.7, 3.0, 11.9, 12.0, 40.0, 700.0] {
+            let xs: Vec<f64> = (0..20000).map(|_| r.poisson(lam)).collect();
+            let (m, v) = mean_var(&xs);
+            let n = xs.len() as f64;
+            assert!((m - lam).abs() < 5.0 * (lam / n).sqrt(), "λ={lam}: mean {m}");
+            let sv = (2.0 * lam * lam / n + lam / n).sqrt();
+            assert!((v - lam).abs() < 5.0 * sv, "λ={lam}: var {v}");
+            assert!(xs.iter().all(|&x| x >= 0.0 && x == x.floor()));
+        }
+    }
+
+    #[test]
+    fn normal_is_standard() {
+        let mut r = Prng::new(9);
+        let xs: Vec<f64> = (0..40000).map(|_| r.normal()).collect();
+        let (m, v) = mean_var(&xs);
+        assert!(m.abs() < 5.0 / 200.0, "mean {m}");
+        assert!((v - 1.0).abs() < 5.0 * (2.0f64 / 40000.0).sqrt(), "var {v}");
+    }
+
+    #[test]
+    fn cos4_vignetting_is_one_at_centre_and_one_minus_s_at_corners() {
+        let (w, h) = (256, 192);
+        for &s in &[0.08, 0.12, 0.15] {
+            let cx = (w as f64 - 1.0) / 2.0;
+            let cy = (h as f64 - 1.0) / 2.0;
+            assert!((cos4_gain(cx, cy, w, h, s) - 1.0).abs() < 1e-12);
+            for (x, y) in [(0.0, 0.0), (255.0, 0.0), (0.0, 191.0), (255.0, 191.0)] {
+                assert!((cos4_gain(x, y, w, h, s) - (1.0 - s)).abs() < 1e-12, "corner {x},{y}");
+            }
+            // Monotone along a ray to the corner.
+            let mut last = 2.0;
+            for i in 0..=100 {
+                let t = i as f64 / 100.0;
+                let g = cos4_gain(cx * (1.0 - t), cy * (1.0 - t), w, h, s);
+                assert!(g <= last + 1e-15);
+                last = g;
+            }
+        }
+        assert_eq!(cos4_gain(3.0, 4.0, w, h, 0.0), 1.0);
+    }
+
+    #[test]
+    fn pillbox_keeps_mean_and_has_stated_sigma() {
+        // A uniform disc of radius R has per-axis variance R²/4; weighting by pixel area adds
+        // about the variance of a unit box, 1/12, less the sampling of a narrow function at
+        // integer points. The discrete kernel must be within 8 % of sqrt(R²/4 + 1/12) for
+        // R ≥ 1.5, symmetric and growing with R (the truth uses the kernel's own moment).
+        let mut last = 0.0;
+        for &r in &[1.5, 2.0, 2.5] {
+            let (k, _) = pillbox_kernel(r);
+            assert!((k.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+            let s = pillbox_sigma(r);
+            let expect = (r * r / 4.0 + 1.0 / 12.0).sqrt();
+            assert!((s / expect - 1.0).abs() < 0.08, "R={r}: sigma {s} vs {expect}");
+            assert!(s > last);
+            last = s;
+            let n = (k.len() as f64).sqrt() as usize;
+            for j in 0..n {
+                for i in 0..n {
+                    assert!(
+                        (k[j * n + i] - k[i * n + j]).abs() < 1e-12
+                            && (k[j * n + i] - k[j * n + n - 1 - i]).abs() < 1e-12
+                    );
+                }
+            }
+        }
+        let scene = Scene::new(64, 48, 3, false);
+        let sim = scene.render(0, 1, Fmt::Mono8);
+        let (k, half) = pillbox_kernel(2.0);
+        let out = convolve2d(&sim, &k, half);
+        // Border replication changes the mean only slightly on a dark-bordered image.
+        assert!((out.mean() - sim.mean()).abs() < 0.02 * sim.mean().max(1.0));
+    }
+
+    #[test]
+    fn lanczos_shift_moves_content_by_the_requested_amount() {
+        // A smooth Gaussian blob shifted by (0.7, −0.4): its centroid moves by the same amount.
+        let (w, h) = (48, 40);
+        let mut img = Img::new(w, h, 3);
+        for y in 0..h {
+            for x in 0..w {
+                let v = 200.0 * (-((x as f64 - 24.0).powi(2) + (y as f64 - 20.0).powi(2)) / 18.0).exp();
+                for ch in 0..3 {
+                    img.set(x, y, ch, v);
+                }
+            }
+        }
+        let centroid = |im: &Img, ch: usize| {
+            let (mut sx, mut sy, mut s) = (0.0, 0.0, 0.0);
+            for y in 0..h {
+                for x in 0..w {
+                    let v = im.at(x, y, ch);
+                    sx += v * x as f64;
+                    sy += v * y as f64;
+                    s += v;
+                }
+            }
+            (sx / s, sy / s)
+        };
+        let mut sh = img.clone();
+        lanczos_shift(&mut sh, 0, 0.7, -0.4);
+        lanczos_shift(&mut sh, 2, -1.2, 0.9);
+        let (gx, gy) = centroid(&sh, 1);
+        let (rx, ry) = centroid(&sh, 0);
+        let (bx, by) = centroid(&sh, 2);
+        // Lanczos-3 normalised weights do not reproduce linear ramps exactly: the low-frequency
+        // phase error is at most 0.0182 px (at fractional shifts 0.3/0.7, zero at 0 and 0.5).
+        // Bound 0.02 px, an order of magnitude below the scoring tolerance of 0.25 px.
+        assert!((rx - gx - 0.7).abs() < 0.02 && (ry - gy + 0.4).abs() < 0.02, "red {rx},{ry} vs {gx},{gy}");
+        assert!((bx - gx + 1.2).abs() < 0.02 && (by - gy - 0.9).abs() < 0.02, "blue {bx},{by}");
+        // Integer shift is an exact translation.
+        let mut one = img.clone();
+        lanczos_shift(&mut one, 0, 2.0, 0.0);
+        assert!((one.at(26, 20, 0) - img.at(24, 20, 0)).abs() < 1e-9);
+    }
+
+    #[test]
+    fn smear_adds_strength_fs_per_saturated_pixel_of_the_column() {
+        // Noise-free check through `expose` with a huge gain (shot noise → 0) and no read noise.
+        let (w, h) = (20, 16);
+        let mut sim = Img::new(w, h, 1);
+        for v in sim.v.iter_mut() {
+            *v = 50.0;
+        }
+        for y in 3..8 {
+            sim.set(7, y, 0, FS); // 5 saturated pixels in column 7
+        }
+        sim.set(12, 10, 0, FS); // 1 in column 12
+        let cam = Camera { gain_e_per_dn: 1e6, read_sigma_dn: 0.0 };
+        let hidden = [Hidden::Smear { strength: 0.01, vertical: true }];
+        let fp = FixedPattern::new(w, h, 1, &hidden, 1);
+        let out = expose(&sim, &cam, &hidden, &fp, &mut Prng::new(2));
+        assert_eq!(out.at(7, 0, 0), (50.0 + 5.0 * 0.01 * FS).round());
+        assert_eq!(out.at(7, 15, 0), (50.0 + 5.0 * 0.01 * FS).round());
+        assert_eq!(out.at(12, 0, 0), (50.0 + 0.01 * FS).round());
+        assert_eq!(out.at(7, 5, 0), FS);
+        for x in [0, 6, 8, 11, 13, 19] {
+            assert_eq!(out.at(x, 1, 0), 50.0, "column {x} must be untouched");
+        }
+    }
+
+    #[test]
+    fn camera_noise_statistics_match_parameters() {
+        // Flat field at 100 DN, gain 5 e-/DN, read 1.5 DN: variance = 100/5 + 1.5² + 1/12 (rounding)
+        // = 22.33 DN². With 49152 pixels the sample variance has relative std ≈ sqrt(2/n) = 0.64 %;
+        // bound 4 %. Dark current 3 DN adds 3 DN to the mean and 3/5 DN² to the variance.
+        let (w, h) = (256, 192);
+        let mut sim = Img::new(w, h, 1);
+        for v in sim.v.iter_mut() {
+            *v = 100.0;
+        }
+        let cam = Camera { gain_e_per_dn: 5.0, read_sigma_dn: 1.5 };
+        let fp = FixedPattern::new(w, h, 1, &[], 1);
+        let out = expose(&sim, &cam, &[], &fp, &mut Prng::new(3));
+        let (m, v) = mean_var(&out.v);
+        assert!((m - 100.0).abs() < 0.1, "mean {m}");
+        assert!((v / 22.333 - 1.0).abs() < 0.04, "var {v}");
+        let hidden = [Hidden::DarkCurrent { mean_dn: 3.0, hot_rate: 0.0 }];
+        let fp = FixedPattern::new(w, h, 1, &hidden, 1);
+        let out = expose(&sim, &cam, &hidden, &fp, &mut Prng::new(4));
+        let (m, v) = mean_var(&out.v);
+        assert!((m - 103.0).abs() < 0.1, "dark mean {m}");
+        assert!((v / 22.933 - 1.0).abs() < 0.04, "dark var {v}");
+    }
+
+    #[test]
+    fn prnu_is_fixed_and_has_the_stated_std() {
+        let (w, h) = (128, 96);
+        let hidden = [Hidden::Prnu { sigma: 0.02 }];
+        let a = FixedPattern::new(w, h, 1, &hidden, 11);
+        let b = FixedPattern::new(w, h, 1, &hidden, 11);
+        let pa = a.prnu.as_ref().unwrap();
+        assert_eq!(pa, b.prnu.as_ref().unwrap());
+        let (m, v) = mean_var(pa);
+        // n = 12288: std of the sample std ≈ σ/sqrt(2n)·sqrt(1 + κ/2) < 1 % for uniform; bound 4 %.
+        assert!((m - 1.0).abs() < 0.001, "mean gain {m}");
+        assert!((v.sqrt() / 0.02 - 1.0).abs() < 0.04, "std {}", v.sqrt());
+    }
+
+    #[test]
+    fn stray_light_maximum_inside_frame_is_the_amplitude() {
+        let f = stray_field(64, 48, -30.0, -20.0, 50.0);
+        let mx = f.iter().cloned().fold(0.0, f64::max);
+        assert!((mx - 1.0).abs() < 1e-12);
+        assert!((f[0] - 1.0).abs() < 1e-12, "max at the corner nearest the source");
+        assert!(f[64 * 48 - 1] < f[0]);
+    }
+
+    #[test]
+    fn scene_has_saturated_columns_mid_grey_and_dark_space() {
+        let scene = Scene::new(256, 192, 42, true);
+        for fmt in [Fmt::Mono8, Fmt::Rgb8] {
+            let img = scene.render(2, 6, fmt);
+            let c = fmt.channels();
+            let n = (img.w * img.h) as f64;
+            let sat = img.v.iter().step_by(c).filter(|&&v| v >= 255.0).count();
+            let dark = img.v.iter().step_by(c).filter(|&&v| v <= 6.0).count() as f64 / n;
+            let grey = img.v.iter().step_by(c).filter(|&&v| (60.0..=190.0).contains(&v)).count() as f64 / n;
+            assert!(sat >= 30, "{fmt:?}: {sat} saturated pixels");
+            assert!(dark > 0.2, "{fmt:?}: dark fraction {dark}");
+            assert!(grey > 0.15, "{fmt:?}: mid-grey fraction {grey}");
+            // Some column has ≥ 5 saturated pixels (smear has something to act on).
+            let best = (0..img.w).map(|x| (0..img.h).filter(|&y| img.at(x, y, 0) >= 255.0).count()).max().unwrap();
+            assert!(best >= 5, "{fmt:?}: max saturated per column {best}");
+        }
+    }
+
+    #[test]
+    fn jpeg_round_trip_is_close_but_not_identical() {
+        let scene = Scene::new(64, 48, 5, false);
+        let img = scene.render(0, 1, Fmt::Rgb8);
+        let j = jpeg_round_trip(&img, 90);
+        let rmse = (img.v.iter().zip(&j.v).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / img.v.len() as f64).sqrt();
+        assert!(rmse > 0.1 && rmse < 8.0, "rmse {rmse}");
+    }
+}
