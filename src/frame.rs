@@ -248,7 +248,9 @@ pub enum AnyImageRef<'a> {
 macro_rules! with_image_mut {
     ($frame:expr, $img:ident => $body:expr) => {
         match $frame.image_mut() {
+            #[allow(unused_mut)]
             $crate::frame::AnyImageMut::U8(mut $img) => $body,
+            #[allow(unused_mut)]
             $crate::frame::AnyImageMut::U16(mut $img) => $body,
         }
     };

@@ -1,6 +1,10 @@
 //! faultcam: physically modelled camera faults for hardware-in-the-loop testing of spacecraft
 //! vision. See README.md for the pipeline and EFFECTS.md (shared) for the effect vocabulary.
 
+// Numerical kernels index several arrays with one loop variable; iterator zips would hide the
+// arithmetic. Forward models take many physical parameters.
+#![allow(clippy::needless_range_loop, clippy::too_many_arguments)]
+
 pub mod config;
 pub mod control;
 pub mod diagnose;

@@ -81,7 +81,10 @@ pub enum Command {
     /// Stop them.
     Stop(String),
     /// Change an effect's baseline (config index `index`).
-    Set { index: usize, target: SetTarget },
+    Set {
+        index: usize,
+        target: SetTarget,
+    },
     Arm,
     Disarm,
     /// A label for the log, aligned with a frame.
@@ -107,15 +110,16 @@ impl Catalog {
             },
             None => (word, None),
         };
-        let listed = || {
-            self.effects.iter().enumerate().map(|(i, (n, _))| format!("{n}#{i}")).collect::<Vec<_>>().join(", ")
-        };
+        let listed =
+            || self.effects.iter().enumerate().map(|(i, (n, _))| format!("{n}#{i}")).collect::<Vec<_>>().join(", ");
         let matches: Vec<usize> =
             self.effects.iter().enumerate().filter(|(_, (n, _))| n == name).map(|(i, _)| i).collect();
         match (idx, matches.len()) {
             (_, 0) => Err(format!("unknown effect '{}'; configured: {}", echo(name.as_bytes()), listed())),
             (None, 1) => Ok(matches[0]),
-            (None, _) => Err(format!("effect '{name}' is configured {} times; name one as {}", matches.len(), listed())),
+            (None, _) => {
+                Err(format!("effect '{name}' is configured {} times; name one as {}", matches.len(), listed()))
+            }
             (Some(i), _) if matches.contains(&i) => Ok(i),
             (Some(i), _) => Err(format!("'{name}#{i}' is not configured; configured: {}", listed())),
         }
@@ -164,7 +168,11 @@ pub fn parse_command(body: &str, cat: &Catalog) -> Result<Command, String> {
                 Err(format!(
                     "unknown event or trigger '{}'; accepted: {}",
                     echo(name.as_bytes()),
-                    if cat.names.is_empty() { "(the campaign has no events)".to_string() } else { cat.names.join(", ") }
+                    if cat.names.is_empty() {
+                        "(the campaign has no events)".to_string()
+                    } else {
+                        cat.names.join(", ")
+                    }
                 ))
             }
         }
@@ -180,7 +188,10 @@ pub fn parse_command(body: &str, cat: &Catalog) -> Result<Command, String> {
                 return match value.to_ascii_lowercase().as_str() {
                     "true" | "1" | "on" => Ok(Command::Set { index, target: SetTarget::Enabled(true) }),
                     "false" | "0" | "off" => Ok(Command::Set { index, target: SetTarget::Enabled(false) }),
-                    _ => Err(format!("{name}.enabled = '{}' is not accepted; accepted: true or false", echo(value.as_bytes()))),
+                    _ => Err(format!(
+                        "{name}.enabled = '{}' is not accepted; accepted: true or false",
+                        echo(value.as_bytes())
+                    )),
                 };
             }
             let Some((pi, spec)) = info.param(param) else {
@@ -204,7 +215,12 @@ pub fn parse_command(body: &str, cat: &Catalog) -> Result<Command, String> {
                 ParamKind::Bool => match value.to_ascii_lowercase().as_str() {
                     "true" | "1" => 1.0,
                     "false" | "0" => 0.0,
-                    _ => return Err(format!("{name}.{param} = '{}' is not accepted; accepted: true or false", echo(value.as_bytes()))),
+                    _ => {
+                        return Err(format!(
+                            "{name}.{param} = '{}' is not accepted; accepted: true or false",
+                            echo(value.as_bytes())
+                        ));
+                    }
                 },
                 ParamKind::Int | ParamKind::Float => match value.parse::<f64>() {
                     Ok(v) => v,
@@ -609,11 +625,16 @@ impl SerialTriggers {
         settings: SerialSettings,
         catalog: Catalog,
     ) -> Result<SerialTriggers, TriggerError> {
-        port.set_timeout(settings.poll)
-            .map_err(|source| TriggerError::Port { port: name.clone(), what: "cannot set the read timeout", source })?;
-        let out = port
-            .try_clone()
-            .map_err(|source| TriggerError::Port { port: name.clone(), what: "cannot clone for writing", source })?;
+        port.set_timeout(settings.poll).map_err(|source| TriggerError::Port {
+            port: name.clone(),
+            what: "cannot set the read timeout",
+            source,
+        })?;
+        let out = port.try_clone().map_err(|source| TriggerError::Port {
+            port: name.clone(),
+            what: "cannot clone for writing",
+            source,
+        })?;
         let out: SharedPort = Arc::new(Mutex::new(Some(out)));
         let (tx, rx) = bounded::<Incoming>(INCOMING_QUEUE);
         let (reply_tx, reply_rx) = bounded::<String>(REPLY_QUEUE);
@@ -625,21 +646,20 @@ impl SerialTriggers {
             .name("faultcam-trigger-out".into())
             .spawn(move || writer_loop(reply_rx, w_out, w_tx))
             .map_err(|e| TriggerError::Thread("trigger writer", e))?;
-        let ctx = ReaderCtx {
-            port,
-            out,
-            reopen,
-            tx,
-            replies: reply_tx.clone(),
-            stop: stop.clone(),
-            catalog,
-            settings,
-        };
+        let ctx = ReaderCtx { port, out, reopen, tx, replies: reply_tx.clone(), stop: stop.clone(), catalog, settings };
         let reader = std::thread::Builder::new()
             .name("faultcam-trigger-in".into())
             .spawn(move || reader_loop(ctx))
             .map_err(|e| TriggerError::Thread("trigger reader", e))?;
-        Ok(SerialTriggers { name, rx, reply_tx: Some(reply_tx), stop, reader: Some(reader), writer: Some(writer), dropped: 0 })
+        Ok(SerialTriggers {
+            name,
+            rx,
+            reply_tx: Some(reply_tx),
+            stop,
+            reader: Some(reader),
+            writer: Some(writer),
+            dropped: 0,
+        })
     }
 
     fn shutdown(&mut self) {
@@ -656,10 +676,11 @@ impl SerialTriggers {
 }
 
 fn open_port(path: &str, baud: u32, poll: Duration) -> Result<Box<dyn SerialPort>, TriggerError> {
-    serialport::new(path, baud)
-        .timeout(poll)
-        .open()
-        .map_err(|source| TriggerError::Open { port: path.to_string(), baud, source })
+    serialport::new(path, baud).timeout(poll).open().map_err(|source| TriggerError::Open {
+        port: path.to_string(),
+        baud,
+        source,
+    })
 }
 
 impl TriggerInput for SerialTriggers {
@@ -874,7 +895,8 @@ impl TriggerReplay {
     /// Read the `{"record":"event","event":"trigger",...}` lines of a log.
     pub fn from_log(path: &Path, catalog: Catalog) -> Result<TriggerReplay, TriggerError> {
         let file = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| TriggerError::ReplayIo { file: file.clone(), source })?;
+        let text =
+            std::fs::read_to_string(path).map_err(|source| TriggerError::ReplayIo { file: file.clone(), source })?;
         TriggerReplay::from_text(&text, &file, catalog)
     }
 
@@ -995,7 +1017,10 @@ mod tests {
             ("4 DISARM", Command::Disarm),
             ("5 PING", Command::Ping),
             ("6 MARK run 3 begins", Command::Mark("run 3 begins".into())),
-            ("7 SET gain_offset.gain 2.5", Command::Set { index: 0, target: SetTarget::Param { param: 0, value: 2.5 } }),
+            (
+                "7 SET gain_offset.gain 2.5",
+                Command::Set { index: 0, target: SetTarget::Param { param: 0, value: 2.5 } },
+            ),
             ("8 SET gaussian_noise#2.enabled false", Command::Set { index: 2, target: SetTarget::Enabled(false) }),
         ];
         for (line, want) in cases {

@@ -64,8 +64,8 @@ fn fake_camera_streams_in_order_with_its_ramp() {
 
 #[test]
 fn fake_camera_mono16_and_settings_read_back() {
-    let mut s = AravisSource::open("aravis:Fake_1?pixel_format=Mono16&width=32&height=4&fps=150&exposure_us=10000")
-        .unwrap();
+    let mut s =
+        AravisSource::open("aravis:Fake_1?pixel_format=Mono16&width=32&height=4&fps=150&exposure_us=10000").unwrap();
     let d = s.describe();
     // The camera rounds the rate to its clock (150.02 fps): the value read back is reported.
     assert!(d.contains("Mono16") && d.contains("150.0") && d.contains("exposure 10000 us"), "{d}");
@@ -125,15 +125,19 @@ fn fake_camera_through_the_pipeline_into_files() {
     assert_eq!(summary.unaccounted, 0);
     // Every delivered record names its file; each file is the ramp + 3 DN (clipped).
     let text = std::fs::read_to_string(&log_path).unwrap();
-    let recs: Vec<serde_json::Value> =
-        text.lines().map(|l| serde_json::from_str(l).unwrap()).filter(|v: &serde_json::Value| v["record"] == "frame").collect();
+    let recs: Vec<serde_json::Value> = text
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .filter(|v: &serde_json::Value| v["record"] == "frame")
+        .collect();
     assert_eq!(recs.len(), 12);
     for r in &recs {
         assert_eq!(r["status"], "delivered");
         assert_eq!(r["effects"][0]["name"], "gain_offset");
-        let img = image::open(r["output"].as_str().map(|o| out.join(std::path::Path::new(o).file_name().unwrap())).unwrap())
-            .unwrap()
-            .to_luma8();
+        let img =
+            image::open(r["output"].as_str().map(|o| out.join(std::path::Path::new(o).file_name().unwrap())).unwrap())
+                .unwrap()
+                .to_luma8();
         let c = img.get_pixel(0, 0)[0] as u32 - 3;
         for (x, y, p) in img.enumerate_pixels() {
             let v = (x + y + c) % 255;

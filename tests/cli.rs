@@ -51,7 +51,7 @@ fn effects_lists_every_registered_effect_with_units() {
         assert!(text.contains(&format!("{} [{} stage", r.info.name, r.info.stage.name())), "{} missing", r.info.name);
         for p in r.info.params {
             assert!(
-                text.contains(&format!("{}", p.name)) && text.contains(&format!("[{}]", p.unit)),
+                text.contains(&p.name.to_string()) && text.contains(&format!("[{}]", p.unit)),
                 "{}.{}",
                 r.info.name,
                 p.name

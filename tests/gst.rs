@@ -70,7 +70,11 @@ fn padded_rows_are_unpadded_exactly() {
         assert_eq!((f.format, f.stride), (pf, w * bpp));
         let data = f.as_u8().unwrap();
         for y in 0..h {
-            assert_eq!(&data[y * w * bpp..(y + 1) * w * bpp], &raw[y * gst_stride..y * gst_stride + w * bpp], "row {y}");
+            assert_eq!(
+                &data[y * w * bpp..(y + 1) * w * bpp],
+                &raw[y * gst_stride..y * gst_stride + w * bpp],
+                "row {y}"
+            );
         }
     }
 }
@@ -193,8 +197,9 @@ fn sink_vp8_webm_then_decode_with_source() {
     for (a, b) in frames.iter().zip(&back) {
         assert_eq!((b.width, b.height), (64, 48));
         assert_eq!(a.pts_ns, b.pts_ns, "timestamps survive the container");
-        let mad: f64 = a.as_u8().unwrap().iter().zip(b.as_u8().unwrap()).map(|(&x, &y)| (x as f64 - y as f64).abs()).sum::<f64>()
-            / a.pixels() as f64;
+        let mad: f64 =
+            a.as_u8().unwrap().iter().zip(b.as_u8().unwrap()).map(|(&x, &y)| (x as f64 - y as f64).abs()).sum::<f64>()
+                / a.pixels() as f64;
         assert!(mad < 6.0, "mean abs difference {mad} DN after VP8");
     }
 }

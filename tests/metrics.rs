@@ -22,8 +22,12 @@ fn rect_scene(w: usize, h: usize, seed: u64) -> Grey {
 
 fn with_noise(g: &Grey, sigma: f64, seed: u64) -> Grey {
     let mut rng = Rng::new(seed);
-    Grey::new(g.width, g.height, g.data.iter().map(|&v| (v as f64 + sigma * rng.normal()).clamp(0.0, 255.0) as f32).collect())
-        .unwrap()
+    Grey::new(
+        g.width,
+        g.height,
+        g.data.iter().map(|&v| (v as f64 + sigma * rng.normal()).clamp(0.0, 255.0) as f32).collect(),
+    )
+    .unwrap()
 }
 
 #[test]
@@ -62,9 +66,7 @@ fn fqi_equals_mutual_nearest_neighbour_hamming_mean() {
     let (fa, fb) = (metrics::orb_features(&a, &cfg).unwrap(), metrics::orb_features(&b, &cfg).unwrap());
     let (da, db) = (fa.descriptors().unwrap(), fb.descriptors().unwrap());
     let ham = |x: &[u8; 32], y: &[u8; 32]| x.iter().zip(y).map(|(p, q)| (p ^ q).count_ones()).sum::<u32>();
-    let nearest = |x: &[u8; 32], set: &[[u8; 32]]| {
-        (0..set.len()).min_by_key(|&j| (ham(x, &set[j]), j)).unwrap()
-    };
+    let nearest = |x: &[u8; 32], set: &[[u8; 32]]| (0..set.len()).min_by_key(|&j| (ham(x, &set[j]), j)).unwrap();
     let mut dists = Vec::new();
     for (i, x) in da.iter().enumerate() {
         let j = nearest(x, &db);

@@ -87,7 +87,8 @@ fn frames_of(lines: &[Value]) -> Vec<&Value> {
 fn check_accounting(s: &Summary, lines: &[Value]) {
     let frames = frames_of(lines);
     let count = |st: &str| frames.iter().filter(|f| f["status"] == st).count() as u64;
-    let held = frames.iter().filter(|f| f["status"] == "dropped_by_fault" && f["dropped_by"] == "reorder").count() as u64;
+    let held =
+        frames.iter().filter(|f| f["status"] == "dropped_by_fault" && f["dropped_by"] == "reorder").count() as u64;
     assert_eq!(count("delivered"), s.delivered, "{s}");
     assert_eq!(count("dropped_by_fault") - held, s.dropped_by_fault, "{s}");
     assert_eq!(held, s.held);
@@ -118,7 +119,8 @@ fn synth_through_the_chain_equals_the_chain_applied_directly() {
     let effects: &[(&str, &[(&str, f64)])] =
         &[("gaussian_noise", &[("sigma_dn", 4.0)]), ("gain_offset", &[("gain", 1.2), ("offset_dn", 5.0)])];
     let sink = Collect::default();
-    let (s, lines) = run(synth(25), Box::new(sink.clone()), chain_of(7, effects), Vec::new(), &PipelineOptions::default());
+    let (s, lines) =
+        run(synth(25), Box::new(sink.clone()), chain_of(7, effects), Vec::new(), &PipelineOptions::default());
     check_accounting(&s, &lines);
     assert_eq!((s.frames_in, s.delivered), (25, 25));
     assert!(sink.finished.load(Ordering::SeqCst), "sink finished");
@@ -209,7 +211,13 @@ struct StepController {
 }
 
 impl Controller for StepController {
-    fn before_frame(&mut self, seq: u64, t_ns: u64, chain: &mut Chain, events: &mut Vec<LogEvent>) -> anyhow::Result<()> {
+    fn before_frame(
+        &mut self,
+        seq: u64,
+        t_ns: u64,
+        chain: &mut Chain,
+        events: &mut Vec<LogEvent>,
+    ) -> anyhow::Result<()> {
         self.calls.lock().unwrap().before.push(seq);
         if seq == self.at {
             let e = chain.entry_by_name_mut("gain_offset").unwrap();
@@ -238,7 +246,8 @@ fn controllers_drive_the_chain_frame_by_frame() {
     let ctl = StepController { at: 10, calls: calls.clone(), stop_at: None };
     let sink = Collect::default();
     let effects: &[(&str, &[(&str, f64)])] = &[("gain_offset", &[("offset_dn", 0.0)])];
-    let (s, lines) = run(synth(20), Box::new(sink.clone()), chain_of(1, effects), vec![Box::new(ctl)], &PipelineOptions::default());
+    let (s, lines) =
+        run(synth(20), Box::new(sink.clone()), chain_of(1, effects), vec![Box::new(ctl)], &PipelineOptions::default());
     check_accounting(&s, &lines);
     let c = calls.lock().unwrap();
     assert_eq!(c.before, (0..20).collect::<Vec<_>>(), "before_frame for every frame, in order");
@@ -286,7 +295,8 @@ fn temporal_effects_delay_hold_and_drop_but_lose_nothing() {
         ("jitter", &[("ms", 3.0)]),
     ];
     let sink = Collect::default();
-    let (s, lines) = run(synth(40), Box::new(sink.clone()), chain_of(11, effects), Vec::new(), &PipelineOptions::default());
+    let (s, lines) =
+        run(synth(40), Box::new(sink.clone()), chain_of(11, effects), Vec::new(), &PipelineOptions::default());
     check_accounting(&s, &lines);
     assert_eq!(s.frames_in, 40);
     assert!(s.dropped_by_fault > 0 && s.dropped_by_fault < 40, "{s}");
@@ -316,8 +326,11 @@ fn overrun(policy: OverrunPolicy, realtime: bool) -> (Summary, Vec<Value>) {
         degrade_hold_frames: 5,
         ..Default::default()
     };
-    let effects: &[(&str, &[(&str, f64)])] =
-        &[("gaussian_noise", &[("sigma_dn", 3.0)]), ("defocus", &[("sigma_px", 1.5)]), ("gain_offset", &[("offset_dn", 1.0)])];
+    let effects: &[(&str, &[(&str, f64)])] = &[
+        ("gaussian_noise", &[("sigma_dn", 3.0)]),
+        ("defocus", &[("sigma_px", 1.5)]),
+        ("gain_offset", &[("offset_dn", 1.0)]),
+    ];
     run(synth(30), Box::new(NullSink::default()), chain_of(3, effects), Vec::new(), &opts)
 }
 

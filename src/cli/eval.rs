@@ -110,8 +110,8 @@ fn run_pairs(a: PairsArgs) -> anyhow::Result<u8> {
 }
 
 fn run_blooming(a: BloomingArgs) -> anyhow::Result<u8> {
-    let mut params = faults::default_params("blooming")
-        .context("the blooming validation protocol needs the `blooming` effect")?;
+    let mut params =
+        faults::default_params("blooming").context("the blooming validation protocol needs the `blooming` effect")?;
     for kv in &a.params {
         let (k, v) = kv.split_once('=').with_context(|| format!("--param '{kv}': expected name=value"))?;
         match v.parse::<f64>() {

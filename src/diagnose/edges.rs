@@ -193,12 +193,8 @@ pub fn tests(pairs: &[Pair], masks: &[Masks], q: &[Vec<Plane>], noise: &NoiseMod
             for (n, v) in ["dx_r", "dy_r", "dx_b", "dy_b"].iter().zip(est) {
                 cs.set_param(n, v);
             }
-            cs.stderr = vec![
-                ("dx_r".into(), ser.0),
-                ("dy_r".into(), ser.1),
-                ("dx_b".into(), seb.0),
-                ("dy_b".into(), seb.1),
-            ];
+            cs.stderr =
+                vec![("dx_r".into(), ser.0), ("dy_r".into(), ser.1), ("dx_b".into(), seb.0), ("dy_b".into(), seb.1)];
             cs.size = est.iter().fold(0.0f64, |a, v| a.max(v.abs()));
             cs.size_unit = "px (largest component)";
             cs.where_ = "all edges; red and blue planes against green".into();
@@ -222,7 +218,13 @@ pub fn tests(pairs: &[Pair], masks: &[Masks], q: &[Vec<Plane>], noise: &NoiseMod
         for a in 0..3 {
             sig[a] += ws * f.beta[2 + a];
             for b in 0..3 {
-                cov[a][b] += ws * ws * f.cov[(2 + a) * k + (2 + b)].max(if a == b { f.cov_model[(2 + a) * k + 2 + b] } else { f64::MIN });
+                cov[a][b] += ws
+                    * ws
+                    * f.cov[(2 + a) * k + (2 + b)].max(if a == b {
+                        f.cov_model[(2 + a) * k + 2 + b]
+                    } else {
+                        f64::MIN
+                    });
             }
         }
     }
@@ -240,7 +242,13 @@ pub fn tests(pairs: &[Pair], masks: &[Masks], q: &[Vec<Plane>], noise: &NoiseMod
     let disc = (tr * tr / 4.0 - det).max(0.0).sqrt();
     let (l1, l2) = (tr / 2.0 + disc, tr / 2.0 - disc);
     // Eigenvector of l1 (image coordinates, y down).
-    let (vx, vy) = if sxy.abs() > 1e-12 { (l1 - syy, sxy) } else if sxx >= syy { (1.0, 0.0) } else { (0.0, 1.0) };
+    let (vx, vy) = if sxy.abs() > 1e-12 {
+        (l1 - syy, sxy)
+    } else if sxx >= syy {
+        (1.0, 0.0)
+    } else {
+        (0.0, 1.0)
+    };
     let angle_img = vy.atan2(vx); // y down
     let mut angle_deg = (-angle_img).to_degrees();
     angle_deg = angle_deg.rem_euclid(180.0);
@@ -286,7 +294,8 @@ pub fn tests(pairs: &[Pair], masks: &[Masks], q: &[Vec<Plane>], noise: &NoiseMod
     let gl: Vec<f64> = grid.iter().map(|&s| gauss_loss(s)).collect();
     let ibest = (0..grid.len()).min_by(|&a, &b| gl[a].total_cmp(&gl[b])).unwrap_or(0);
     let (lo, hi) = (grid[ibest.saturating_sub(1)], grid[(ibest + 1).min(grid.len() - 1)]);
-    let (sigma_best, _) = if hi > lo { stats::golden(&mut |s| gauss_loss(s), lo, hi, 12) } else { (grid[ibest], gl[ibest]) };
+    let (sigma_best, _) =
+        if hi > lo { stats::golden(&mut |s| gauss_loss(s), lo, hi, 12) } else { (grid[ibest], gl[ibest]) };
     let n_g = gpts.len().max(1) as f64;
     defocus.profiles.push(Profile {
         title: "defocus: edge loss against Gaussian blur".into(),
@@ -334,7 +343,8 @@ pub fn tests(pairs: &[Pair], masks: &[Masks], q: &[Vec<Plane>], noise: &NoiseMod
             }
         }
         let (th_b, _) = stats::golden(&mut |t| line_loss(best_m.0, t), best_m.1 - 15.0, best_m.1 + 15.0, 10);
-        let (len_b, v_b) = stats::golden(&mut |l| line_loss(l, th_b), (best_m.0 * 0.5).max(0.0), best_m.0 * 1.5 + 1.0, 14);
+        let (len_b, v_b) =
+            stats::golden(&mut |l| line_loss(l, th_b), (best_m.0 * 0.5).max(0.0), best_m.0 * 1.5 + 1.0, 14);
         best_m = (len_b, th_b.rem_euclid(180.0), v_b);
     }
     motion.z = z_dir;

@@ -40,12 +40,8 @@ pub const DETERMINISTIC: &[&str] = &[
 ];
 
 /// Float extras worth fitting with the canonical parameters (shape of the field).
-const FIT_EXTRAS: &[(&str, &str)] = &[
-    ("stray_light", "angle_deg"),
-    ("stray_light", "distance"),
-    ("stray_light", "width"),
-    ("vignetting", "field_deg"),
-];
+const FIT_EXTRAS: &[(&str, &str)] =
+    &[("stray_light", "angle_deg"), ("stray_light", "distance"), ("stray_light", "width"), ("vignetting", "field_deg")];
 
 /// One reported effect.
 #[derive(Debug, Clone)]
@@ -218,7 +214,7 @@ impl Coord {
             (v - self.lo) / (self.hi - self.lo)
         }
     }
-    fn from_u(&self, u: f64) -> f64 {
+    fn value_at(&self, u: f64) -> f64 {
         let u = u.clamp(0.0, 1.0);
         if self.log {
             let (a, b) = (self.lo.max(1e-6).ln(), self.hi.ln());
@@ -351,7 +347,7 @@ fn optimise(
             let (a, b) = ((u0 - width).max(0.0), (u0 + width).min(1.0));
             let mut err = None;
             let mut eval = |u: f64| -> f64 {
-                set_param(steps, c, c.from_u(u));
+                set_param(steps, c, c.value_at(u));
                 match run_steps(steps, c.step, &prefix, seed) {
                     Ok(o) => lc.loss(&o).0,
                     Err(e) => {
@@ -366,7 +362,7 @@ fn optimise(
             }
             if v < best {
                 best = v;
-                set_param(steps, c, c.from_u(u));
+                set_param(steps, c, c.value_at(u));
             } else {
                 set_param(steps, c, cur);
             }
@@ -488,7 +484,13 @@ pub fn fit(pairs: &[Pair], loc: &Located, opts: &Options) -> Result<Fitted, Diag
             steps.insert(j, saved);
             let d: Vec<f64> = blocks.iter().zip(&blocks_full).map(|(a, b)| a - b).collect();
             let (m, se) = stats::mean_se(&d);
-            let zb = if se > 0.0 { m / se } else if m > 0.0 { 100.0 } else { 0.0 };
+            let zb = if se > 0.0 {
+                m / se
+            } else if m > 0.0 {
+                100.0
+            } else {
+                0.0
+            };
             drops.push((l, zb));
             let k_params = coords_of(std::slice::from_ref(&steps[j])).len().max(1) as f64;
             let n_pix = lc.pairs.iter().map(|p| p.w() * p.h() * p.channels()).sum::<usize>() as f64;

@@ -107,7 +107,12 @@ pub fn prnu(pairs: &[Pair], masks: &[Masks], noise: &NoiseModel, hot: &[Vec<bool
 /// Hot pixels: isolated positive outliers far above the noise, recurring in several frames.
 /// Returns the signature, the per-frame outlier masks (to exclude them elsewhere), and the mean
 /// excess of the hot pixels (DN).
-pub fn hot_pixels(pairs: &[Pair], masks: &[Masks], q: &[Vec<Plane>], noise: &NoiseModel) -> (Signature, Vec<Vec<bool>>, f64) {
+pub fn hot_pixels(
+    pairs: &[Pair],
+    masks: &[Masks],
+    q: &[Vec<Plane>],
+    noise: &NoiseModel,
+) -> (Signature, Vec<Vec<bool>>, f64) {
     let mut sig = Signature::new("hot_pixels");
     let mut cand: Vec<Vec<bool>> = Vec::new();
     let mut eligible: Vec<Vec<bool>> = Vec::new();
@@ -197,7 +202,13 @@ pub fn hot_pixels(pairs: &[Pair], masks: &[Masks], q: &[Vec<Plane>], noise: &Noi
 }
 
 /// Row noise by split-half covariance of detrended row means.
-pub fn row_noise(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], q: &[Vec<Plane>], noise: &NoiseModel) -> Signature {
+pub fn row_noise(
+    pairs: &[Pair],
+    masks: &[Masks],
+    r1: &[Vec<Plane>],
+    q: &[Vec<Plane>],
+    noise: &NoiseModel,
+) -> Signature {
     let mut sig = Signature::new("row_noise");
     let lo = 3.0 * noise.sd(0.0);
     let mut prods = Vec::new();
@@ -269,10 +280,8 @@ pub fn row_noise(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], q: &[Vec<Pl
     sig.set_param("sigma_dn", sd);
     sig.stderr = vec![("sigma_dn".into(), se2 / (2.0 * sd.max(0.05)))];
     sig.where_ = format!("{} row triples in all frames", prods.len());
-    sig.evidence = format!(
-        "row offsets shared by even and odd columns: sigma² = {s2:.4} ± {se2:.4} DN² (z = {:.1})",
-        sig.z
-    );
+    sig.evidence =
+        format!("row offsets shared by even and odd columns: sigma² = {s2:.4} ± {se2:.4} DN² (z = {:.1})", sig.z);
     sig.profiles.push(Profile {
         title: "row noise: row means of the residual, even vs odd columns (first frame)".into(),
         x_label: "row y (px)".into(),

@@ -342,8 +342,8 @@ pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>, DiagnoseError> {
 
 /// Decode an image file into a frame (Mono8, Mono16 or Rgb8).
 pub fn load_image(path: &Path) -> Result<Frame, DiagnoseError> {
-    let img = image::open(path)
-        .map_err(|e| DiagnoseError::Decode { path: path.to_path_buf(), message: e.to_string() })?;
+    let img =
+        image::open(path).map_err(|e| DiagnoseError::Decode { path: path.to_path_buf(), message: e.to_string() })?;
     let (w, h) = (img.width(), img.height());
     let bad = |what: &str| DiagnoseError::Decode { path: path.to_path_buf(), message: what.to_string() };
     use image::DynamicImage as D;
@@ -400,10 +400,8 @@ pub fn load_pairs(sim_dir: &Path, real_dir: &Path) -> Result<(Vec<Pair>, Vec<Str
             });
         }
         if sf.format != rf.format {
-            notes.push(format!(
-                "{}: sim is {} and real is {}; both are analysed in 8-bit DN",
-                st, sf.format, rf.format
-            ));
+            notes
+                .push(format!("{}: sim is {} and real is {}; both are analysed in 8-bit DN", st, sf.format, rf.format));
         }
         let sim = planes_of(&sf);
         let real = planes_of(&rf);

@@ -80,7 +80,9 @@ fn coefficient_hist(pairs: &[Pair], real: bool, off: (usize, usize)) -> CoefHist
         let planes = if real { &p.real } else { &p.sim };
         let (w, h) = (p.w(), p.h());
         let y_plane: Vec<f32> = if planes.len() == 3 {
-            (0..w * h).map(|i| 0.299 * planes[0].data[i] + 0.587 * planes[1].data[i] + 0.114 * planes[2].data[i]).collect()
+            (0..w * h)
+                .map(|i| 0.299 * planes[0].data[i] + 0.587 * planes[1].data[i] + 0.114 * planes[2].data[i])
+                .collect()
         } else {
             planes[0].data.clone()
         };
@@ -127,7 +129,11 @@ fn score(h: &CoefHist, f: usize, q: f64) -> (f64, f64) {
 }
 
 /// Table score: weighted mean of C over the frequencies with enough non-zero coefficients.
-fn table_score(h: &CoefHist, table: &[u16; 64], cache: &mut std::collections::HashMap<(usize, u16), (f64, f64)>) -> (f64, f64) {
+fn table_score(
+    h: &CoefHist,
+    table: &[u16; 64],
+    cache: &mut std::collections::HashMap<(usize, u16), (f64, f64)>,
+) -> (f64, f64) {
     let (mut s, mut n) = (0.0, 0.0);
     for f in 1..64 {
         let q = table[f];

@@ -150,11 +150,8 @@ pub fn predict_planes(pairs: &[Pair], ph: &Photometric) -> (Vec<Vec<Plane>>, Vec
 /// Run every signature test and decide the candidates.
 pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     let mut notes = Vec::new();
-    let quant = if pairs.iter().all(|p| p.real_frame.format == crate::frame::PixelFormat::Mono16) {
-        1.0 / 257.0
-    } else {
-        1.0
-    };
+    let quant =
+        if pairs.iter().all(|p| p.real_frame.format == crate::frame::PixelFormat::Mono16) { 1.0 / 257.0 } else { 1.0 };
     let masks: Vec<Masks> = pairs.iter().map(|p| Masks::compute(&p.sim)).collect();
     // First pass: noise, photometric model, residuals.
     let noise0 = noise::estimate(pairs, &masks, quant, 0.0, None);
@@ -284,7 +281,8 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     jp.detected = jp.z > z.max(8.0) && jp.param("quality").unwrap_or(100.0) < 98.0;
 
     sigs.extend([
-        gn, sn, gain_sig, gamma_sig, vig, stray, dark, hot_sig, prnu_sig, defocus, motion, cs, bloom, smear, flare, row, jp,
+        gn, sn, gain_sig, gamma_sig, vig, stray, dark, hot_sig, prnu_sig, defocus, motion, cs, bloom, smear, flare,
+        row, jp,
     ]);
     Located { masks, noise, photo, pred, resid, hot, signatures: sigs, notes, quant }
 }

@@ -124,7 +124,12 @@ pub fn calibrate(sig: &Signature, loc: &Located, like: &Frame, seed: u64) -> Opt
             }
             let _ = p.set("sigma", s.clamp(1e-6, 0.2));
             let se = sig.stderr.first().map(|x| x.1).unwrap_or(1.0).max(1e-9);
-            Some((p, "moment matching: cross-frame covariance of the relative residual".into(), (target / se).powi(2), 0.0))
+            Some((
+                p,
+                "moment matching: cross-frame covariance of the relative residual".into(),
+                (target / se).powi(2),
+                0.0,
+            ))
         }
         "row_noise" => {
             let target_var = sig.param("sigma_dn").unwrap_or(0.0).powi(2);
@@ -147,9 +152,16 @@ pub fn calibrate(sig: &Signature, loc: &Located, like: &Frame, seed: u64) -> Opt
             if let Some(ex) = sig.param("offset_dn") {
                 let _ = p.set("offset_dn", ex.clamp(0.0, 255.0));
             }
-            Some((p, "hot-pixel rate counted directly (recurring isolated outliers)".into(), sig.z.max(0.0).powi(2), 0.0))
+            Some((
+                p,
+                "hot-pixel rate counted directly (recurring isolated outliers)".into(),
+                sig.z.max(0.0).powi(2),
+                0.0,
+            ))
         }
-        "jpeg" => Some((p, "quality from the DCT quantisation lattice (libjpeg tables)".into(), sig.z.max(0.0).powi(2), 0.0)),
+        "jpeg" => {
+            Some((p, "quality from the DCT quantisation lattice (libjpeg tables)".into(), sig.z.max(0.0).powi(2), 0.0))
+        }
         _ => Some((p, "signature estimate".into(), sig.z.max(0.0).powi(2), 0.0)),
     }
 }

@@ -119,13 +119,7 @@ fn collect(pairs: &[Pair], masks: &[Masks], skip: Option<&[Vec<bool>]>) -> Vec<V
 
 /// Estimate the noise model. `prnu_c` is the fixed-pattern variance coefficient (sigma^2)
 /// measured across frames (0 if none); `skip` excludes hot pixels.
-pub fn estimate(
-    pairs: &[Pair],
-    masks: &[Masks],
-    quant: f64,
-    prnu_c: f64,
-    skip: Option<&[Vec<bool>]>,
-) -> NoiseModel {
+pub fn estimate(pairs: &[Pair], masks: &[Masks], quant: f64, prnu_c: f64, skip: Option<&[Vec<bool>]>) -> NoiseModel {
     let raw = collect(pairs, masks, skip);
     let mut bins = Vec::new();
     for (i, v) in raw.iter().enumerate() {

@@ -145,7 +145,7 @@ pub fn fit(pairs: &[Pair], masks: &[Masks], noise: &NoiseModel) -> Photometric {
                 for y in 0..h {
                     for x in 0..w {
                         counter += 1;
-                        if counter % step != 0 {
+                        if !counter.is_multiple_of(step) {
                             continue;
                         }
                         let i = y * w + x;
@@ -256,7 +256,15 @@ pub fn tests(ph: &Photometric, pairs: &[Pair], masks: &[Masks], z_thr: f64) -> P
         for s in [&mut gain, &mut gamma, &mut vig, &mut stray] {
             s.evidence = "photometric fit not possible (no flat unsaturated pixels)".into();
         }
-        return PhotoTests { gain, gamma, vignetting: vig, stray, offset: 0.0, offset_z: 0.0, offset_se: f64::INFINITY };
+        return PhotoTests {
+            gain,
+            gamma,
+            vignetting: vig,
+            stray,
+            offset: 0.0,
+            offset_z: 0.0,
+            offset_se: f64::INFINITY,
+        };
     };
     let b = &ph.beta;
     let g = 1.0 + b[I_GAIN];
@@ -386,6 +394,10 @@ fn additive_profile(ph: &Photometric) -> Profile {
         x_label: "normalised position (-1 = left/top edge, 1 = right/bottom)".into(),
         y_label: "additive level (DN)".into(),
         x,
-        series: vec![("horizontal centre line".into(), hx), ("vertical centre line".into(), vy), ("diagonal".into(), d1)],
+        series: vec![
+            ("horizontal centre line".into(), hx),
+            ("vertical centre line".into(), vy),
+            ("diagonal".into(), d1),
+        ],
     }
 }

@@ -81,7 +81,7 @@ fn fmt_tick(v: f64) -> String {
     if a == 0.0 {
         "0".into()
     } else if !(1e-3..1e5).contains(&a) {
-        format!("{v:.1e}").replace("e-", "e-").replace("e", "e")
+        format!("{v:.1e}")
     } else if a >= 100.0 {
         format!("{v:.0}")
     } else if a >= 1.0 {
@@ -101,8 +101,10 @@ pub fn line_plot(p: &Profile, path: &Path) -> Result<(), image::ImageError> {
     if xs.is_empty() || ys.is_empty() {
         return img.save(path);
     }
-    let (mut x0, mut x1) = (xs.iter().copied().fold(f64::INFINITY, f64::min), xs.iter().copied().fold(f64::NEG_INFINITY, f64::max));
-    let (mut y0, mut y1) = (ys.iter().copied().fold(f64::INFINITY, f64::min), ys.iter().copied().fold(f64::NEG_INFINITY, f64::max));
+    let (mut x0, mut x1) =
+        (xs.iter().copied().fold(f64::INFINITY, f64::min), xs.iter().copied().fold(f64::NEG_INFINITY, f64::max));
+    let (mut y0, mut y1) =
+        (ys.iter().copied().fold(f64::INFINITY, f64::min), ys.iter().copied().fold(f64::NEG_INFINITY, f64::max));
     if x1 <= x0 {
         x1 = x0 + 1.0;
         x0 -= 1.0;

@@ -129,10 +129,19 @@ fn fmt_metrics(m: &FitMetrics) -> String {
 }
 
 /// Write report.json, fitted.toml and (optionally) report.md with its PNGs.
-pub fn write(rep: &Report, pairs: &[Pair], loc: &Located, fitted: &Fitted, out: &Path, opts: &Options) -> Result<(), DiagnoseError> {
+pub fn write(
+    rep: &Report,
+    pairs: &[Pair],
+    loc: &Located,
+    fitted: &Fitted,
+    out: &Path,
+    opts: &Options,
+) -> Result<(), DiagnoseError> {
     write_json(rep, out)?;
     let tp = out.join("fitted.toml");
-    let mut toml = String::from("# Fault model fitted by `faultcam diagnose`: apply it to sim images with\n# `faultcam apply --config fitted.toml ...`\n");
+    let mut toml = String::from(
+        "# Fault model fitted by `faultcam diagnose`: apply it to sim images with\n# `faultcam apply --config fitted.toml ...`\n",
+    );
     toml.push_str(&fitted.config.to_toml());
     std::fs::write(&tp, toml).map_err(|e| werr(&tp, e))?;
     if !opts.write_markdown {
@@ -145,7 +154,9 @@ pub fn write(rep: &Report, pairs: &[Pair], loc: &Located, fitted: &Fitted, out: 
     if rep.findings.is_empty() {
         md.push_str("No significant mismatch found.\n\n");
     } else {
-        md.push_str("| effect | parameters | z | loss before | loss after | where | method |\n|---|---|---|---|---|---|---|\n");
+        md.push_str(
+            "| effect | parameters | z | loss before | loss after | where | method |\n|---|---|---|---|---|---|---|\n",
+        );
         for f in &rep.findings {
             let params: Vec<String> = f.params.iter().map(|(k, v)| format!("{k} = {v}")).collect();
             md.push_str(&format!(
@@ -268,7 +279,9 @@ pub fn write_unpaired(rep: &UnpairedReport, out: &Path, _opts: &Options) -> Resu
         md.push_str(l);
         md.push('\n');
     }
-    md.push_str("\n## Findings\n\n| effect | parameters | loss before | loss after | evidence |\n|---|---|---|---|---|\n");
+    md.push_str(
+        "\n## Findings\n\n| effect | parameters | loss before | loss after | evidence |\n|---|---|---|---|---|\n",
+    );
     for f in &rep.report.findings {
         let params: Vec<String> = f.params.iter().map(|(k, v)| format!("{k} = {v}")).collect();
         md.push_str(&format!(

@@ -143,9 +143,7 @@ pub fn blooming(
     );
     sig.evidence = format!(
         "saturated plateau reads {rm:.1} DN where {pm:.1} DN is expected (deficit {deficit:.2} ± {se:.2} DN, z = {:.1}); halo {:.2} DN at 1 px, {:.2} DN at 3 px above the far field",
-        sig.z,
-        prof[0],
-        prof[2]
+        sig.z, prof[0], prof[2]
     );
     sig.profiles.push(Profile {
         title: "blooming: residual against distance from saturated regions".into(),

@@ -5,7 +5,11 @@ use super::report::{FitSummary, Report, UnpairedReport};
 use super::{DiagnoseError, Options};
 use crate::frame::Frame;
 
-pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], _opts: &Options) -> Result<UnpairedReport, DiagnoseError> {
+pub fn run(
+    sims: &[(String, Frame)],
+    reals: &[(String, Frame)],
+    _opts: &Options,
+) -> Result<UnpairedReport, DiagnoseError> {
     let report = Report {
         findings: Vec::new(),
         fit: FitSummary { before: Default::default(), after: Default::default() },
@@ -17,5 +21,10 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], _opts: &Options)
         dropped: Vec::new(),
         notes: vec!["unpaired mode not implemented yet".into()],
     };
-    Ok(UnpairedReport { report, config: crate::config::FaultConfig::from_effects(1, Vec::new()), profiles: Vec::new(), lines: Vec::new() })
+    Ok(UnpairedReport {
+        report,
+        config: crate::config::FaultConfig::from_effects(1, Vec::new()),
+        profiles: Vec::new(),
+        lines: Vec::new(),
+    })
 }

@@ -352,8 +352,10 @@ pub fn run_protocol(
     let fq = |f: fn(&GeneratedResult) -> &MatchScore| -> Vec<f64> {
         per_image.iter().map(|r| f(r).fqi.unwrap_or(0.0)).collect()
     };
-    let hc = |f: fn(&GeneratedResult) -> &MatchScore| -> Vec<f64> { per_image.iter().map(|r| f(r).hist_corr).collect() };
-    let (fb, fc) = (plot::bin_counts(&fq(|r| &r.bloomed), 25, 0.0, 1.0), plot::bin_counts(&fq(|r| &r.control), 25, 0.0, 1.0));
+    let hc =
+        |f: fn(&GeneratedResult) -> &MatchScore| -> Vec<f64> { per_image.iter().map(|r| f(r).hist_corr).collect() };
+    let (fb, fc) =
+        (plot::bin_counts(&fq(|r| &r.bloomed), 25, 0.0, 1.0), plot::bin_counts(&fq(|r| &r.control), 25, 0.0, 1.0));
     plot::BarPlot {
         title: "FQI of best real match (count)",
         x_label: "FQI",
@@ -480,7 +482,8 @@ fn best_match(
     let mut best: Option<(f64, MatchScore)> = None;
     for (r, info) in reals.iter().zip(real_info) {
         #[cfg(feature = "opencv")]
-        let fqi = g.orb.fqi(&r.orb).map_err(|source| EvalError::Metrics { context: info.0.name.clone(), source })?.value;
+        let fqi =
+            g.orb.fqi(&r.orb).map_err(|source| EvalError::Metrics { context: info.0.name.clone(), source })?.value;
         #[cfg(not(feature = "opencv"))]
         let fqi: Option<f64> = None;
         let corr = metrics::hist_correlation_hist(&g.hist, &r.hist);
@@ -491,7 +494,8 @@ fn best_match(
             let keypoints = g.orb.keypoints;
             #[cfg(not(feature = "opencv"))]
             let keypoints = 0;
-            best = Some((score, MatchScore { best_real: info.0.name.clone(), fqi, hist_corr: corr, keypoints, accepted }));
+            best =
+                Some((score, MatchScore { best_real: info.0.name.clone(), fqi, hist_corr: corr, keypoints, accepted }));
         }
     }
     best.map(|b| b.1).ok_or_else(|| EvalError::Invalid { what: "no real crop to compare with".to_string() })
@@ -517,7 +521,8 @@ impl BloomingReport {
     /// Plain-text summary next to the study's numbers.
     pub fn summary(&self) -> String {
         let arm = |a: &ArmSummary| {
-            let f = a.fqi.map(|s| format!("{:.3}/{:.3}/{:.3}/{:.3}", s.mean, s.median, s.std, s.min)).unwrap_or_default();
+            let f =
+                a.fqi.map(|s| format!("{:.3}/{:.3}/{:.3}/{:.3}", s.mean, s.median, s.std, s.min)).unwrap_or_default();
             let c = a
                 .hist_corr
                 .map(|s| format!("{:.3}/{:.3}/{:.3}/{:.3}", s.mean, s.median, s.std, s.min))

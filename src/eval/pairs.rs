@@ -149,17 +149,19 @@ impl PairsReport {
         );
         for p in &self.pairs {
             match (&p.metrics, &p.error) {
-                (Some(m), _) => s += &format!(
-                    "{:<w$}  {:>8.3} {:>8} {:>7.4} {:>7} {:>9.4} {:>7.4} {:>7.4}\n",
-                    p.name,
-                    m.rmse,
-                    opt(Some(m.psnr), 2),
-                    m.ssim,
-                    opt(m.fqi, 4),
-                    m.hist_corr,
-                    m.bhattacharyya,
-                    m.spi
-                ),
+                (Some(m), _) => {
+                    s += &format!(
+                        "{:<w$}  {:>8.3} {:>8} {:>7.4} {:>7} {:>9.4} {:>7.4} {:>7.4}\n",
+                        p.name,
+                        m.rmse,
+                        opt(Some(m.psnr), 2),
+                        m.ssim,
+                        opt(m.fqi, 4),
+                        m.hist_corr,
+                        m.bhattacharyya,
+                        m.spi
+                    )
+                }
                 (None, e) => s += &format!("{:<w$}  error: {}\n", p.name, e.as_deref().unwrap_or("?")),
             }
         }

@@ -50,8 +50,7 @@ pub static INFO: EffectInfo = EffectInfo {
             "overflow direction: isotropic, or along columns / rows (CCD)",
         ),
         ParamSpec::float("exposure_gain", "1", 0.1, 100.0, 1.0, "signal multiplier before the well").log().extra(),
-        ParamSpec::float("glow_strength", "fraction of FS", 0.0, 1.0, 0.5, "glow mode: halo amplitude / FS")
-            .extra(),
+        ParamSpec::float("glow_strength", "fraction of FS", 0.0, 1.0, 0.5, "glow mode: halo amplitude / FS").extra(),
         ParamSpec::float("streak_px", "px", 0.0, 4000.0, 40.0, "glow mode: decay length of the streak (px)").extra(),
     ],
     formats: ALL_FORMATS,

@@ -78,15 +78,14 @@ impl Effect for ChannelShift {
         // De-interleave R and B.
         let used = stride * (h - 1) + row_len;
         let (pr, pb) = self.planes.split_at_mut(w * h);
-        data[..used]
-            .par_chunks(stride)
-            .zip(pr.par_chunks_mut(w).zip(pb.par_chunks_mut(w)))
-            .for_each(|(row, (r, b))| {
+        data[..used].par_chunks(stride).zip(pr.par_chunks_mut(w).zip(pb.par_chunks_mut(w))).for_each(
+            |(row, (r, b))| {
                 for ((px, r), b) in row[..row_len].chunks_exact(3).zip(r.iter_mut()).zip(b.iter_mut()) {
                     *r = px[0];
                     *b = px[2];
                 }
-            });
+            },
+        );
         let planes = &self.planes;
         let active = &active;
         data[..used].par_chunks_mut(stride * ROWS_PER_TASK).enumerate().for_each(|(band, chunk)| {

@@ -65,8 +65,7 @@ pub static INFO: EffectInfo = EffectInfo {
         ParamSpec::float("ref_rate_dn_s", "DN/s", 0.0, 1000.0, 1.0, "dark rate at ref_temp_c, beginning of life")
             .extra(),
         ParamSpec::float("ref_temp_c", "degC", -60.0, 120.0, 20.0, "temperature of ref_rate_dn_s").extra(),
-        ParamSpec::float("doubling_temp_c", "degC", 1.0, 30.0, 6.5, "dark current doubles every this many K")
-            .extra(),
+        ParamSpec::float("doubling_temp_c", "degC", 1.0, 30.0, 6.5, "dark current doubles every this many K").extra(),
         ParamSpec::float("bandgap_ev", "eV", 0.3, 1.5, 1.12, "activation energy of the Arrhenius model").extra(),
         ParamSpec::float("age_years", "years", 0.0, 30.0, 0.0, "time in orbit (radiation dose)").extra(),
         ParamSpec::float("age_growth_per_year", "1/year", 0.0, 10.0, 0.25, "fractional dark-current growth per year")
@@ -414,7 +413,8 @@ mod tests {
             assert!((got / want - 1.0).abs() < 1e-12, "Eg {eg}: {got} vs {want}");
         }
         // Si (1.12 eV) near room temperature doubles every ~5 K; mid-gap (0.6 eV) every ~9 K.
-        let doubling = |eg: f64| 20.0 * 2f64.ln() / (resolved_mean_dn(&at(40.0, eg)) / resolved_mean_dn(&at(20.0, eg))).ln();
+        let doubling =
+            |eg: f64| 20.0 * 2f64.ln() / (resolved_mean_dn(&at(40.0, eg)) / resolved_mean_dn(&at(20.0, eg))).ln();
         assert!((4.0..6.5).contains(&doubling(1.12)), "{}", doubling(1.12));
         assert!((8.0..11.0).contains(&doubling(0.6)), "{}", doubling(0.6));
     }

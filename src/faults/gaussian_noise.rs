@@ -53,6 +53,7 @@ pub fn normal_pdf(z: f64) -> f64 {
 
 /// Inverse of the standard normal CDF (Wichura 1988, algorithm AS 241 PPND16; relative error
 /// about 1e-16). `p` outside (0, 1) gives ±infinity.
+#[allow(clippy::inconsistent_digit_grouping, clippy::excessive_precision)]
 pub fn inverse_normal_cdf(p: f64) -> f64 {
     if p <= 0.0 {
         return f64::NEG_INFINITY;
@@ -100,8 +101,7 @@ pub fn inverse_normal_cdf(p: f64) -> f64 {
             + 4.630_337_846_156_545)
             * r
             + 1.423_437_110_749_683_5;
-        let den = ((((((r * 1.050_750_071_644_416_8e-9 + 5.475_938_084_995_345e-4) * r
-            + 0.015_198_666_563_616_457)
+        let den = ((((((r * 1.050_750_071_644_416_8e-9 + 5.475_938_084_995_345e-4) * r + 0.015_198_666_563_616_457)
             * r
             + 0.148_103_976_427_480_08)
             * r
@@ -115,30 +115,28 @@ pub fn inverse_normal_cdf(p: f64) -> f64 {
         num / den
     } else {
         let r = r - 5.0;
-        let num = ((((((r * 2.010_334_399_292_288e-7 + 2.711_555_568_743_487_6e-5) * r
-            + 0.001_242_660_947_388_078_4)
-            * r
-            + 0.026_532_189_526_576_124)
-            * r
-            + 0.296_560_571_828_504_9)
-            * r
-            + 1.784_826_539_917_291_3)
-            * r
-            + 5.463_784_911_164_114)
-            * r
-            + 6.657_904_643_501_103;
-        let den = ((((((r * 2.044_263_103_389_939_7e-15 + 1.421_511_758_316_446e-7) * r
-            + 1.846_318_317_510_054_8e-5)
-            * r
-            + 7.868_691_311_456_133e-4)
-            * r
-            + 0.014_875_361_290_850_615)
-            * r
-            + 0.136_929_880_922_735_8)
-            * r
-            + 0.599_832_206_555_887_9)
-            * r
-            + 1.0;
+        let num =
+            ((((((r * 2.010_334_399_292_288e-7 + 2.711_555_568_743_487_6e-5) * r + 0.001_242_660_947_388_078_4) * r
+                + 0.026_532_189_526_576_124)
+                * r
+                + 0.296_560_571_828_504_9)
+                * r
+                + 1.784_826_539_917_291_3)
+                * r
+                + 5.463_784_911_164_114)
+                * r
+                + 6.657_904_643_501_103;
+        let den =
+            ((((((r * 2.044_263_103_389_939_7e-15 + 1.421_511_758_316_446e-7) * r + 1.846_318_317_510_054_8e-5) * r
+                + 7.868_691_311_456_133e-4)
+                * r
+                + 0.014_875_361_290_850_615)
+                * r
+                + 0.136_929_880_922_735_8)
+                * r
+                + 0.599_832_206_555_887_9)
+                * r
+                + 1.0;
         num / den
     };
     if q < 0.0 { -val } else { val }
@@ -150,8 +148,7 @@ pub fn conditional_mean_table() -> Vec<f64> {
     // allocation: once per effect instance
     let edges: Vec<f64> = (0..=TABLE_SIZE).map(|i| inverse_normal_cdf(i as f64 / TABLE_SIZE as f64)).collect();
     let pdf = |z: f64| if z.is_finite() { normal_pdf(z) } else { 0.0 };
-    let mut t: Vec<f64> =
-        (0..TABLE_SIZE).map(|i| (pdf(edges[i]) - pdf(edges[i + 1])) * TABLE_SIZE as f64).collect();
+    let mut t: Vec<f64> = (0..TABLE_SIZE).map(|i| (pdf(edges[i]) - pdf(edges[i + 1])) * TABLE_SIZE as f64).collect();
     // Enforce exact antisymmetry (the formula is antisymmetric up to rounding).
     for i in 0..TABLE_SIZE / 2 {
         let m = 0.5 * (t[i] - t[TABLE_SIZE - 1 - i]);

@@ -83,9 +83,8 @@ mod tests {
             p.set("rate", rate).unwrap();
             let mut f = Frame::new(w, h, PixelFormat::Rgb8).unwrap();
             e.apply(&mut f, &p, &mut EffectCtx::new(4, 0, 2)).unwrap();
-            let hot: Vec<usize> = (0..w as usize * h as usize)
-                .filter(|&i| f.get(i % w as usize, i / w as usize, 0) != 0.0)
-                .collect();
+            let hot: Vec<usize> =
+                (0..w as usize * h as usize).filter(|&i| f.get(i % w as usize, i / w as usize, 0) != 0.0).collect();
             for &i in &hot {
                 for c in 0..3 {
                     assert_eq!(f.get(i % w as usize, i / w as usize, c), 150.0);

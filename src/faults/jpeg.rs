@@ -135,7 +135,7 @@ fn idct_pass(b: &mut Block) {
     let tmp10 = add(b[0], b[4]);
     let tmp11 = sub(b[0], b[4]);
     let tmp13 = add(b[2], b[6]);
-    let tmp12 = sub(mul(sub(b[2], b[6]), 1.414_213_5), tmp13);
+    let tmp12 = sub(mul(sub(b[2], b[6]), std::f32::consts::SQRT_2), tmp13);
     let tmp0 = add(tmp10, tmp13);
     let tmp3 = sub(tmp10, tmp13);
     let tmp1 = add(tmp11, tmp12);
@@ -146,7 +146,7 @@ fn idct_pass(b: &mut Block) {
     let z11 = add(b[1], b[7]);
     let z12 = sub(b[1], b[7]);
     let tmp7 = add(z11, z13);
-    let tmp11 = mul(sub(z11, z13), 1.414_213_5);
+    let tmp11 = mul(sub(z11, z13), std::f32::consts::SQRT_2);
     let z5 = mul(add(z10, z12), 1.847_759);
     let tmp10 = sub(mul(z12, 1.082_392_2), z5);
     let tmp12 = add(mul(z10, -2.613_126), z5);
@@ -701,7 +701,7 @@ impl Jpeg {
                     continue;
                 }
                 let cy = y / 2;
-                let far = if y % 2 == 0 { cy.saturating_sub(1) } else { (cy + 1).min(ch_real - 1) };
+                let far = if y.is_multiple_of(2) { cy.saturating_sub(1) } else { (cy + 1).min(ch_real - 1) };
                 let (n0, n1) = (cy * cw, far * cw);
                 let colsum = |p: &[u8], c: usize| 3 * p[n0 + c] as i32 + p[n1 + c] as i32;
                 for (x, o) in out.chunks_exact_mut(3).enumerate() {
@@ -946,8 +946,8 @@ mod tests {
     #[test]
     fn model_is_bit_exact_with_libjpeg_turbo_via_opencv() {
         use opencv::core::{Mat, Vector};
-        use opencv::prelude::*;
         use opencv::imgcodecs;
+        use opencv::prelude::*;
         for fmt in [PixelFormat::Rgb8, PixelFormat::Mono8] {
             let (w, h) = (121usize, 75usize);
             let orig = natural(fmt, w as u32, h as u32);

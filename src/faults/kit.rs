@@ -16,10 +16,7 @@ pub use super::util::ROWS_PER_TASK;
 /// than `stride` but is at least one row long). No allocation.
 pub fn par_bands<T: Send>(data: &mut [T], stride: usize, height: usize, f: impl Fn(usize, usize, &mut [T]) + Sync) {
     let used = used_len(data.len(), stride, height);
-    data[..used]
-        .par_chunks_mut(stride * ROWS_PER_TASK)
-        .enumerate()
-        .for_each(|(k, band)| f(k, k * ROWS_PER_TASK, band));
+    data[..used].par_chunks_mut(stride * ROWS_PER_TASK).enumerate().for_each(|(k, band)| f(k, k * ROWS_PER_TASK, band));
 }
 
 /// Like [`par_bands`], with a second per-band slice (scratch) handed to each band: `scratch`

@@ -7,10 +7,10 @@
 //! same bytes.
 
 pub mod chain;
-pub mod registry;
-pub mod util;
 /// Helpers of the physics library: row bands, random lanes, sparse sampling, bench scene.
 pub mod kit;
+pub mod registry;
+pub mod util;
 
 // Optics
 pub mod channel_shift;

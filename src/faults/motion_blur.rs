@@ -135,10 +135,12 @@ impl Effect for MotionBlur {
         }
         if self.key != Some((len.to_bits(), ang.to_bits())) {
             self.taps = line_taps(len, ang);
-            self.radius = self.taps.iter().map(|t| t.0.unsigned_abs().max(t.1.unsigned_abs())).max().unwrap_or(0) as usize;
+            self.radius =
+                self.taps.iter().map(|t| t.0.unsigned_abs().max(t.1.unsigned_abs())).max().unwrap_or(0) as usize;
             self.key = Some((len.to_bits(), ang.to_bits()));
         }
-        let (w, h, ch, stride, r) = (frame.width as usize, frame.height as usize, frame.channels(), frame.stride, self.radius);
+        let (w, h, ch, stride, r) =
+            (frame.width as usize, frame.height as usize, frame.channels(), frame.stride, self.radius);
         self.padded.resize((w + 2 * r) * ch * (h + 2 * r), 0.0);
         self.acc.resize(w * ch * bands(h), 0.0);
         let taps = &self.taps;

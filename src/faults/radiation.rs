@@ -26,8 +26,7 @@ pub static INFO_COSMIC: EffectInfo = EffectInfo {
     params: &[
         ParamSpec::float("rate", "1/px/frame", 0.0, 1e-3, 1e-5, "expected hits per pixel per frame").log(),
         ParamSpec::float("track_len_px", "px", 0.0, 200.0, 8.0, "projected length of each track (0 = point)"),
-        ParamSpec::float("charge_dn", "DN", 0.0, 1000.0, 180.0, "deposit per pixel of track length, 8-bit DN")
-            .extra(),
+        ParamSpec::float("charge_dn", "DN", 0.0, 1000.0, 180.0, "deposit per pixel of track length, 8-bit DN").extra(),
     ],
     formats: ALL_FORMATS,
 };
@@ -47,7 +46,8 @@ fn splat(out: &mut Vec<(u32, f32)>, w: usize, h: usize, x: f32, y: f32, amount: 
     let (x0, y0) = (x.floor(), y.floor());
     let (fx, fy) = (x - x0, y - y0);
     let (x0, y0) = (x0 as i64, y0 as i64);
-    for (dx, dy, wt) in [(0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy), (1, 1, fx * fy)]
+    for (dx, dy, wt) in
+        [(0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy), (1, 1, fx * fy)]
     {
         let (xx, yy) = (x0 + dx, y0 + dy);
         if wt > 0.0 && xx >= 0 && yy >= 0 && (xx as usize) < w && (yy as usize) < h {

@@ -20,8 +20,7 @@ pub static INFO: EffectInfo = EffectInfo {
             signal (grey glare). amplitude_dn = 0 is the identity.",
     params: &[
         ParamSpec::float("amplitude_dn", "DN", 0.0, 255.0, 30.0, "maximum added signal inside the frame, 8-bit DN"),
-        ParamSpec::float("angle_deg", "deg", 0.0, 360.0, 45.0, "direction of the source from the centre, CCW")
-            .extra(),
+        ParamSpec::float("angle_deg", "deg", 0.0, 360.0, 45.0, "direction of the source from the centre, CCW").extra(),
         ParamSpec::float("distance", "half-diagonals", 0.0, 5.0, 1.3, "source distance from the centre").extra(),
         ParamSpec::float("width", "half-diagonals", 0.05, 5.0, 0.8, "lobe standard deviation").extra(),
     ],
@@ -56,10 +55,7 @@ pub fn lobe(w: u32, h: u32, amplitude: f64, angle_deg: f64, distance: f64, width
     let mx = lx.iter().cloned().fold(f64::MIN_POSITIVE, f64::max);
     let my = ly.iter().cloned().fold(f64::MIN_POSITIVE, f64::max);
     let ax = amplitude.sqrt();
-    (
-        lx.iter().map(|v| (ax * v / mx) as f32).collect(),
-        ly.iter().map(|v| (ax * v / my) as f32).collect(),
-    )
+    (lx.iter().map(|v| (ax * v / mx) as f32).collect(), ly.iter().map(|v| (ax * v / my) as f32).collect())
 }
 
 fn add_field<T: Sample, const CH: usize>(

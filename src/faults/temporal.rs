@@ -3,7 +3,7 @@
 //! (`Outcome::Drop`), repeating content, asking the pipeline to delay output
 //! (`EffectCtx::delay_ns`, summed over the chain) or holding frames back.
 
-use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
+use super::{Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, FrameData, PixelFormat};
 
 /// Every format, including raw Bayer: temporal effects never look at pixels.

@@ -21,8 +21,7 @@ pub static INFO: EffectInfo = EffectInfo {
             identity.",
     params: &[
         ParamSpec::float("strength", "fraction", 0.0, 1.0, 0.3, "irradiance loss at the corners (0.3 = 30 %)"),
-        ParamSpec::float("field_deg", "deg", 1.0, 80.0, 35.0, "half-diagonal field angle of the cos^4 shape")
-            .extra(),
+        ParamSpec::float("field_deg", "deg", 1.0, 80.0, 35.0, "half-diagonal field angle of the cos^4 shape").extra(),
     ],
     formats: ALL_FORMATS,
 };

@@ -154,7 +154,12 @@ impl Grey {
 
 fn same_size(a: &Grey, b: &Grey) -> Result<(), MetricsError> {
     if a.width != b.width || a.height != b.height || a.data.len() != b.data.len() {
-        return Err(MetricsError::SizeMismatch { a_width: a.width, a_height: a.height, b_width: b.width, b_height: b.height });
+        return Err(MetricsError::SizeMismatch {
+            a_width: a.width,
+            a_height: a.height,
+            b_width: b.width,
+            b_height: b.height,
+        });
     }
     Ok(())
 }
@@ -214,7 +219,14 @@ pub struct OrbConfig {
 
 impl Default for OrbConfig {
     fn default() -> Self {
-        OrbConfig { nfeatures: 500, scale_factor: 1.2, nlevels: 8, edge_threshold: 31, patch_size: 31, fast_threshold: 20 }
+        OrbConfig {
+            nfeatures: 500,
+            scale_factor: 1.2,
+            nlevels: 8,
+            edge_threshold: 31,
+            patch_size: 31,
+            fast_threshold: 20,
+        }
     }
 }
 

@@ -67,7 +67,9 @@ pub fn fqi_features(a: &OrbFeatures, b: &OrbFeatures) -> Result<Fqi, MetricsErro
     }
     let matcher = BFMatcher::new(NORM_HAMMING, true).map_err(cv_err("BFMatcher::new"))?;
     let mut matches = Vector::<DMatch>::new();
-    matcher.train_match(&a.descriptors, &b.descriptors, &mut matches, &no_array()).map_err(cv_err("BFMatcher match"))?;
+    matcher
+        .train_match(&a.descriptors, &b.descriptors, &mut matches, &no_array())
+        .map_err(cv_err("BFMatcher match"))?;
     out.matches = matches.len();
     let distances: Vec<f32> = matches.iter().map(|m| m.distance).collect();
     out.value = super::fqi_from_distances(&distances);

@@ -235,7 +235,15 @@ struct Slot {
 }
 
 fn empty_frame() -> Frame {
-    Frame { seq: 0, pts_ns: 0, width: 0, height: 0, stride: 0, format: PixelFormat::Mono8, data: FrameData::U8(Vec::new()) }
+    Frame {
+        seq: 0,
+        pts_ns: 0,
+        width: 0,
+        height: 0,
+        stride: 0,
+        format: PixelFormat::Mono8,
+        data: FrameData::U8(Vec::new()),
+    }
 }
 
 fn frame_is_empty(f: &Frame) -> bool {
@@ -682,8 +690,7 @@ impl FaultStage<'_> {
         let seed = self.chain.seed();
         let n = self.chain.entries().len();
         for pos in 0..n {
-            loop {
-                let Some(mut frame) = self.chain.entries_mut()[pos].effect.drain() else { break };
+            while let Some(mut frame) = self.chain.entries_mut()[pos].effect.drain() {
                 let mut slot = Slot::new(); // allocation: end of stream only
                 slot.capture_ns = self.sh.now_ns();
                 slot.t_ns = self.last_t;
@@ -1149,10 +1156,9 @@ pub fn run(
                 Err(_) => stage.done_rx = None,
             }
         }
-        sink_handle.join().unwrap_or_else(|_| SinkEnd {
-            error: Some("the sink thread panicked".to_string()),
-            ..Default::default()
-        })
+        sink_handle
+            .join()
+            .unwrap_or_else(|_| SinkEnd { error: Some("the sink thread panicked".to_string()), ..Default::default() })
     });
 
     // The source thread: wait for it, or leave it behind if it is stuck in `next_frame`.

@@ -31,9 +31,8 @@ impl FramePool {
         if width == 0 || height == 0 {
             return Err(FrameError::Empty { width, height });
         }
-        let stride = (width as usize)
-            .checked_mul(format.channels())
-            .ok_or(FrameError::Overflow { width, height, stride: 0 })?;
+        let stride =
+            (width as usize).checked_mul(format.channels()).ok_or(FrameError::Overflow { width, height, stride: 0 })?;
         let len = stride.checked_mul(height as usize).ok_or(FrameError::Overflow { width, height, stride })?;
         let mut f = match self.frames.pop() {
             Some(f) => f,

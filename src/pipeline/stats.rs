@@ -115,7 +115,11 @@ pub struct LatencyStats {
 
 impl std::fmt::Display for LatencyStats {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms (mean {:.2} ms)", self.p50_ms, self.p99_ms, self.max_ms, self.mean_ms)
+        write!(
+            f,
+            "p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms (mean {:.2} ms)",
+            self.p50_ms, self.p99_ms, self.max_ms, self.mean_ms
+        )
     }
 }
 

@@ -2,9 +2,7 @@
 //! a run and every problem is reported with `file:line`, the event and field, and the accepted
 //! values.
 
-use super::{
-    Baseline, Campaign, Chance, EventSpec, ParamRamp, Ramp, Repeat, Start, Tick, TriggerSettings, Unit, ms,
-};
+use super::{Baseline, Campaign, Chance, EventSpec, ParamRamp, Ramp, Repeat, Start, Tick, TriggerSettings, Unit, ms};
 use crate::config::{FaultConfig, line_of};
 use crate::faults::{ParamKind, ParamSpec, registry};
 use crate::trigger::{EdgeMode, LineTrigger, ModemLine, TriggerError, valid_name};
@@ -140,7 +138,9 @@ fn param_value(spec: &ParamSpec, effect: &'static str, v: &Value) -> Result<f64,
     let x = match (spec.kind, v) {
         (ParamKind::Choice(c), Value::String(w)) => match c.iter().position(|x| x == w) {
             Some(k) => k as f64,
-            None => return Err(format!("{effect}.{} = '{w}' is not accepted; accepted: {}", spec.name, spec.range_text())),
+            None => {
+                return Err(format!("{effect}.{} = '{w}' is not accepted; accepted: {}", spec.name, spec.range_text()));
+            }
         },
         (ParamKind::Bool, Value::Boolean(b)) => f64::from(u8::from(*b)),
         (ParamKind::Int | ParamKind::Float, v) if number(v).is_some() => number(v).unwrap_or(f64::NAN),
@@ -172,17 +172,15 @@ pub fn campaign(cfg: &FaultConfig) -> Result<Campaign, super::ScheduleError> {
             return Err(invalid(vec![Problem {
                 line,
                 what: "campaign".into(),
-                message: format!(
-                    "{} ([[events]] entries, [triggers] and [campaign] must be tables)",
-                    e.message()
-                ),
+                message: format!("{} ([[events]] entries, [triggers] and [campaign] must be tables)", e.message()),
             }]));
         }
     };
     let param_spans: Vec<Option<Map>> = toml::from_str::<RawParamSpans>(text)
         .map(|r| r.events.into_iter().map(|e| e.params).collect())
         .unwrap_or_default();
-    let line_spans: Option<Map> = toml::from_str::<RawLineSpans>(text).ok().and_then(|r| r.triggers).and_then(|t| t.lines);
+    let line_spans: Option<Map> =
+        toml::from_str::<RawLineSpans>(text).ok().and_then(|r| r.triggers).and_then(|t| t.lines);
 
     // Baselines (config order = chain index).
     let mut baseline: Vec<Baseline> = Vec::new();
@@ -207,9 +205,11 @@ pub fn campaign(cfg: &FaultConfig) -> Result<Campaign, super::ScheduleError> {
             match (k.as_str(), v.get_ref()) {
                 ("name", Value::String(s)) => name = Some(s.clone()),
                 ("description", Value::String(s)) => description = Some(s.clone()),
-                ("name" | "description", other) => {
-                    cx.push(line, format!("[campaign] field '{k}'"), format!("{other} is not accepted; accepted: a string"))
-                }
+                ("name" | "description", other) => cx.push(
+                    line,
+                    format!("[campaign] field '{k}'"),
+                    format!("{other} is not accepted; accepted: a string"),
+                ),
                 _ => cx.push(
                     line,
                     format!("[campaign] field '{k}'"),
@@ -370,7 +370,11 @@ fn parse_event(
                 cx.push(
                     l,
                     what("effect_index"),
-                    format!("{i} is out of range; accepted: 0..={} ({})", baseline.len().saturating_sub(1), configured()),
+                    format!(
+                        "{i} is out of range; accepted: 0..={} ({})",
+                        baseline.len().saturating_sub(1),
+                        configured()
+                    ),
                 );
                 None
             } else {
@@ -459,7 +463,9 @@ fn parse_event(
                             cx.push(
                                 l,
                                 what("trigger"),
-                                format!("{other} is not accepted; accepted: 1..=64 characters of letters, digits, _ . -"),
+                                format!(
+                                    "{other} is not accepted; accepted: 1..=64 characters of letters, digits, _ . -"
+                                ),
                             )
                         }
                     }
@@ -492,7 +498,8 @@ fn parse_event(
             _ => {}
         }
     }
-    let random = matches!(start, Some(Start::Random { .. })) || map.contains_key("rate_hz") || map.contains_key("p_per_frame");
+    let random =
+        matches!(start, Some(Start::Random { .. })) || map.contains_key("rate_hz") || map.contains_key("p_per_frame");
     if !random {
         for key in ["window_frames", "window_s"] {
             if let Some(v) = get(key) {
@@ -525,7 +532,11 @@ fn parse_event(
             Value::String(s) if s == "forever" => Repeat::Forever,
             other => {
                 let l = cx.line(v);
-                cx.push(l, what("repeat"), format!("{other} is not accepted; accepted: an integer >= 1 or \"forever\""));
+                cx.push(
+                    l,
+                    what("repeat"),
+                    format!("{other} is not accepted; accepted: an integer >= 1 or \"forever\""),
+                );
                 Repeat::Count(1)
             }
         },
@@ -711,13 +722,18 @@ fn parse_ramp(
     let (kind, body) = t.iter().next().map(|(k, v)| (k.as_str(), v)).ok_or("empty ramp")?;
     let need_unit = || {
         unit.ok_or_else(|| {
-            "this ramp needs a time base: give duration_frames / duration_s, a scheduled start, or ramp_unit".to_string()
+            "this ramp needs a time base: give duration_frames / duration_s, a scheduled start, or ramp_unit"
+                .to_string()
         })
     };
     match kind {
         "linear" => {
             if !interpolable {
-                return Err(format!("{effect}.{} ({}) cannot be interpolated; use steps", spec.name, spec.range_text()));
+                return Err(format!(
+                    "{effect}.{} ({}) cannot be interpolated; use steps",
+                    spec.name,
+                    spec.range_text()
+                ));
             }
             let Some(d) = duration else {
                 return Err("a linear ramp needs duration_frames or duration_s (it spans the event)".into());
@@ -738,7 +754,11 @@ fn parse_ramp(
         }
         "keyframes" | "steps" => {
             if kind == "keyframes" && !interpolable {
-                return Err(format!("{effect}.{} ({}) cannot be interpolated; use steps", spec.name, spec.range_text()));
+                return Err(format!(
+                    "{effect}.{} ({}) cannot be interpolated; use steps",
+                    spec.name,
+                    spec.range_text()
+                ));
             }
             need_unit()?;
             let Value::Array(a) = body else {
@@ -812,12 +832,8 @@ fn check_overlaps(cx: &mut Ctx<'_>, events: &[EventSpec]) {
             if ua != ub {
                 continue;
             }
-            let shared: Vec<&str> = a
-                .params
-                .iter()
-                .filter(|p| b.params.iter().any(|q| q.param == p.param))
-                .map(|p| p.spec.name)
-                .collect();
+            let shared: Vec<&str> =
+                a.params.iter().filter(|p| b.params.iter().any(|q| q.param == p.param)).map(|p| p.spec.name).collect();
             if shared.is_empty() && a.enable == b.enable {
                 continue;
             }

@@ -340,7 +340,13 @@ impl CampaignController {
 }
 
 impl Controller for CampaignController {
-    fn before_frame(&mut self, seq: u64, t_ns: u64, chain: &mut Chain, events: &mut Vec<LogEvent>) -> anyhow::Result<()> {
+    fn before_frame(
+        &mut self,
+        seq: u64,
+        t_ns: u64,
+        chain: &mut Chain,
+        events: &mut Vec<LogEvent>,
+    ) -> anyhow::Result<()> {
         let t = t_ns;
         if !self.started {
             self.started = true;
@@ -425,7 +431,13 @@ impl Controller for CampaignController {
                         let st = &mut self.states[i];
                         let k = st.next_k;
                         st.next_k += 1;
-                        self.start(i, Occ { origin_seq: seq, origin_t: t, k, cause: "random", frames: 0 }, seq, t, events);
+                        self.start(
+                            i,
+                            Occ { origin_seq: seq, origin_t: t, k, cause: "random", frames: 0 },
+                            seq,
+                            t,
+                            events,
+                        );
                     }
                 }
             }

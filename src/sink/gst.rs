@@ -118,7 +118,9 @@ impl GstSink {
         let info = gst_video::VideoInfo::builder(gst_format(frame.format), frame.width, frame.height)
             .fps(gst::Fraction::new(0, 1))
             .build()
-            .map_err(|e| self.failed(format!("cannot describe {}x{} {}: {e}", frame.width, frame.height, frame.format)))?;
+            .map_err(|e| {
+                self.failed(format!("cannot describe {}x{} {}: {e}", frame.width, frame.height, frame.format))
+            })?;
         let caps = info.to_caps().map_err(|e| self.failed(format!("cannot build caps: {e}")))?;
         self.appsrc.set_caps(Some(&caps));
         let pool = gst::BufferPool::new();

@@ -73,12 +73,12 @@ pub fn row_to_yuyv(frame: &Frame, y: usize, dst: &mut [u8]) {
                 let (y1, u1, v1) = yuv601(p1[0] as f32, p1[1] as f32, p1[2] as f32);
                 let o = x * 2;
                 dst[o] = y0;
-                dst[o + 1] = ((u0 as u16 + u1 as u16 + 1) / 2) as u8;
+                dst[o + 1] = (u0 as u16 + u1 as u16).div_ceil(2) as u8;
                 if o + 2 < dst.len() {
                     dst[o + 2] = y1;
                 }
                 if o + 3 < dst.len() {
-                    dst[o + 3] = ((v0 as u16 + v1 as u16 + 1) / 2) as u8;
+                    dst[o + 3] = (v0 as u16 + v1 as u16).div_ceil(2) as u8;
                 }
                 x += 2;
             }
@@ -177,8 +177,9 @@ impl V4l2Sink {
             )));
         }
         let want = v4l::Format::new(frame.width, frame.height, FourCC::new(&fourcc));
-        let got = Output::set_format(&self.device, &want)
-            .map_err(|e| self.failed(format!("{}: VIDIOC_S_FMT {}x{} {}: {e}", self.path, frame.width, frame.height, want.fourcc)))?;
+        let got = Output::set_format(&self.device, &want).map_err(|e| {
+            self.failed(format!("{}: VIDIOC_S_FMT {}x{} {}: {e}", self.path, frame.width, frame.height, want.fourcc))
+        })?;
         if got.width != frame.width || got.height != frame.height || got.fourcc.repr != fourcc {
             return Err(self.failed(format!(
                 "{}: asked for {}x{} {}, the driver chose {}x{} {}",
@@ -188,13 +189,20 @@ impl V4l2Sink {
         if let Some(f) = self.fps {
             let _ = Output::set_params(&self.device, &v4l::video::output::Parameters::with_fps(f as u32));
         }
-        let bpp = if &fourcc == b"RGB3" { 3 } else if &fourcc == b"GREY" { 1 } else { 2 };
+        let bpp = if &fourcc == b"RGB3" {
+            3
+        } else if &fourcc == b"GREY" {
+            1
+        } else {
+            2
+        };
         self.bytesperline = (got.stride as usize).max(frame.width as usize * bpp);
         let size = (got.size as usize).max(self.bytesperline * frame.height as usize);
         self.buf = vec![0; size];
         self.fourcc = fourcc;
         self.shape = Some(shape);
-        self.chosen = format!("{}: {}x{} {}, bytesperline {}", self.chosen, got.width, got.height, got.fourcc, self.bytesperline);
+        self.chosen =
+            format!("{}: {}x{} {}, bytesperline {}", self.chosen, got.width, got.height, got.fourcc, self.bytesperline);
         Ok(())
     }
 
@@ -229,9 +237,15 @@ impl Sink for V4l2Sink {
                 Ok(0) => return Err(SinkError::Closed { uri: self.uri.clone() }),
                 Ok(n) => off += n,
                 Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
-                    let ready = self.device.handle().poll(POLLOUT, WRITE_TIMEOUT_MS).map_err(|e| self.failed(format!("poll: {e}")))?;
+                    let ready = self
+                        .device
+                        .handle()
+                        .poll(POLLOUT, WRITE_TIMEOUT_MS)
+                        .map_err(|e| self.failed(format!("poll: {e}")))?;
                     if ready == 0 {
-                        return Err(self.failed(format!("{}: the device took no frame for {WRITE_TIMEOUT_MS} ms", self.path)));
+                        return Err(
+                            self.failed(format!("{}: the device took no frame for {WRITE_TIMEOUT_MS} ms", self.path))
+                        );
                     }
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}

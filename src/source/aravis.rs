@@ -148,7 +148,9 @@ impl AravisSource {
         let arv_format = camera.pixel_format().map_err(|e| cam_err("reading the pixel format", e))?;
         let fmt_name = camera.pixel_format_as_string().map(|s| s.to_string()).unwrap_or_else(|_| "?".into());
         let (format, shift) = map_format(arv_format).ok_or_else(|| {
-            fatal(format!("{shown}: pixel format {fmt_name} is not supported; use pixel_format= one of {ACCEPTED_FORMATS}"))
+            fatal(format!(
+                "{shown}: pixel format {fmt_name} is not supported; use pixel_format= one of {ACCEPTED_FORMATS}"
+            ))
         })?;
         let exposure = camera.exposure_time().ok();
         let rate = camera.frame_rate().ok();

@@ -74,11 +74,8 @@ pub(crate) fn parse_pipeline(desc: &str) -> Result<gst::Pipeline, String> {
 /// Elements of `pipeline` made by `factory`, in description order (a bin keeps its
 /// children newest first).
 pub(crate) fn elements_by_factory(pipeline: &gst::Pipeline, factory: &str) -> Vec<gst::Element> {
-    let mut v: Vec<gst::Element> = pipeline
-        .children()
-        .into_iter()
-        .filter(|e| e.factory().is_some_and(|f| f.name() == factory))
-        .collect();
+    let mut v: Vec<gst::Element> =
+        pipeline.children().into_iter().filter(|e| e.factory().is_some_and(|f| f.name() == factory)).collect();
     v.reverse();
     v
 }
@@ -107,9 +104,8 @@ impl GstSource {
             .filter(|e| e.factory().is_some_and(|f| f.name() == "appsink"))
             .or_else(|| sinks.last().cloned())
             .ok_or_else(|| bad("the pipeline must end in an appsink (e.g. '... ! videoconvert ! appsink')".into()))?;
-        let appsink = chosen
-            .downcast::<gst_app::AppSink>()
-            .map_err(|_| bad("the appsink element is not an AppSink".into()))?;
+        let appsink =
+            chosen.downcast::<gst_app::AppSink>().map_err(|_| bad("the appsink element is not an AppSink".into()))?;
         let caps = gst_video::VideoCapsBuilder::new()
             .format_list([gst_video::VideoFormat::Gray8, gst_video::VideoFormat::Gray16Le, gst_video::VideoFormat::Rgb])
             .build();

@@ -67,7 +67,10 @@ pub fn open(uri: &str) -> Result<Box<dyn Source>, SourceError> {
         "v4l2" => Ok(Box::new(v4l2::V4l2Source::open(uri)?)),
         other => Err(SourceError::BadUri {
             uri: uri.to_string(),
-            reason: format!("unknown scheme '{other}:'; accepted: {}", SCHEMES.iter().map(|s| format!("{s}:")).collect::<Vec<_>>().join(", ")),
+            reason: format!(
+                "unknown scheme '{other}:'; accepted: {}",
+                SCHEMES.iter().map(|s| format!("{s}:")).collect::<Vec<_>>().join(", ")
+            ),
         }),
     }
 }
@@ -105,7 +108,9 @@ impl UriOptions {
     pub fn get<T: std::str::FromStr>(&mut self, key: &'static str, expected: &str) -> Result<Option<T>, String> {
         match self.raw(key) {
             None => Ok(None),
-            Some(v) => v.parse::<T>().map(Some).map_err(|_| format!("option {key}={v} is not accepted; expected {expected}")),
+            Some(v) => {
+                v.parse::<T>().map(Some).map_err(|_| format!("option {key}={v} is not accepted; expected {expected}"))
+            }
         }
     }
 

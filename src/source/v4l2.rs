@@ -194,7 +194,10 @@ impl V4l2Source {
             }
         }
         let fmt = chosen.ok_or_else(|| {
-            fatal(format!("{path}: no usable pixel format; tried {}; faultcam reads GREY, Y16, RGB3, YUYV, 8-bit Bayer", tried.join(", ")))
+            fatal(format!(
+                "{path}: no usable pixel format; tried {}; faultcam reads GREY, Y16, RGB3, YUYV, 8-bit Bayer",
+                tried.join(", ")
+            ))
         })?;
         let layout = Layout::from_fourcc(&fmt.fourcc.repr, yuyv)
             .ok_or_else(|| fatal(format!("{path}: unusable format {}", fmt.fourcc)))?;
@@ -285,12 +288,15 @@ impl Source for V4l2Source {
                 });
             }
             Err(e) => {
-                return Err(SourceError::Fatal { uri: self.uri.clone(), reason: format!("{}: VIDIOC_DQBUF: {e}", self.path) });
+                return Err(SourceError::Fatal {
+                    uri: self.uri.clone(),
+                    reason: format!("{}: VIDIOC_DQBUF: {e}", self.path),
+                });
             }
         };
         let first = *self.first_seq.get_or_insert(meta.sequence);
         let seq = meta.sequence.wrapping_sub(first) as u64;
-        let pts_ns = (meta.timestamp.sec as i64).max(0) as u64 * 1_000_000_000 + (meta.timestamp.usec as i64).max(0) as u64 * 1000;
+        let pts_ns = meta.timestamp.sec.max(0) as u64 * 1_000_000_000 + meta.timestamp.usec.max(0) as u64 * 1000;
         let need = self.bytesperline * (h as usize - 1) + w as usize * self.layout.bytes_per_pixel();
         let used = if meta.bytesused == 0 { buf.len() } else { (meta.bytesused as usize).min(buf.len()) };
         let problem = if meta.flags.contains(v4l::buffer::Flags::ERROR) {
@@ -365,7 +371,10 @@ mod tests {
         assert_eq!(parse_fourcc("Y16"), Some(*b"Y16 "));
         assert_eq!(parse_fourcc("GREY"), Some(*b"GREY"));
         assert_eq!(parse_fourcc("TOOLONG"), None);
-        assert_eq!(Layout::from_fourcc(b"Y16 ", PixelFormat::Mono8).map(Layout::pixel_format), Some(PixelFormat::Mono16));
+        assert_eq!(
+            Layout::from_fourcc(b"Y16 ", PixelFormat::Mono8).map(Layout::pixel_format),
+            Some(PixelFormat::Mono16)
+        );
         assert_eq!(Layout::from_fourcc(b"YUYV", PixelFormat::Rgb8).map(Layout::pixel_format), Some(PixelFormat::Rgb8));
         assert_eq!(Layout::from_fourcc(b"MJPG", PixelFormat::Mono8), None);
     }

@@ -1,3 +1,4 @@
+#![allow(clippy::needless_range_loop)]
 //! realcam: an independent "real camera" and procedural scene generator for the diagnosis corpus
 //! (issue 7, part 6).
 //!
