@@ -10,7 +10,7 @@ cd "$(dirname "$0")/.."
 cargo build --release
 FC=./target/release/faultcam
 [ -n "${CARGO_TARGET_DIR:-}" ] && FC="$CARGO_TARGET_DIR/release/faultcam"
-SCENE="synth:?width=1280&height=720&frames=30&earth=true&seed=1"
+SCENE="synth:?width=1280&height=720&format=rgb8&frames=30&earth=true&seed=1"
 rm -rf out/demo
 mkdir -p out/demo
 printf 'seed = 0\n' > out/demo/no-faults.toml

@@ -27,6 +27,7 @@ static REGISTRY: &[Registration] = &[
     reg!(blooming),
     reg!(row_noise),
     reg!(gamma),
+    reg!(jpeg),
     // Physics library (helper physlib)
     reg!(defocus),
     reg!(motion_blur),
