@@ -51,7 +51,8 @@ pub struct BloomingArgs {
     /// Use only real images whose file name contains this text (repeatable; default: all).
     #[arg(long = "real-include")]
     pub real_include: Vec<String>,
-    /// Output folder: report.json, fqi_hist.png, hist_corr_hist.png, grey_hist.png, crops/.
+    /// Output folder: report.json, summary.txt, fqi_hist.png, hist_corr_hist.png, grey_hist.png,
+    /// crops/.
     #[arg(long)]
     pub out: PathBuf,
     /// Bright level in 8-bit DN for selection and zones.
@@ -66,8 +67,8 @@ pub struct BloomingArgs {
     /// Acceptance threshold on FQI.
     #[arg(long, default_value_t = 0.80)]
     pub fqi_min: f64,
-    /// Acceptance threshold on histogram correlation.
-    #[arg(long, default_value_t = 0.90)]
+    /// Acceptance threshold on histogram correlation (-1..=1).
+    #[arg(long, default_value_t = 0.90, allow_negative_numbers = true)]
     pub corr_min: f64,
     /// ORB patch size and edge threshold in px (OpenCV default 31).
     #[arg(long, default_value_t = 31)]
@@ -137,7 +138,9 @@ fn run_blooming(a: BloomingArgs) -> anyhow::Result<u8> {
         save_crops: !a.no_crops,
     };
     let report = blooming::run_protocol(&Generated::parse(&a.generated), &a.real, &a.out, &cfg)?;
-    print!("{}", report.summary());
-    println!("wrote {}", a.out.join("report.json").display());
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    write!(out, "{}", report.summary())?;
+    writeln!(out, "wrote {} (report.json, summary.txt, {})", a.out.display(), report.plots.join(", "))?;
     Ok(0)
 }

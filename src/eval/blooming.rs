@@ -4,23 +4,35 @@
 //! like the blooming zones of real camera images? Protocol:
 //!
 //! 1. **Select** generated images with a bright region: at least `min_area` pixels at or above
-//!    `threshold` (250 in 8-bit DN).
-//! 2. **Apply blooming** (`faults::create("blooming")`, parameters from the command line).
-//! 3. **Crop** the bounding box of the brightest blooming zone: the largest 8-connected region at
-//!    or above the zone level ([`zones::zone_level`]: the threshold, or just below the image's
-//!    own saturation plateau when that is lower), in every bloomed generated image and every
-//!    real image. Boxes smaller than `min_crop` are grown about their centre to `min_crop` px
-//!    (inside the image) so that ORB has room for its patch. The *control* crop is the same box
-//!    in the generated image before blooming.
+//!    `threshold` (250 in 8-bit DN), measured before blooming.
+//! 2. **Apply blooming** (`faults::create("blooming")`, the effect's defaults unless parameters
+//!    are given; generator seeded from `seed` and the image's index in the input order).
+//! 3. **Crop** the bounding box of the brightest blooming zone: the largest (most pixels)
+//!    8-connected region at or above the threshold in every real image, and at or above the
+//!    zone level in every bloomed generated image ([`zones::zone_level`]: the threshold, or
+//!    just below the image's own saturation plateau when the full well reads lower). Its box equals the bounding box of the region's
+//!    outer contour (OpenCV `findContours(RETR_EXTERNAL)` + `boundingRect`; a test checks
+//!    this). Boxes smaller than `min_crop` are grown about their centre to `min_crop` px (inside
+//!    the image) so that ORB has room for its patch (`min_crop = 0` keeps the bare boxes). The
+//!    *control* crop is the same box in the generated image before blooming.
 //! 4. **Centre-crop** every crop to the common shape: the smallest width and the smallest height
 //!    over all bloomed and real crops.
 //! 5. **Score** each generated crop against every real crop: FQI (ORB, see
 //!    [`crate::metrics::fqi`]) and histogram correlation ([`crate::metrics::hist_correlation`]).
 //!    An undefined FQI (no keypoints or no match) scores 0. The **best match** is the real crop
-//!    with the largest `FQI + correlation`; its two scores are the image's scores.
-//! 6. **Accept** an image when `FQI >= fqi_min` (0.80) and `correlation >= corr_min` (0.90);
-//!    report the acceptance rate and the score distributions (mean, median, std, min, max).
+//!    with the largest `FQI + correlation` (first in file-name order on ties); its two scores
+//!    are the image's scores.
+//! 6. **Accept** an image when `FQI >= fqi_min` (0.80) and `correlation >= corr_min` (0.90)
+//!    ([`accept`]); report the acceptance rate and the score distributions (mean, median,
+//!    population std, min, max), the number of descriptor matches behind each FQI, and the
+//!    *bright fraction* of the crops (share of the crop at or above its zone level: how much of
+//!    it blooming saturated).
 //! 7. **Control**: steps 5-6 on the control crops (same boxes, before blooming).
+//!
+//! Outputs in the output folder: `report.json` (everything, per image), `summary.txt`, the PNG
+//! plots `fqi_hist.png`, `hist_corr_hist.png` (bloomed vs control distributions with the
+//! threshold marked) and `grey_hist.png` (mean grey histograms of real, bloomed and control
+//! crops), and `crops/` (every crop as PNG) unless disabled.
 
 use super::zones::{self, Zone};
 use super::{EvalError, Stats, list_images, load_frame, plot, save_grey_png};
@@ -94,10 +106,15 @@ impl Default for BloomingConfig {
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct CropInfo {
     pub name: String,
+    /// Level (8-bit DN) the zone was cut at (the threshold, or [`zones::zone_level`] for
+    /// bloomed images).
+    pub level: f32,
     /// Zone found (before growing to `min_crop`).
     pub zone: Zone,
     /// Box cropped (after growing), before the common centre crop.
     pub crop: Zone,
+    /// Fraction of the final (common-shape) crop at or above `level`.
+    pub bright_fraction: f64,
 }
 
 /// Scores of one generated crop against its best real match.
@@ -107,7 +124,13 @@ pub struct MatchScore {
     /// `None` by the no-feature rule (scored as 0).
     pub fqi: Option<f64>,
     pub hist_corr: f64,
+    /// ORB keypoints of the generated crop.
     pub keypoints: usize,
+    /// ORB keypoints of the best real crop.
+    pub keypoints_real: usize,
+    /// Cross-checked descriptor matches the FQI averages over.
+    pub matches: usize,
+    /// `FQI >= fqi_min` and `hist_corr >= corr_min` (undefined FQI counts as 0).
     pub accepted: bool,
 }
 
@@ -130,6 +153,10 @@ pub struct ArmSummary {
     pub fqi: Option<Stats>,
     pub fqi_undefined: usize,
     pub hist_corr: Option<Stats>,
+    /// Cross-checked matches behind each best-match FQI.
+    pub matches: Option<Stats>,
+    /// Fraction of each crop at or above its zone level (how much of the crop is saturated).
+    pub bright_fraction: Option<Stats>,
 }
 
 /// The original study's published numbers, for side-by-side reporting.
@@ -170,6 +197,8 @@ pub struct BloomingReport {
     pub generated_skipped: Vec<(String, String)>,
     pub real_used: Vec<CropInfo>,
     pub real_skipped: Vec<(String, String)>,
+    /// Fraction of each real crop at or above its zone level.
+    pub real_bright_fraction: Option<Stats>,
     /// Common crop shape (width, height) px.
     pub crop_shape: (usize, usize),
     pub bloomed: ArmSummary,
@@ -183,6 +212,13 @@ struct GenCrop {
     info: CropInfo,
     bloomed: Grey,
     control: Grey,
+    /// Zone level of the image before blooming (for the control's bright fraction).
+    control_level: f32,
+}
+
+/// Fraction of `g` at or above `level`.
+fn fraction_at_or_above(g: &Grey, level: f32) -> f64 {
+    zones::count_at_or_above(g, level) as f64 / g.data.len().max(1) as f64
 }
 
 /// Run the protocol and write `report.json`, the plots and (optionally) the crops into `out`.
@@ -220,14 +256,18 @@ pub fn run_protocol(
         let mut ctx = EffectCtx::new(cfg.seed, index, 0);
         effect.apply(&mut frame, &params, &mut ctx)?;
         let after = Grey::from_frame(&frame);
-        let Some(zone) = zones::blooming_zone(&after, cfg.threshold, cfg.min_area) else {
+        let level = zones::zone_level(&after, cfg.threshold);
+        let Some(zone) = zones::blooming_zone(&after, level, cfg.min_area) else {
             skipped.push((name, "no blooming zone after blooming".to_string()));
             return Ok(());
         };
         let crop = zone.expanded(cfg.min_crop, cfg.min_crop, after.width, after.height);
         let cut = |g: &Grey| g.crop(crop.x0, crop.y0, crop.width(), crop.height());
         if let (Some(bloomed), Some(control)) = (cut(&after), cut(&before)) {
-            gens.push(GenCrop { info: CropInfo { name, zone, crop }, bloomed, control });
+            // Selected above: the image before blooming reaches the threshold.
+            let control_level = cfg.threshold;
+            let info = CropInfo { name, level, zone, crop, bright_fraction: 0.0 };
+            gens.push(GenCrop { info, bloomed, control, control_level });
         }
         Ok(())
     };
@@ -265,11 +305,13 @@ pub fn run_protocol(
     // Real crops.
     let mut real_skipped = Vec::new();
     let mut reals: Vec<(CropInfo, Grey)> = Vec::new();
+    let mut real_listed = 0usize;
     for p in list_images(real_dir)? {
         let name = file_name(&p);
         if !cfg.real_include.is_empty() && !cfg.real_include.iter().any(|s| name.contains(s.as_str())) {
             continue;
         }
+        real_listed += 1;
         let g = match load_frame(&p) {
             Ok(f) => Grey::from_frame(&f),
             Err(e) => {
@@ -277,14 +319,29 @@ pub fn run_protocol(
                 continue;
             }
         };
-        let Some(zone) = zones::blooming_zone(&g, cfg.threshold, cfg.min_area) else {
+        let level = cfg.threshold;
+        let Some(zone) = zones::blooming_zone(&g, level, cfg.min_area) else {
             real_skipped.push((name, format!("no zone of {} px at or above {}", cfg.min_area, cfg.threshold)));
             continue;
         };
         let crop = zone.expanded(cfg.min_crop, cfg.min_crop, g.width, g.height);
         if let Some(c) = g.crop(crop.x0, crop.y0, crop.width(), crop.height()) {
-            reals.push((CropInfo { name, zone, crop }, c));
+            reals.push((CropInfo { name, level, zone, crop, bright_fraction: 0.0 }, c));
         }
+    }
+    if real_listed == 0 {
+        return Err(EvalError::NoImages {
+            dir: real_dir.to_path_buf(),
+            accepted: if cfg.real_include.is_empty() {
+                super::IMAGE_EXTENSIONS.join(", ")
+            } else {
+                format!(
+                    "{} with a name containing {}",
+                    super::IMAGE_EXTENSIONS.join(", "),
+                    cfg.real_include.iter().map(|s| format!("'{s}'")).collect::<Vec<_>>().join(" or ")
+                )
+            },
+        });
     }
     if reals.is_empty() {
         return Err(EvalError::Invalid {
@@ -312,10 +369,13 @@ pub fn run_protocol(
     for g in gens.iter_mut() {
         g.bloomed = g.bloomed.centre_crop(cw, ch);
         g.control = g.control.centre_crop(cw, ch);
+        g.info.bright_fraction = fraction_at_or_above(&g.bloomed, g.info.level);
     }
     for r in reals.iter_mut() {
         r.1 = r.1.centre_crop(cw, ch);
+        r.0.bright_fraction = fraction_at_or_above(&r.1, r.0.level);
     }
+    let control_fraction: Vec<f64> = gens.iter().map(|g| fraction_at_or_above(&g.control, g.control_level)).collect();
     if cfg.save_crops {
         let dir = out.join("crops");
         std::fs::create_dir_all(&dir).map_err(|source| EvalError::Io { path: dir.clone(), source })?;
@@ -344,8 +404,10 @@ pub fn run_protocol(
             })
         })
         .collect::<Result<_, _>>()?;
-    let bloomed_sum = summarise(per_image.iter().map(|r| &r.bloomed));
-    let control_sum = summarise(per_image.iter().map(|r| &r.control));
+    let bloomed_fraction: Vec<f64> = gens.iter().map(|g| g.info.bright_fraction).collect();
+    let bloomed_sum = summarise(per_image.iter().map(|r| &r.bloomed), &bloomed_fraction);
+    let control_sum = summarise(per_image.iter().map(|r| &r.control), &control_fraction);
+    let real_fraction: Vec<f64> = reals.iter().map(|r| r.0.bright_fraction).collect();
 
     // Plots.
     let mut plots = Vec::new();
@@ -427,6 +489,7 @@ pub fn run_protocol(
         generated_skipped: skipped,
         real_used: reals.iter().map(|r| r.0.clone()).collect(),
         real_skipped,
+        real_bright_fraction: Stats::of(&real_fraction),
         crop_shape: (cw, ch),
         bloomed: bloomed_sum,
         control: control_sum,
@@ -438,6 +501,8 @@ pub fn run_protocol(
     let text = serde_json::to_string_pretty(&report)
         .map_err(|e| EvalError::Invalid { what: format!("{}: cannot serialise: {e}", path.display()) })?;
     std::fs::write(&path, text).map_err(|source| EvalError::Io { path, source })?;
+    let path = out.join("summary.txt");
+    std::fs::write(&path, report.summary()).map_err(|source| EvalError::Io { path, source })?;
     Ok(report)
 }
 
@@ -482,26 +547,38 @@ fn best_match(
     let mut best: Option<(f64, MatchScore)> = None;
     for (r, info) in reals.iter().zip(real_info) {
         #[cfg(feature = "opencv")]
-        let fqi =
-            g.orb.fqi(&r.orb).map_err(|source| EvalError::Metrics { context: info.0.name.clone(), source })?.value;
+        let f = g.orb.fqi(&r.orb).map_err(|source| EvalError::Metrics { context: info.0.name.clone(), source })?;
         #[cfg(not(feature = "opencv"))]
-        let fqi: Option<f64> = None;
+        let f = {
+            let _ = r;
+            metrics::Fqi { value: None, keypoints_a: 0, keypoints_b: 0, matches: 0 }
+        };
         let corr = metrics::hist_correlation_hist(&g.hist, &r.hist);
-        let score = fqi.unwrap_or(0.0) + corr;
+        let score = f.value.unwrap_or(0.0) + corr;
+        // Strictly greater: the first real crop (in file-name order) wins ties.
         if best.as_ref().is_none_or(|(s, _)| score > *s) {
-            let accepted = fqi.unwrap_or(0.0) >= cfg.fqi_min && corr >= cfg.corr_min;
-            #[cfg(feature = "opencv")]
-            let keypoints = g.orb.keypoints;
-            #[cfg(not(feature = "opencv"))]
-            let keypoints = 0;
-            best =
-                Some((score, MatchScore { best_real: info.0.name.clone(), fqi, hist_corr: corr, keypoints, accepted }));
+            let m = MatchScore {
+                best_real: info.0.name.clone(),
+                fqi: f.value,
+                hist_corr: corr,
+                keypoints: f.keypoints_a,
+                keypoints_real: f.keypoints_b,
+                matches: f.matches,
+                accepted: accept(f.value, corr, cfg.fqi_min, cfg.corr_min),
+            };
+            best = Some((score, m));
         }
     }
     best.map(|b| b.1).ok_or_else(|| EvalError::Invalid { what: "no real crop to compare with".to_string() })
 }
 
-fn summarise<'a>(scores: impl Iterator<Item = &'a MatchScore>) -> ArmSummary {
+/// Acceptance rule of the protocol: `FQI >= fqi_min` and `corr >= corr_min`; an undefined FQI
+/// (no keypoints or no match) is scored 0.
+pub fn accept(fqi: Option<f64>, corr: f64, fqi_min: f64, corr_min: f64) -> bool {
+    fqi.unwrap_or(0.0) >= fqi_min && corr >= corr_min
+}
+
+fn summarise<'a>(scores: impl Iterator<Item = &'a MatchScore>, bright_fraction: &[f64]) -> ArmSummary {
     let scores: Vec<&MatchScore> = scores.collect();
     let total = scores.len();
     let accepted = scores.iter().filter(|s| s.accepted).count();
@@ -514,32 +591,38 @@ fn summarise<'a>(scores: impl Iterator<Item = &'a MatchScore>) -> ArmSummary {
         fqi: Stats::of(&fqi),
         fqi_undefined: scores.iter().filter(|s| s.fqi.is_none()).count(),
         hist_corr: Stats::of(&corr),
+        matches: Stats::of(&scores.iter().map(|s| s.matches as f64).collect::<Vec<_>>()),
+        bright_fraction: Stats::of(bright_fraction),
     }
 }
 
 impl BloomingReport {
-    /// Plain-text summary next to the study's numbers.
+    /// Plain-text summary next to the study's numbers (also written as `summary.txt`).
     pub fn summary(&self) -> String {
+        let st = |s: &Option<Stats>| {
+            s.map(|s| format!("{:.3}/{:.3}/{:.3}/{:.3}", s.mean, s.median, s.std, s.min))
+                .unwrap_or_else(|| "-".to_string())
+        };
         let arm = |a: &ArmSummary| {
-            let f =
-                a.fqi.map(|s| format!("{:.3}/{:.3}/{:.3}/{:.3}", s.mean, s.median, s.std, s.min)).unwrap_or_default();
-            let c = a
-                .hist_corr
-                .map(|s| format!("{:.3}/{:.3}/{:.3}/{:.3}", s.mean, s.median, s.std, s.min))
-                .unwrap_or_default();
             format!(
-                "{:>4}/{:<4} ({:5.1}%)  FQI {f}  corr {c}  (FQI undefined: {})",
+                "{:>4}/{:<4} ({:5.1}%)  FQI {}  corr {}  (FQI undefined: {}; matches mean {:.1}; bright fraction mean {:.2})",
                 a.accepted,
                 a.total,
                 100.0 * a.acceptance_rate,
-                a.fqi_undefined
+                st(&a.fqi),
+                st(&a.hist_corr),
+                a.fqi_undefined,
+                a.matches.map_or(0.0, |m| m.mean),
+                a.bright_fraction.map_or(0.0, |m| m.mean),
             )
         };
         let s = &self.study;
         format!(
-            "generated read {}, selected {}, real crops {} ({} skipped), crop {}x{} px\n\
+            "generated read {}, selected {}, real crops {} ({} skipped), crop {}x{} px, ORB patch {} px\n\
+             blooming {}\n\
              accepted at FQI >= {} and corr >= {}; scores mean/median/std/min\n\
              bloomed: {}\ncontrol: {}\n\
+             real crops: bright fraction mean {:.2}\n\
              study:   {}/{} accepted, mean FQI {}, mean corr {}; control mean FQI {}, mean corr {}\n",
             self.generated_read,
             self.bloomed.total,
@@ -547,10 +630,13 @@ impl BloomingReport {
             self.real_skipped.len(),
             self.crop_shape.0,
             self.crop_shape.1,
+            self.orb.patch_size,
+            self.blooming_params,
             self.fqi_min,
             self.corr_min,
             arm(&self.bloomed),
             arm(&self.control),
+            self.real_bright_fraction.map_or(0.0, |m| m.mean),
             s.accepted,
             s.total,
             s.mean_fqi,

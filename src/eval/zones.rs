@@ -82,19 +82,20 @@ pub fn count_at_or_above(g: &Grey, level: f32) -> usize {
     g.data.iter().filter(|&&v| v >= level).count()
 }
 
-/// Level used to find the blooming zone: the threshold (250) if the image reaches it, else
-/// `0.98 * max(g)`. With a camera that reads full scale at saturation this is the threshold
-/// itself; an image whose saturated pixels read a full well below it (e.g. `blooming` with
-/// `full_well_fraction` 0.9 reads 0.9 FS) is cut just under its own saturation plateau instead.
+/// Level used to find the blooming zone of a *bloomed* image (one that had a saturated region
+/// before blooming): the threshold (250) if the image reaches it, else `0.98 * max(g)`. With a
+/// camera that reads full scale at saturation this is the threshold itself; an image whose
+/// saturated pixels read a full well below it (e.g. `blooming` with `full_well_fraction` 0.9
+/// reads 0.9 FS = 230 DN) is cut just under its own saturation plateau instead. Real images are
+/// cut at the threshold itself (no fallback: a dark real image has no blooming zone).
 pub fn zone_level(g: &Grey, threshold: f32) -> f32 {
     let max = g.data.iter().copied().fold(0.0f32, f32::max);
     if max >= threshold { threshold } else { 0.98 * max }
 }
 
-/// The brightest blooming zone: the largest 8-connected region at or above [`zone_level`]
-/// with at least `min_area` px, or `None`.
-pub fn blooming_zone(g: &Grey, threshold: f32, min_area: usize) -> Option<Zone> {
-    let level = zone_level(g, threshold);
+/// The brightest blooming zone: the largest (most pixels) 8-connected region at or above
+/// `level` with at least `min_area` px, or `None`.
+pub fn blooming_zone(g: &Grey, level: f32, min_area: usize) -> Option<Zone> {
     if level <= 0.0 {
         return None;
     }
@@ -134,7 +135,8 @@ mod tests {
     fn zone_level_follows_a_low_full_well() {
         let g = img(8, 8, &[(2, 2, 2, 2, 229.5)]);
         assert!((zone_level(&g, 250.0) - 0.98 * 229.5).abs() < 1e-4);
-        assert_eq!(blooming_zone(&g, 250.0, 1).unwrap().area, 4);
+        assert_eq!(blooming_zone(&g, zone_level(&g, 250.0), 1).unwrap().area, 4);
+        assert_eq!(blooming_zone(&g, 250.0, 1), None);
         let g = img(8, 8, &[(2, 2, 2, 2, 255.0)]);
         assert_eq!(zone_level(&g, 250.0), 250.0);
     }

@@ -174,6 +174,31 @@ mod tests {
     }
 
     #[test]
+    fn three_level_histograms_by_hand() {
+        // a: 8 px at 10, 8 at 20 -> h_a = {10: 1/2, 20: 1/2}.
+        // b: 4 px at 10, 4 at 20, 8 at 30 -> h_b = {10: 1/4, 20: 1/4, 30: 1/2}.
+        let mut va = [10u8; 16];
+        va[8..].fill(20);
+        let mut vb = [10u8; 16];
+        vb[4..8].fill(20);
+        vb[8..].fill(30);
+        let (a, b) = (g4(&va), g4(&vb));
+        // Bhattacharyya: sum sqrt(h_a h_b) = 2 sqrt(1/8) = 1/sqrt 2 -> d = sqrt(1 - 1/sqrt 2).
+        let d = bhattacharyya(&a, &b);
+        assert!((d - (1.0 - 0.5f64.sqrt()).sqrt()).abs() < 1e-12, "{d}");
+        assert!((d - 0.541_196).abs() < 1e-6);
+        // Correlation over 256 bins, mean bin 1/256:
+        // num = sum h_a h_b - 1/256 = 1/4 - 1/256 = 63/256,
+        // var_a = 1/2 - 1/256 = 127/256, var_b = 3/8 - 1/256 = 95/256 -> 63 / sqrt(127 * 95).
+        let c = hist_correlation(&a, &b);
+        assert!((c - 63.0 / (127.0f64 * 95.0).sqrt()).abs() < 1e-12, "{c}");
+        assert!((c - 0.573_557).abs() < 1e-6);
+        // Symmetric.
+        assert_eq!(hist_correlation(&b, &a), c);
+        assert!((bhattacharyya(&b, &a) - d).abs() < 1e-15);
+    }
+
+    #[test]
     fn otsu_on_bimodal_image() {
         // 8 pixels at 10 and 8 at 200: every t in 10..200 splits the modes equally well;
         // the first maximum is t = 10.
@@ -204,6 +229,19 @@ mod tests {
         // A global offset keeps the geometry: SPI 1.
         let shifted = g4(&va.map(|v| v + 40));
         assert!((spi(&a, &shifted).unwrap() - 1.0).abs() < 1e-12);
+        // Glare lifts part of a shadow. a: 20 (6 px), 30 (2 px), 220 (8 px): Otsu 30, shadow = 8 px.
+        // b: the two 30 px become 200. Between-class variance q0 q1 (mu0 - mu1)^2 of b:
+        // t = 20: (6/16)(10/16)(20 - 216)^2 = 9003.75; t = 200: (8/16)(8/16)(65 - 220)^2 =
+        // 6006.25 -> Otsu 20, shadow = the 6 px at 20, inside a's. SPI = 6 / 8.
+        let mut va = [20u8; 16];
+        va[6..8].fill(30);
+        va[8..].fill(220);
+        let mut vb = va;
+        vb[6..8].fill(200);
+        let (a, b) = (g4(&va), g4(&vb));
+        assert_eq!((otsu_threshold(&a), otsu_threshold(&b)), (30, 20));
+        assert_eq!(shadow_mask(&b).iter().filter(|&&m| m).count(), 6);
+        assert!((spi(&a, &b).unwrap() - 0.75).abs() < 1e-12);
         // Constant images: Otsu 0, masks empty or full; both constant 77 -> both empty -> 1.
         assert_eq!(spi(&g4(&[77; 16]), &g4(&[77; 16])).unwrap(), 1.0);
     }
