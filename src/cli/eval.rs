@@ -70,8 +70,8 @@ pub struct BloomingArgs {
     /// Acceptance threshold on histogram correlation (-1..=1).
     #[arg(long, default_value_t = 0.90, allow_negative_numbers = true)]
     pub corr_min: f64,
-    /// ORB patch size and edge threshold in px (OpenCV default 31).
-    #[arg(long, default_value_t = 31)]
+    /// ORB patch size and edge threshold in px (OpenCV default 31; 2..=255).
+    #[arg(long, default_value_t = 31, value_parser = clap::value_parser!(i32).range(2..=255))]
     pub orb_patch: i32,
     /// Most generated images to read.
     #[arg(long, default_value_t = 210)]

@@ -151,12 +151,16 @@ pub struct ArmSummary {
     pub acceptance_rate: f64,
     /// Best-match FQI, undefined FQI counted as 0.
     pub fqi: Option<Stats>,
+    /// Best-match FQI over the images where it is defined (`None` if it never is).
+    pub fqi_defined: Option<Stats>,
     pub fqi_undefined: usize,
     pub hist_corr: Option<Stats>,
     /// Cross-checked matches behind each best-match FQI.
     pub matches: Option<Stats>,
     /// Fraction of each crop at or above its zone level (how much of the crop is saturated).
     pub bright_fraction: Option<Stats>,
+    /// How often each real crop was the best match.
+    pub best_real_counts: std::collections::BTreeMap<String, usize>,
 }
 
 /// The original study's published numbers, for side-by-side reporting.
@@ -589,10 +593,15 @@ fn summarise<'a>(scores: impl Iterator<Item = &'a MatchScore>, bright_fraction: 
         total,
         acceptance_rate: if total > 0 { accepted as f64 / total as f64 } else { 0.0 },
         fqi: Stats::of(&fqi),
+        fqi_defined: Stats::of(&scores.iter().filter_map(|s| s.fqi).collect::<Vec<_>>()),
         fqi_undefined: scores.iter().filter(|s| s.fqi.is_none()).count(),
         hist_corr: Stats::of(&corr),
         matches: Stats::of(&scores.iter().map(|s| s.matches as f64).collect::<Vec<_>>()),
         bright_fraction: Stats::of(bright_fraction),
+        best_real_counts: scores.iter().fold(Default::default(), |mut m, s| {
+            *m.entry(s.best_real.clone()).or_insert(0) += 1;
+            m
+        }),
     }
 }
 
@@ -605,16 +614,22 @@ impl BloomingReport {
         };
         let arm = |a: &ArmSummary| {
             format!(
-                "{:>4}/{:<4} ({:5.1}%)  FQI {}  corr {}  (FQI undefined: {}; matches mean {:.1}; bright fraction mean {:.2})",
+                "{:>4}/{:<4} ({:5.1}%)  FQI {}  corr {}  (FQI undefined: {}; defined mean {}; matches mean {:.1}; bright fraction mean {:.2})",
                 a.accepted,
                 a.total,
                 100.0 * a.acceptance_rate,
                 st(&a.fqi),
                 st(&a.hist_corr),
                 a.fqi_undefined,
+                a.fqi_defined.map_or_else(|| "-".to_string(), |m| format!("{:.3}", m.mean)),
                 a.matches.map_or(0.0, |m| m.mean),
                 a.bright_fraction.map_or(0.0, |m| m.mean),
             )
+        };
+        let best = |a: &ArmSummary| {
+            let mut v: Vec<(&String, &usize)> = a.best_real_counts.iter().collect();
+            v.sort_by(|x, y| y.1.cmp(x.1).then(x.0.cmp(y.0)));
+            v.iter().map(|(n, c)| format!("{n} {c}")).collect::<Vec<_>>().join(", ")
         };
         let s = &self.study;
         format!(
@@ -623,6 +638,8 @@ impl BloomingReport {
              accepted at FQI >= {} and corr >= {}; scores mean/median/std/min\n\
              bloomed: {}\ncontrol: {}\n\
              real crops: bright fraction mean {:.2}\n\
+             best matches (bloomed): {}\n\
+             best matches (control): {}\n\
              study:   {}/{} accepted, mean FQI {}, mean corr {}; control mean FQI {}, mean corr {}\n",
             self.generated_read,
             self.bloomed.total,
@@ -637,6 +654,8 @@ impl BloomingReport {
             arm(&self.bloomed),
             arm(&self.control),
             self.real_bright_fraction.map_or(0.0, |m| m.mean),
+            best(&self.bloomed),
+            best(&self.control),
             s.accepted,
             s.total,
             s.mean_fqi,
