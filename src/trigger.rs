@@ -1051,7 +1051,8 @@ mod tests {
         assert!(r.contains("unknown parameter 'nope'") && r.contains("gain"), "{r}");
         let (s, r) = err(b"14 START fl\xffash");
         assert_eq!(s, Some(14));
-        assert!(r.contains("invalid UTF-8 at byte 9"), "{r}");
+        // 0-based offset of the 0xff byte in the whole line, as the rig sent it.
+        assert!(r.contains("invalid UTF-8 at byte 11"), "{r}");
         let (_, r) = err(b"15 START");
         assert!(r.contains("START takes 1 argument"), "{r}");
         assert!(err(b"-1 PING").0.is_none());
