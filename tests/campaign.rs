@@ -281,3 +281,17 @@ fn every_example_campaign_validates() {
     }
     assert!(n >= 4, "the examples are there ({n})");
 }
+
+#[test]
+fn the_readme_campaign_example_validates() {
+    let readme = std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md")).unwrap();
+    let section = &readme[readme.find("## Campaigns and triggers").expect("the section")..];
+    let start = section.find("```toml\n").expect("a TOML example") + "```toml\n".len();
+    let text = &section[start..start + section[start..].find("```").unwrap()];
+    let cfg = FaultConfig::parse(text, "README.md").unwrap_or_else(|e| panic!("{e}"));
+    let c = Campaign::from_config(&cfg).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(c.events.len(), 2);
+    // On trigger "flash": blooming for 2 s at 10 fps = 20 frames.
+    let run = drive(text, 60, 10.0, &[(5, "START flash")]);
+    assert_eq!(run.enabled(0), (5..25).collect::<Vec<u64>>());
+}
