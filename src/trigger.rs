@@ -551,6 +551,9 @@ pub trait TriggerInput: Send {
     fn dropped_replies(&self) -> u64 {
         0
     }
+    /// End of stream, first step: stop taking input (what arrived so far stays pending, so
+    /// the controller can still answer it).
+    fn stop_reading(&mut self) {}
     /// End of stream: stop threads, flush replies.
     fn finish(&mut self) {}
     /// For a replay: the campaign fingerprint recorded in the log (hex), to warn on a mismatch.
@@ -662,11 +665,15 @@ impl SerialTriggers {
         })
     }
 
-    fn shutdown(&mut self) {
+    fn stop_reader(&mut self) {
         self.stop.store(true, Ordering::Relaxed);
         if let Some(h) = self.reader.take() {
             let _ = h.join();
         }
+    }
+
+    fn shutdown(&mut self) {
+        self.stop_reader();
         // Dropping the last sender ends the writer after it has written what is queued.
         self.reply_tx = None;
         if let Some(h) = self.writer.take() {
@@ -709,6 +716,9 @@ impl TriggerInput for SerialTriggers {
     }
     fn dropped_replies(&self) -> u64 {
         self.dropped
+    }
+    fn stop_reading(&mut self) {
+        self.stop_reader();
     }
     fn finish(&mut self) {
         self.shutdown();
@@ -1051,7 +1061,8 @@ mod tests {
         assert!(r.contains("unknown parameter 'nope'") && r.contains("gain"), "{r}");
         let (s, r) = err(b"14 START fl\xffash");
         assert_eq!(s, Some(14));
-        assert!(r.contains("invalid UTF-8 at byte 9"), "{r}");
+        // 0-based offset of the 0xff byte in the whole line, as the rig sent it.
+        assert!(r.contains("invalid UTF-8 at byte 11"), "{r}");
         let (_, r) = err(b"15 START");
         assert!(r.contains("START takes 1 argument"), "{r}");
         assert!(err(b"-1 PING").0.is_none());

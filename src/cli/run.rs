@@ -1,28 +1,32 @@
-//! `faultcam run`: stream frames from a source URI through the fault chain into a sink URI,
-//! writing a ground-truth record for every input frame and a summary at the end.
-//!
-//! The loop here is sequential and untimed ([`sequential_loop`]); the threaded, timed
-//! pipeline (`faultcam::pipeline`) replaces it behind the same arguments.
+//! `faultcam run`: stream frames from a source URI through the fault chain into a sink URI on
+//! the threaded pipeline ([`faultcam::pipeline`]): timed replay (`--fps`, `--realtime`), a
+//! latency budget with an overrun policy, a campaign timeline from the `--faults` file, serial
+//! triggers (`--trigger`) or triggers replayed from a ground-truth log (`--replay-triggers`).
+//! Every input frame gets a ground-truth record; SIGINT/SIGTERM stop the stream cleanly and the
+//! summary is still written.
 
 use anyhow::Context;
-use faultcam::faults::Outcome;
-use faultcam::gtlog::{FrameRecord, FrameStatus, GroundTruthLog};
-use faultcam::sink::{self, Sink, SinkError};
-use faultcam::source::{self, Source};
-use faultcam::{Chain, FaultConfig, FrameReport};
+use faultcam::pipeline::{self, OverrunPolicy, Pacing, PipelineOptions, StopReason, Summary};
+use faultcam::schedule::{self, Campaign, TriggerOptions};
+use faultcam::sink;
+use faultcam::source;
+use faultcam::{Chain, FaultConfig};
 use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+use std::time::Duration;
 
 /// Arguments of `faultcam run`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// Source URI: `files:DIR[?loop=true&fps=30]`, `synth:[?width=..&height=..&frames=..]`.
-    #[arg(long)]
-    pub source: String,
-    /// Sink URI: `files:DIR[?format=png|pgm|jpg|tiff]`, `null:`.
-    #[arg(long)]
-    pub sink: String,
-    /// Fault configuration (TOML; see `faultcam effects`).
+    /// Source URI: `files:DIR`, `synth:`, `gst:PIPELINE ! appsink`, `aravis:CAMERA`, `v4l2:/dev/videoN`
+    /// (options after `?`, see README "Sources and sinks").
+    #[arg(long, required_unless_present = "check")]
+    pub source: Option<String>,
+    /// Sink URI: `files:DIR`, `gst:appsrc ! PIPELINE`, `v4l2:/dev/videoN`, `null:`.
+    #[arg(long, required_unless_present = "check")]
+    pub sink: Option<String>,
+    /// Fault configuration or campaign (TOML: `[[effects]]`, optional `[[events]]`, `[triggers]`).
     #[arg(long)]
     pub faults: PathBuf,
     /// Ground-truth log (JSON Lines). Default: DIR/groundtruth.jsonl for a `files:DIR` sink,
@@ -32,24 +36,91 @@ pub struct Args {
     /// Stop after N input frames (skipped inputs do not count).
     #[arg(long)]
     pub frames: Option<u64>,
+    /// Stop reading after this long: seconds, or a number with s, m or h (`90`, `90s`, `10m`).
+    #[arg(long, value_parser = parse_duration)]
+    pub duration: Option<Duration>,
     /// Campaign seed (overrides the config's `seed`).
     #[arg(long)]
     pub seed: Option<u64>,
+    /// Release frames at this rate (frames per second), e.g. to replay a folder at camera speed.
+    #[arg(long, conflicts_with = "realtime")]
+    pub fps: Option<f64>,
+    /// Release frames at their recorded timestamps (`pts_ns`), relative to the first frame.
+    #[arg(long)]
+    pub realtime: bool,
+    /// Capture-to-sink latency budget per frame, in milliseconds.
+    #[arg(long)]
+    pub budget_ms: Option<f64>,
+    /// What to do with frames that miss the budget: pass (deliver late), degrade (run a cheaper
+    /// chain while frames are late), drop (drop frames that cannot make it).
+    #[arg(long, default_value = "pass", value_parser = parse_overrun)]
+    pub overrun: OverrunPolicy,
+    /// Treat the source as live (it produces frames whether or not the pipeline is ready): with
+    /// `--overrun drop` a full pipeline drops at capture. Implied for `aravis:` and `v4l2:`.
+    #[arg(long)]
+    pub live: bool,
+    /// Serial trigger port, `DEVICE[?baud=N]` (default 115200 baud); overrides `[triggers] port`.
+    #[arg(long, conflicts_with = "replay_triggers")]
+    pub trigger: Option<String>,
+    /// Replay the triggers recorded in this ground-truth log at the frames where they took
+    /// effect (no serial port): with the same campaign, seed and input the output is identical.
+    #[arg(long)]
+    pub replay_triggers: Option<PathBuf>,
+    /// Worker threads for the effects (rayon). Default: all cores. The output does not depend on it.
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Frames queued between stages (source → chain, chain → sink).
+    #[arg(long, default_value_t = 2)]
+    pub queue: usize,
+    /// Print a progress line (counts, latency) every N seconds.
+    #[arg(long)]
+    pub progress_s: Option<f64>,
+    /// Validate the fault configuration and campaign (every problem with its line), then exit.
+    #[arg(long)]
+    pub check: bool,
 }
 
-/// What happened to the input, counted.
-#[derive(Debug, Default, Clone, Copy, PartialEq, Eq, serde::Serialize)]
-pub struct Counts {
-    /// Frames read from the source.
-    pub frames_in: u64,
-    /// Written to the sink.
-    pub delivered: u64,
-    /// Dropped by a fault effect.
-    pub dropped: u64,
-    /// Failed in the chain or the sink.
-    pub failed: u64,
-    /// Input items the source could not read (corrupt, wrong size, not an image).
-    pub skipped: u64,
+fn parse_overrun(s: &str) -> Result<OverrunPolicy, String> {
+    s.parse::<OverrunPolicy>().map_err(|e| e.to_string())
+}
+
+/// `90`, `90s`, `1.5m`, `2h` → a duration (positive, at most 100 days).
+pub fn parse_duration(s: &str) -> Result<Duration, String> {
+    let t = s.trim();
+    let (num, scale) = match t.char_indices().last() {
+        Some((i, 's')) => (&t[..i], 1.0),
+        Some((i, 'm')) => (&t[..i], 60.0),
+        Some((i, 'h')) => (&t[..i], 3600.0),
+        _ => (t, 1.0),
+    };
+    match num.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 && v * scale <= 8.64e6 => Ok(Duration::from_secs_f64(v * scale)),
+        _ => Err(format!(
+            "'{s}' is not accepted; accepted: a positive duration up to 100 days, as seconds or with s, m, h (e.g. 90, 90s, 10m, 2h)"
+        )),
+    }
+}
+
+/// `DEVICE[?baud=N]` → (device, baud).
+pub fn parse_trigger_port(s: &str) -> anyhow::Result<(String, Option<u32>)> {
+    let (dev, query) = match s.split_once('?') {
+        Some((d, q)) => (d, q),
+        None => (s, ""),
+    };
+    if dev.is_empty() {
+        anyhow::bail!("--trigger '{s}': expected a serial device such as /dev/ttyACM0[?baud=115200]");
+    }
+    let mut baud = None;
+    for kv in query.split('&').filter(|kv| !kv.is_empty()) {
+        match kv.split_once('=') {
+            Some(("baud", v)) => match v.parse::<u32>() {
+                Ok(b) if (50..=4_000_000).contains(&b) => baud = Some(b),
+                _ => anyhow::bail!("--trigger '{s}': baud={v} is not accepted; accepted: an integer 50..=4000000"),
+            },
+            _ => anyhow::bail!("--trigger '{s}': unknown option '{kv}'; accepted: baud"),
+        }
+    }
+    Ok((dev.to_string(), baud))
 }
 
 /// Default log path for a sink URI.
@@ -62,81 +133,51 @@ pub fn default_log(sink_uri: &str) -> PathBuf {
     }
 }
 
-/// Source → chain → sink, one frame at a time, logging every input. Returns the counts and,
-/// if the stream stopped on an error, that error (after the frame that hit it was logged).
-pub fn sequential_loop(
-    source: &mut dyn Source,
-    chain: &mut Chain,
-    sink: &mut dyn Sink,
-    log: &mut GroundTruthLog,
-    max_frames: Option<u64>,
-) -> (Counts, Option<anyhow::Error>) {
-    let mut c = Counts::default();
-    let mut report = FrameReport::default();
-    let result = (|| -> anyhow::Result<()> {
-        while max_frames.is_none_or(|m| c.frames_in < m) {
-            let mut frame = match source.next_frame() {
-                Ok(Some(f)) => f,
-                Ok(None) => break,
-                Err(source::SourceError::BadInput { item, reason }) => {
-                    c.skipped += 1;
-                    eprintln!("faultcam: skip {item}: {reason}");
-                    log.skip(&item, &reason)?;
-                    continue;
-                }
-                Err(e) => return Err(e).context("source failed"),
-            };
-            c.frames_in += 1;
-            let (seq, pts_ns) = (frame.seq, frame.pts_ns);
-            let input = source.item_name();
-            let mut rec_status = FrameStatus::Delivered;
-            let mut error: Option<anyhow::Error> = None;
-            let mut stop = false;
-            match chain.apply(&mut frame, &mut report) {
-                Ok(Outcome::Drop) => rec_status = FrameStatus::DroppedByFault,
-                Ok(Outcome::Keep) => {
-                    // A temporal effect may hand out another frame: keep the name only if it is ours.
-                    let name = if frame.seq == seq { input } else { None };
-                    match sink.write_frame(&frame, name) {
-                        Ok(()) => {}
-                        Err(SinkError::Closed { .. }) => {
-                            rec_status = FrameStatus::Failed;
-                            stop = true;
-                        }
-                        Err(e) => {
-                            rec_status = FrameStatus::Failed;
-                            error = Some(anyhow::Error::new(e).context(format!("frame {seq}: sink failed")));
-                        }
-                    }
-                }
-                Err(e) => {
-                    rec_status = FrameStatus::Failed;
-                    error = Some(anyhow::Error::new(e).context(format!("frame {seq}: fault chain failed")));
-                }
-            }
-            let err_text = error.as_ref().map(|e| format!("{e:#}"));
-            let mut rec = FrameRecord::from_report(seq, pts_ns, &report);
-            rec.input = input;
-            rec.status = rec_status;
-            rec.output = if rec_status == FrameStatus::Delivered { sink.last_output() } else { None };
-            rec.error = if stop { Some("sink closed") } else { err_text.as_deref() };
-            log.frame(&rec)?;
-            match rec_status {
-                FrameStatus::Delivered => c.delivered += 1,
-                FrameStatus::DroppedByFault | FrameStatus::DroppedOverrun => c.dropped += 1,
-                FrameStatus::Failed => c.failed += 1,
-            }
-            source.recycle(frame);
-            if let Some(e) = error {
-                return Err(e);
-            }
-            if stop {
-                break;
-            }
+/// The one-line summary printed at the end.
+pub fn summary_line(s: &Summary) -> String {
+    let budget = match s.budget_ms {
+        Some(b) => format!(
+            "; budget {b} ms ({}): {} misses ({} late, {} dropped), {} degraded",
+            s.overrun_policy, s.budget_misses, s.late, s.dropped_overrun, s.degraded
+        ),
+        None => String::new(),
+    };
+    format!(
+        "{} frames in, {} out, {} dropped ({} by faults, {} by overrun), {} failed, {} inputs skipped, {} unaccounted; \
+         latency p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms{budget}; {:.1} s, {:.1} fps in; stopped by {}",
+        s.frames_in,
+        s.delivered,
+        s.dropped_by_fault + s.dropped_overrun,
+        s.dropped_by_fault,
+        s.dropped_overrun,
+        s.failed,
+        s.skipped_inputs,
+        s.unaccounted,
+        s.latency.p50_ms,
+        s.latency.p99_ms,
+        s.latency.max_ms,
+        s.wall_s,
+        s.fps_in,
+        s.stopped_by.name()
+    )
+}
+
+fn check(args: &Args, cfg: &FaultConfig) -> anyhow::Result<u8> {
+    let campaign = Campaign::from_config(cfg)?;
+    let effects: Vec<String> = cfg.effects.iter().map(|e| e.name.clone()).collect();
+    println!(
+        "{}: ok: {} effects ({}), {} events, trigger names: {}",
+        args.faults.display(),
+        effects.len(),
+        effects.join(", "),
+        campaign.events.len(),
+        if campaign.by_name.is_empty() {
+            "none".to_string()
+        } else {
+            campaign.by_name.keys().cloned().collect::<Vec<_>>().join(", ")
         }
-        Ok(())
-    })();
-    (c, result.err())
+    );
+    Ok(0)
 }
 
 pub fn run(args: Args) -> anyhow::Result<u8> {
@@ -144,13 +185,74 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
     if let Some(s) = args.seed {
         cfg.seed = s;
     }
-    let mut chain = Chain::from_config(&cfg).with_context(|| format!("{}", args.faults.display()))?;
-    let mut src = source::open(&args.source)?;
-    let mut snk = sink::open(&args.sink)?;
-    let log_path = args.log.clone().unwrap_or_else(|| default_log(&args.sink));
-    let mut log = GroundTruthLog::create(&log_path).with_context(|| format!("cannot create {}", log_path.display()))?;
+    if args.check {
+        return check(&args, &cfg);
+    }
+    let (Some(source_uri), Some(sink_uri)) = (args.source.as_deref(), args.sink.as_deref()) else {
+        anyhow::bail!("--source and --sink are required (unless --check)");
+    };
+    if let Some(t) = args.threads {
+        if !(1..=1024).contains(&t) {
+            anyhow::bail!("--threads {t} is out of range; accepted: 1..=1024");
+        }
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(t)
+            .thread_name(|i| format!("faultcam-fx-{i}"))
+            .build_global()
+            .context("cannot start the effect worker threads")?;
+    }
+    let chain = Chain::from_config(&cfg).with_context(|| format!("{}", args.faults.display()))?;
+    let trigger_opts = match &args.trigger {
+        Some(t) => {
+            let (dev, baud) = parse_trigger_port(t)?;
+            TriggerOptions { serial: Some(dev), baud, ..Default::default() }
+        }
+        None => TriggerOptions { replay: args.replay_triggers.clone(), ..Default::default() },
+    };
+    // The whole campaign is validated (and the trigger port opened) before the stream starts.
+    let controllers = schedule::controllers_from_config(&cfg, &trigger_opts)?;
+
+    let src = source::open(source_uri)?;
+    let snk = sink::open(sink_uri)?;
+    let (scheme, _, _) = source::split_uri(source_uri);
+    let live = args.live || matches!(scheme, "aravis" | "v4l2");
+    let pacing = match (args.fps, args.realtime) {
+        (Some(f), _) => Pacing::Fps(f),
+        (None, true) => Pacing::Timestamps,
+        (None, false) => Pacing::Free,
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    // First SIGINT/SIGTERM: stop cleanly (finish the frames in flight, write the summary);
+    // a second one while stopping ends the process at once.
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register_conditional_shutdown(sig, 130, stop.clone())
+            .context("cannot install the signal handler")?;
+        signal_hook::flag::register(sig, stop.clone()).context("cannot install the signal handler")?;
+    }
+    let opts = PipelineOptions {
+        pacing,
+        budget_ms: args.budget_ms,
+        overrun: args.overrun,
+        realtime_source: live,
+        queue_depth: args.queue,
+        max_frames: args.frames,
+        duration: args.duration,
+        stop,
+        progress_every: match args.progress_s {
+            Some(p) if p.is_finite() && p > 0.0 => Some(Duration::from_secs_f64(p)),
+            Some(p) => anyhow::bail!("--progress-s {p} is not accepted; accepted: a positive number of seconds"),
+            None => None,
+        },
+        ..Default::default()
+    };
+    opts.validate()?;
+
+    let log_path = args.log.clone().unwrap_or_else(|| default_log(sink_uri));
+    let mut log = faultcam::gtlog::GroundTruthLog::create(&log_path)
+        .with_context(|| format!("cannot create {}", log_path.display()))?;
     eprintln!("faultcam: source {}", src.describe());
     eprintln!("faultcam: sink {}", snk.describe());
+    let threads = args.threads.unwrap_or_else(rayon::current_num_threads);
     log.event(&serde_json::json!({
         "event": "start",
         "source": src.describe(),
@@ -158,35 +260,55 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         "faults": args.faults.display().to_string(),
         "seed": cfg.seed,
         "effects": chain.entries().iter().map(|e| e.name()).collect::<Vec<_>>(),
+        "pacing": match pacing {
+            Pacing::Free => "free".to_string(),
+            Pacing::Fps(f) => format!("fps {f}"),
+            Pacing::Timestamps => "timestamps".to_string(),
+        },
+        "budget_ms": args.budget_ms,
+        "overrun": args.overrun.name(),
+        "live": live,
+        "threads": threads,
+        "trigger": args.trigger,
+        "replay_triggers": args.replay_triggers.as_ref().map(|p| p.display().to_string()),
     }))?;
-    let t0 = Instant::now();
-    let (counts, err) = sequential_loop(src.as_mut(), &mut chain, snk.as_mut(), &mut log, args.frames);
-    let finish = snk.finish();
-    let wall_s = t0.elapsed().as_secs_f64();
-    log.summary(&serde_json::json!({
-        "frames_in": counts.frames_in,
-        "delivered": counts.delivered,
-        "dropped": counts.dropped,
-        "failed": counts.failed,
-        "skipped": counts.skipped,
-        "wall_s": wall_s,
-        "error": err.as_ref().map(|e| format!("{e:#}")),
-    }))?;
-    log.flush()?;
-    eprintln!(
-        "faultcam: {} frames in, {} out, {} dropped by faults, {} failed, {} inputs skipped ({:.2} s, {:.1} fps); log {}",
-        counts.frames_in,
-        counts.delivered,
-        counts.dropped,
-        counts.failed,
-        counts.skipped,
-        wall_s,
-        counts.frames_in as f64 / wall_s.max(1e-9),
-        log_path.display()
-    );
-    if let Some(e) = err {
-        return Err(e);
+    // A place for per-pixel fault masks (`--masks`, owned by `apply`) would go here: the
+    // pipeline's sink stage fills `FrameRecord::masks`.
+    let summary = pipeline::run(src, snk, chain, controllers, &opts, &mut log)?;
+    drop(log);
+    eprint!("{summary}");
+    eprintln!("faultcam: {}; log {}", summary_line(&summary), log_path.display());
+    if let Some(e) = &summary.error {
+        anyhow::bail!("{e} (log {})", log_path.display());
     }
-    finish?;
+    if summary.unaccounted != 0 {
+        anyhow::bail!(
+            "{} input frames are not accounted for in the log (a bug); log {}",
+            summary.unaccounted,
+            log_path.display()
+        );
+    }
+    if summary.stopped_by == StopReason::Signal {
+        eprintln!("faultcam: stopped by signal; the log and summary are complete");
+    }
     Ok(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn durations_and_trigger_ports_parse() {
+        assert_eq!(parse_duration("90").unwrap(), Duration::from_secs(90));
+        assert_eq!(parse_duration("1.5m").unwrap(), Duration::from_secs(90));
+        assert_eq!(parse_duration("2h").unwrap(), Duration::from_secs(7200));
+        assert!(parse_duration("0").unwrap_err().contains("accepted"));
+        assert!(parse_duration("ten").is_err());
+        assert_eq!(parse_trigger_port("/dev/ttyACM0").unwrap(), ("/dev/ttyACM0".to_string(), None));
+        assert_eq!(parse_trigger_port("/dev/pts/3?baud=9600").unwrap(), ("/dev/pts/3".to_string(), Some(9600)));
+        let e = parse_trigger_port("/dev/x?baud=7").unwrap_err().to_string();
+        assert!(e.contains("baud=7") && e.contains("50..=4000000"), "{e}");
+        assert!(parse_trigger_port("/dev/x?parity=odd").unwrap_err().to_string().contains("accepted: baud"));
+    }
 }

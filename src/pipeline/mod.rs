@@ -1188,6 +1188,7 @@ pub fn run(
     summary.delivered = sink_end.delivered;
     summary.dropped_by_fault = sink_end.dropped_by_fault;
     summary.dropped_overrun = sink_end.dropped_overrun;
+    summary.dropped = summary.dropped_by_fault + summary.dropped_overrun;
     summary.failed = sink_end.failed;
     summary.held = sink_end.held;
     summary.drained = sink_end.drained;
@@ -1200,6 +1201,8 @@ pub fn run(
     summary.chain = sink_end.chain.stats();
     summary.sink_write = sink_end.write.stats();
     summary.wall_s = sh.t0.elapsed().as_secs_f64();
+    // What the sink negotiated on its first frame (format, size) is known only now.
+    summary.sink = sink.describe();
     if summary.wall_s > 0.0 {
         summary.fps_in = summary.frames_in as f64 / summary.wall_s;
         summary.fps_out = summary.delivered as f64 / summary.wall_s;

@@ -188,7 +188,11 @@ pub struct Summary {
     pub held: u64,
     /// Frames given back by effects that held them (`Effect::drain`) at the end of the stream.
     pub drained: u64,
-    /// Input items the source skipped (corrupt or mismatched files), each logged as `skip`.
+    /// `dropped_by_fault + dropped_overrun`.
+    pub dropped: u64,
+    /// Input items the source skipped (corrupt or mismatched files, frames a camera or driver
+    /// lost), each logged as `skip`; not input frames.
+    #[serde(rename = "skipped")]
     pub skipped_inputs: u64,
     /// `frames_in - (delivered + dropped_by_fault + dropped_overrun + failed)`: must be 0.
     pub unaccounted: i64,

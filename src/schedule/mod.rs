@@ -230,7 +230,7 @@ impl EventSpec {
 pub struct TriggerSettings {
     /// Trigger inputs are accepted from the start (else only after `ARM`).
     pub armed: bool,
-    /// Default serial device (the CLI's `--serial` overrides).
+    /// Default serial device (the CLI's `--trigger` overrides).
     pub port: Option<String>,
     pub baud: Option<u32>,
     pub serial: SerialSettings,
@@ -328,7 +328,7 @@ pub fn trigger_input(
     if let Some(log) = &opts.replay {
         if opts.serial.is_some() {
             return Err(ScheduleError::Options(
-                "--serial and --replay-triggers exclude each other: a replay takes the triggers from the log".into(),
+                "--trigger and --replay-triggers exclude each other: a replay takes the triggers from the log".into(),
             ));
         }
         return Ok(Some(Box::new(TriggerReplay::from_log(log, campaign.catalog())?)));

@@ -1016,7 +1016,8 @@ mod tests {
         assert_eq!(c.by_name["flash"], vec![0]);
         assert_eq!(c.by_name["a"], vec![0]);
         assert_eq!(c.by_name["event2"], vec![1]);
-        assert_eq!(c.events[1].params[0].line, 16);
+        // Line 15: `sigma_dn = 4.0` (the string has 15 lines).
+        assert_eq!(c.events[1].params[0].line, 15);
     }
 
     #[test]

@@ -471,16 +471,22 @@ impl Controller for CampaignController {
             self.stop(i, "end_of_stream", seq, t, events);
         }
         if let Some(inp) = self.input.as_mut() {
-            inp.finish();
-            // Items that arrived after the last frame were never applied.
+            inp.stop_reading();
+            // Items that arrived after the last frame were never applied: the rig gets a NAK
+            // (a replay has nothing left here: its triggers all fall on recorded frames).
             let mut late = Vec::new();
             inp.pending(u64::MAX, &mut late);
             for item in late {
                 match item {
-                    Incoming::Command { cmd_seq, cmd, .. } => {
+                    Incoming::Command { cmd_seq, cmd, origin } => {
                         let text = cmd.text(&self.catalog);
+                        let reason = "the stream ended before it could apply";
+                        if origin == Origin::Serial {
+                            let s = cmd_seq.map(|s| s.to_string()).unwrap_or_else(|| "-".into());
+                            inp.reply(&format!("NAK {s} {reason}"));
+                        }
                         events.push(json!({"event": "nak", "seq": seq, "t_ns": t, "cmd_seq": cmd_seq,
-                                           "command": text, "reason": "the stream ended before it could apply"}));
+                                           "command": text, "reason": reason}));
                     }
                     Incoming::Rejected { cmd_seq, reason, raw } => events.push(json!({
                         "event": "nak", "seq": seq, "t_ns": t, "cmd_seq": cmd_seq, "reason": reason, "raw": raw})),
@@ -489,6 +495,7 @@ impl Controller for CampaignController {
                     }
                 }
             }
+            inp.finish();
         }
     }
 }

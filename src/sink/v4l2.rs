@@ -2,17 +2,25 @@
 //! faulted frames appear as a camera that any V4L2 application (the vision stack under
 //! test, GStreamer `v4l2src`, ffplay, a browser) can open.
 //!
-//! URI: `v4l2:/dev/videoN[?format=GREY|Y16|RGB3|YUYV&fps=30]`.
+//! URI: `v4l2:/dev/videoN[?format=GREY|Y16|RGB3|YUYV&fps=30&io=mmap|write&buffers=4&timeout_ms=2000]`.
 //!
-//! * The output format is set on the first frame (`VIDIOC_S_FMT` on the output queue): by
-//!   default the frame's own layout (mono8 → `GREY`, mono16 → `Y16`, rgb8 → `RGB3`, bayer8 →
-//!   `GREY`); `format=YUYV` converts for consumers that need YUYV (mono8: U = V = 128; rgb8:
-//!   ITU-R BT.601 limited range; mono16: the high byte). What the driver chose is checked:
-//!   a different size or fourcc is an error naming both. Later frames must keep the size.
-//! * Each frame is written with `write(2)` on the device (v4l2loopback's read/write I/O, as
-//!   ffmpeg's v4l2 output does): it is handed to readers at once, with no extra frame of
-//!   queueing. Rows are laid out with the driver's `bytesperline` from one buffer allocated
-//!   once per stream.
+//! * The output format is negotiated on the first frame (`VIDIOC_S_FMT` on the output queue):
+//!   by default the frame's own layout (mono8 → `GREY`, mono16 → `Y16`, rgb8 → `RGB3`,
+//!   bayer8 → `GREY`); `format=YUYV` converts for consumers that need YUYV (mono8: U = V =
+//!   128; rgb8: ITU-R BT.601 limited range; mono16: the high byte). What the driver chose
+//!   (size, fourcc, `bytesperline`, `sizeimage`, buffer count) is read back and reported by
+//!   `describe()`; a different size or fourcc is an error naming both. Later frames must keep
+//!   the size.
+//! * `io=mmap` (default): streaming I/O. `buffers` driver buffers are requested
+//!   (`VIDIOC_REQBUFS`, `V4L2_MEMORY_MMAP`; v4l2loopback grants at most its `max_buffers`) and
+//!   mapped once; each frame is written straight into a free buffer in the driver's layout and
+//!   queued (`VIDIOC_QBUF`) at once, with the frame's `pts_ns` as its timestamp; buffers the
+//!   driver has consumed come back with `VIDIOC_DQBUF` (waiting up to `timeout_ms` when all
+//!   are queued). Streaming starts (`VIDIOC_STREAMON`) with the first frame.
+//! * `io=write`: each frame is written with `write(2)` (v4l2loopback's read/write I/O, as
+//!   ffmpeg's v4l2 output does) from one buffer allocated once per stream.
+//! * Either way a frame is handed to readers when `write_frame` returns: no extra frame of
+//!   queueing inside faultcam, and no allocation per frame.
 
 use super::{Sink, SinkError};
 use crate::frame::{Frame, FrameData, PixelFormat};
@@ -21,25 +29,184 @@ use crate::source::v4l2::parse_fourcc;
 use std::io::Write;
 use std::mem::ManuallyDrop;
 use std::os::fd::FromRawFd;
+use std::sync::Arc;
+use v4l::device::Handle;
 use v4l::video::Output;
 use v4l::{Device, FourCC};
 
 /// `POLLOUT` (Linux).
 const POLLOUT: i16 = 0x004;
-/// How long a write waits for the device to accept a frame.
-const WRITE_TIMEOUT_MS: i32 = 2000;
+
+/// Output I/O method.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Io {
+    Mmap,
+    Write,
+}
+
+/// One driver buffer mapped into this process.
+struct Mapped {
+    ptr: *mut std::ffi::c_void,
+    len: usize,
+}
+
+/// Streaming output over mapped driver buffers.
+struct MmapOut {
+    handle: Arc<Handle>,
+    bufs: Vec<Mapped>,
+    /// Buffers `0..fresh` have been queued at least once; the others are free to fill.
+    fresh: usize,
+    streaming: bool,
+}
+
+// SAFETY: the mappings belong to this value alone (no other reference to them exists), and the
+// device handle they come from is kept alive by `handle`; moving them to another thread is fine.
+unsafe impl Send for MmapOut {}
+
+fn v4l2_buffer(index: u32) -> v4l::v4l_sys::v4l2_buffer {
+    // SAFETY: v4l2_buffer is a plain C struct for which all-zero bytes are a valid value.
+    let mut b: v4l::v4l_sys::v4l2_buffer = unsafe { std::mem::zeroed() };
+    b.index = index;
+    b.type_ = v4l::buffer::Type::VideoOutput as u32;
+    b.memory = v4l::memory::Memory::Mmap as u32;
+    b
+}
+
+impl MmapOut {
+    /// Request `count` buffers and map them.
+    fn new(device: &Device, count: u32) -> std::io::Result<MmapOut> {
+        let handle = device.handle();
+        let fd = handle.fd();
+        // SAFETY: all-zero is a valid v4l2_requestbuffers.
+        let mut req: v4l::v4l_sys::v4l2_requestbuffers = unsafe { std::mem::zeroed() };
+        req.count = count;
+        req.type_ = v4l::buffer::Type::VideoOutput as u32;
+        req.memory = v4l::memory::Memory::Mmap as u32;
+        // SAFETY: VIDIOC_REQBUFS takes a pointer to a v4l2_requestbuffers that outlives the call.
+        unsafe {
+            v4l::v4l2::ioctl(fd, v4l::v4l2::vidioc::VIDIOC_REQBUFS, &mut req as *mut _ as *mut std::ffi::c_void)?
+        };
+        if req.count == 0 {
+            return Err(std::io::Error::other("the driver granted no buffers"));
+        }
+        let mut out = MmapOut { handle, bufs: Vec::with_capacity(req.count as usize), fresh: 0, streaming: false };
+        for index in 0..req.count {
+            let mut b = v4l2_buffer(index);
+            // SAFETY: VIDIOC_QUERYBUF fills the v4l2_buffer it is given; then the buffer is
+            // mapped at the offset the driver reported, with the length it reported.
+            unsafe {
+                v4l::v4l2::ioctl(fd, v4l::v4l2::vidioc::VIDIOC_QUERYBUF, &mut b as *mut _ as *mut std::ffi::c_void)?;
+                let ptr = v4l::v4l2::mmap(
+                    std::ptr::null_mut(),
+                    b.length as usize,
+                    libc::PROT_READ | libc::PROT_WRITE,
+                    libc::MAP_SHARED,
+                    fd,
+                    b.m.offset as libc::off_t,
+                )?;
+                out.bufs.push(Mapped { ptr, len: b.length as usize });
+            }
+        }
+        Ok(out)
+    }
+
+    /// A buffer the application may fill: a never-queued one, else one the driver gives back.
+    fn acquire(&mut self, timeout_ms: i32) -> std::io::Result<usize> {
+        if self.fresh < self.bufs.len() {
+            self.fresh += 1;
+            return Ok(self.fresh - 1);
+        }
+        if self.handle.poll(POLLOUT, timeout_ms)? == 0 {
+            return Err(std::io::Error::new(std::io::ErrorKind::TimedOut, "no buffer came back"));
+        }
+        let mut b = v4l2_buffer(0);
+        // SAFETY: VIDIOC_DQBUF fills the v4l2_buffer it is given.
+        unsafe {
+            v4l::v4l2::ioctl(
+                self.handle.fd(),
+                v4l::v4l2::vidioc::VIDIOC_DQBUF,
+                &mut b as *mut _ as *mut std::ffi::c_void,
+            )?
+        };
+        let i = b.index as usize;
+        if i >= self.bufs.len() {
+            return Err(std::io::Error::other(format!("the driver returned buffer {i} of {}", self.bufs.len())));
+        }
+        Ok(i)
+    }
+
+    fn buffer(&mut self, i: usize) -> &mut [u8] {
+        let m = &self.bufs[i];
+        // SAFETY: the mapping is `len` bytes, readable and writable, alive until Drop, and only
+        // reachable through `&mut self`.
+        unsafe { std::slice::from_raw_parts_mut(m.ptr as *mut u8, m.len) }
+    }
+
+    /// Hand buffer `i` (with `bytesused` bytes of frame) to the driver; start streaming.
+    fn queue(&mut self, i: usize, bytesused: usize, pts_ns: u64) -> std::io::Result<()> {
+        let mut b = v4l2_buffer(i as u32);
+        b.bytesused = bytesused as u32;
+        b.field = v4l::v4l_sys::v4l2_field_V4L2_FIELD_NONE;
+        b.timestamp.tv_sec = (pts_ns / 1_000_000_000) as _;
+        b.timestamp.tv_usec = ((pts_ns % 1_000_000_000) / 1000) as _;
+        let fd = self.handle.fd();
+        // SAFETY: VIDIOC_QBUF reads the v4l2_buffer it is given.
+        unsafe { v4l::v4l2::ioctl(fd, v4l::v4l2::vidioc::VIDIOC_QBUF, &mut b as *mut _ as *mut std::ffi::c_void)? };
+        if !self.streaming {
+            let mut typ = v4l::buffer::Type::VideoOutput as u32;
+            // SAFETY: VIDIOC_STREAMON reads the buffer type it is given.
+            unsafe {
+                v4l::v4l2::ioctl(fd, v4l::v4l2::vidioc::VIDIOC_STREAMON, &mut typ as *mut _ as *mut std::ffi::c_void)?
+            };
+            self.streaming = true;
+        }
+        Ok(())
+    }
+}
+
+impl Drop for MmapOut {
+    fn drop(&mut self) {
+        let fd = self.handle.fd();
+        if self.streaming {
+            let mut typ = v4l::buffer::Type::VideoOutput as u32;
+            // SAFETY: as in `queue`; errors are ignored (never panic in Drop).
+            let _ = unsafe {
+                v4l::v4l2::ioctl(fd, v4l::v4l2::vidioc::VIDIOC_STREAMOFF, &mut typ as *mut _ as *mut std::ffi::c_void)
+            };
+        }
+        for m in self.bufs.drain(..) {
+            // SAFETY: each mapping was made by `new` with this length and is unmapped once.
+            let _ = unsafe { v4l::v4l2::munmap(m.ptr, m.len) };
+        }
+        // SAFETY: all-zero is a valid v4l2_requestbuffers; count 0 frees the driver's buffers.
+        let mut req: v4l::v4l_sys::v4l2_requestbuffers = unsafe { std::mem::zeroed() };
+        req.type_ = v4l::buffer::Type::VideoOutput as u32;
+        req.memory = v4l::memory::Memory::Mmap as u32;
+        // SAFETY: as in `new`.
+        let _ = unsafe {
+            v4l::v4l2::ioctl(fd, v4l::v4l2::vidioc::VIDIOC_REQBUFS, &mut req as *mut _ as *mut std::ffi::c_void)
+        };
+    }
+}
 
 /// An open output device.
 pub struct V4l2Sink {
     uri: String,
     path: String,
+    // Declared before `device`: buffers are released before the device is closed.
+    mmap: Option<MmapOut>,
     device: Device,
     want: Option<[u8; 4]>,
     fps: Option<u64>,
+    io: Io,
+    buffers: u32,
+    timeout_ms: i32,
     shape: Option<(u32, u32, PixelFormat)>,
     fourcc: [u8; 4],
     bytesperline: usize,
-    // allocation: once per stream (one frame in the driver's layout)
+    /// Bytes of one frame in the driver's layout (`sizeimage`).
+    frame_bytes: usize,
+    // allocation: once per stream (io=write: one frame in the driver's layout)
     buf: Vec<u8>,
     chosen: String,
 }
@@ -117,6 +284,13 @@ impl V4l2Sink {
             None => None,
         };
         let fps = o.int("fps", 1, 1000).map_err(bad)?;
+        let io = match o.raw("io").as_deref() {
+            None | Some("mmap") => Io::Mmap,
+            Some("write") => Io::Write,
+            Some(v) => return Err(bad(format!("io={v} is not accepted; expected mmap or write"))),
+        };
+        let buffers = o.int("buffers", 2, 32).map_err(bad)?.unwrap_or(4) as u32;
+        let timeout_ms = o.int("timeout_ms", 10, 600_000).map_err(bad)?.unwrap_or(2000) as i32;
         o.finish().map_err(bad)?;
         let failed = |reason: String| SinkError::Failed { uri: uri.to_string(), reason };
         let device = Device::with_path(path).map_err(|e| failed(format!("cannot open {path}: {e}")))?;
@@ -128,15 +302,23 @@ impl V4l2Sink {
                 caps.card, caps.driver, caps.capabilities
             )));
         }
+        if io == Io::Mmap && !caps.capabilities.contains(v4l::capability::Flags::STREAMING) {
+            return Err(failed(format!("{path} ({}) does not support streaming I/O; use io=write", caps.card)));
+        }
         Ok(V4l2Sink {
             uri: uri.to_string(),
             path: path.to_string(),
+            mmap: None,
             device,
             want,
             fps,
+            io,
+            buffers,
+            timeout_ms,
             shape: None,
             fourcc: *b"GREY",
             bytesperline: 0,
+            frame_bytes: 0,
             buf: Vec::new(),
             chosen: format!("{} {}", caps.card, caps.driver),
         })
@@ -197,26 +379,51 @@ impl V4l2Sink {
             2
         };
         self.bytesperline = (got.stride as usize).max(frame.width as usize * bpp);
-        let size = (got.size as usize).max(self.bytesperline * frame.height as usize);
-        self.buf = vec![0; size];
+        self.frame_bytes = (got.size as usize).max(self.bytesperline * frame.height as usize);
+        let io = match self.io {
+            Io::Mmap => {
+                let m = MmapOut::new(&self.device, self.buffers).map_err(|e| {
+                    self.failed(format!(
+                        "{}: cannot map {} output buffers: {e} (try io=write)",
+                        self.path, self.buffers
+                    ))
+                })?;
+                if let Some(small) = m.bufs.iter().find(|b| b.len < self.frame_bytes) {
+                    return Err(self.failed(format!(
+                        "{}: a driver buffer has {} bytes, a frame needs {}",
+                        self.path, small.len, self.frame_bytes
+                    )));
+                }
+                let io = format!("mmap, {} buffers", m.bufs.len());
+                self.mmap = Some(m);
+                io
+            }
+            Io::Write => {
+                self.buf = vec![0; self.frame_bytes];
+                "write".to_string()
+            }
+        };
         self.fourcc = fourcc;
         self.shape = Some(shape);
-        self.chosen =
-            format!("{}: {}x{} {}, bytesperline {}", self.chosen, got.width, got.height, got.fourcc, self.bytesperline);
+        self.chosen = format!(
+            "{}: driver chose {}x{} {}, bytesperline {}, sizeimage {}, io {io}",
+            self.chosen, got.width, got.height, got.fourcc, self.bytesperline, got.size
+        );
         Ok(())
     }
+}
 
-    fn fill(&mut self, frame: &Frame) -> Result<(), SinkError> {
-        let bpl = self.bytesperline;
-        if &self.fourcc == b"YUYV" {
-            for y in 0..frame.height as usize {
-                let row = &mut self.buf[y * bpl..y * bpl + frame.width as usize * 2];
-                row_to_yuyv(frame, y, row);
-            }
-            Ok(())
-        } else {
-            crate::pipeline::pool::copy_rows_out(frame, &mut self.buf, bpl).map_err(|e| self.failed(e.to_string()))
+/// Lay `frame` out in `dst` as `fourcc` rows of `bpl` bytes.
+fn fill(frame: &Frame, fourcc: &[u8; 4], bpl: usize, dst: &mut [u8]) -> Result<(), String> {
+    if fourcc == b"YUYV" {
+        let row = frame.width as usize * 2;
+        for y in 0..frame.height as usize {
+            let d = dst.get_mut(y * bpl..y * bpl + row).ok_or("driver buffer too small")?;
+            row_to_yuyv(frame, y, d);
         }
+        Ok(())
+    } else {
+        crate::pipeline::pool::copy_rows_out(frame, dst, bpl).map_err(|e| e.to_string())
     }
 }
 
@@ -227,7 +434,22 @@ impl Sink for V4l2Sink {
 
     fn write_frame(&mut self, frame: &Frame, _name: Option<&str>) -> Result<(), SinkError> {
         self.configure(frame)?;
-        self.fill(frame)?;
+        let (fourcc, bpl, n) = (self.fourcc, self.bytesperline, self.frame_bytes);
+        if let Some(m) = self.mmap.as_mut() {
+            let i = match m.acquire(self.timeout_ms) {
+                Ok(i) => i,
+                Err(e) => {
+                    return Err(SinkError::Failed {
+                        uri: self.uri.clone(),
+                        reason: format!("{}: VIDIOC_DQBUF: {e} (timeout {} ms)", self.path, self.timeout_ms),
+                    });
+                }
+            };
+            let r = fill(frame, &fourcc, bpl, &mut m.buffer(i)[..n])
+                .and_then(|()| m.queue(i, n, frame.pts_ns).map_err(|e| format!("VIDIOC_QBUF: {e}")));
+            return r.map_err(|e| SinkError::Failed { uri: self.uri.clone(), reason: format!("{}: {e}", self.path) });
+        }
+        fill(frame, &fourcc, bpl, &mut self.buf).map_err(|e| self.failed(e))?;
         // SAFETY: the fd belongs to `self.device` and stays open; ManuallyDrop keeps the File
         // from closing it.
         let mut file = ManuallyDrop::new(unsafe { std::fs::File::from_raw_fd(self.device.handle().fd()) });
@@ -240,11 +462,11 @@ impl Sink for V4l2Sink {
                     let ready = self
                         .device
                         .handle()
-                        .poll(POLLOUT, WRITE_TIMEOUT_MS)
+                        .poll(POLLOUT, self.timeout_ms)
                         .map_err(|e| self.failed(format!("poll: {e}")))?;
                     if ready == 0 {
                         return Err(
-                            self.failed(format!("{}: the device took no frame for {WRITE_TIMEOUT_MS} ms", self.path))
+                            self.failed(format!("{}: the device took no frame for {} ms", self.path, self.timeout_ms))
                         );
                     }
                 }
@@ -281,5 +503,12 @@ mod tests {
         assert!(e.contains("/dev/video-faultcam-none"), "{e}");
         let e = V4l2Sink::open("v4l2:/dev/null?format=MJPG").err().unwrap().to_string();
         assert!(e.contains("GREY, Y16, RGB3 or YUYV"), "{e}");
+        let e = V4l2Sink::open("v4l2:/dev/null?io=userptr").err().unwrap().to_string();
+        assert!(e.contains("io=userptr") && e.contains("mmap or write"), "{e}");
+        let e = V4l2Sink::open("v4l2:/dev/null?buffers=1").err().unwrap().to_string();
+        assert!(e.contains("buffers") && e.contains("2..=32"), "{e}");
+        // /dev/null is no V4L2 device: the error names it.
+        let e = V4l2Sink::open("v4l2:/dev/null").err().unwrap().to_string();
+        assert!(e.contains("/dev/null") && e.contains("VIDIOC_QUERYCAP"), "{e}");
     }
 }
