@@ -1,6 +1,6 @@
 //! Building blocks of the physics library (helper "physlib"): parallel row bands with
 //! thread-count-independent randomness, a multi-lane random generator for per-sample noise,
-//! sparse Bernoulli sampling, fixed-point gain maps and the seeded benchmark scene.
+//! sparse Bernoulli sampling, fixed-point gain maps, benchmark parameters and scenes.
 //!
 //! Determinism: work is split into bands of [`ROWS_PER_TASK`] rows whatever the thread count;
 //! band `k` draws from `ctx.rng.derive(k)`, so the bytes never depend on how rayon schedules.
@@ -251,6 +251,77 @@ impl SparsePattern {
             self.active_key = Some(rate.to_bits());
         }
         &self.active
+    }
+}
+
+/// Visible, study-like parameters of an effect for benchmarks and whole-library tests: every
+/// effect does real work (no identity settings), at strengths like `hil/campaigns/original8.toml`.
+/// Effects not listed take their defaults (which are already active).
+pub fn bench_params(name: &str) -> Result<super::Params, super::FaultError> {
+    let mut p = super::default_params(name)?;
+    let set: &[(&str, f64)] = match name {
+        "lens_flare" => &[("ghosts", 5.0), ("intensity", 0.08)],
+        "motion_blur" => &[("length_px", 10.0), ("angle_deg", 30.0)],
+        "channel_shift" => &[("dx_r", 1.3), ("dy_r", -0.6), ("dx_b", -1.1), ("dy_b", 0.8)],
+        "dark_current" => &[("mean_dn", 3.0), ("hot_pixel_rate", 5e-4)],
+        "blooming" => &[("full_well_fraction", 0.95), ("spread_px", 2.0), ("exposure_gain", 1.2)],
+        "smear" => &[("strength", 0.002), ("sat_level", 0.95)],
+        "gaussian_noise" => &[("sigma_dn", 3.0)],
+        "vertical_glitch" | "horizontal_glitch" => &[("count", 2.0), ("max_offset_px", 24.0)],
+        "gain_offset" => &[("gain", 1.2), ("offset_dn", 4.0)],
+        "gamma" => &[("gamma", 2.2)],
+        "jpeg" => &[("quality", 75.0)],
+        "cosmic_rays" => &[("rate", 2e-5), ("track_len_px", 8.0)],
+        "bit_flip" => &[("rate", 1e-5)],
+        "dead_pixels" => &[("rate", 1e-4)],
+        _ => &[],
+    };
+    for (k, v) in set {
+        p.set(k, *v)?;
+    }
+    Ok(p)
+}
+
+/// Input scenes for benchmarks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Scene {
+    /// The procedural spacecraft of the `synth:` source (default pose, seed 0): dark sky, lit
+    /// bus and solar wings, a few small saturated glints. The representative case.
+    Spacecraft,
+    /// [`bench_scene`]: a large bright textured body that overflows the full well over wide areas
+    /// when over-exposed (a stress case for blooming).
+    Stress,
+}
+
+impl Scene {
+    pub fn parse(s: &str) -> Option<Scene> {
+        match s {
+            "spacecraft" | "synth" => Some(Scene::Spacecraft),
+            "stress" | "bench" => Some(Scene::Stress),
+            _ => None,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Scene::Spacecraft => "spacecraft",
+            Scene::Stress => "stress",
+        }
+    }
+    /// Render the scene (deterministic in size and format).
+    pub fn render(self, width: u32, height: u32, format: PixelFormat) -> Result<Frame, crate::frame::FrameError> {
+        match self {
+            Scene::Stress => bench_scene(width, height, format, 1),
+            // The synth source needs at least 16x16 pixels.
+            Scene::Spacecraft if width < 16 || height < 16 => bench_scene(width, height, format, 1),
+            Scene::Spacecraft => {
+                let mut f = Frame::new(width, height, format)?;
+                let cfg = crate::source::synth::SynthConfig { width, height, format, ..Default::default() };
+                crate::source::synth::SynthSource::new(cfg).render_into(0, &mut f);
+                f.seq = 0;
+                f.pts_ns = 0;
+                Ok(f)
+            }
+        }
     }
 }
 
