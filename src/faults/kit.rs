@@ -30,6 +30,7 @@ pub fn par_bands_with<T: Send, S: Send>(
     f: impl Fn(usize, usize, &mut [T], &mut [S]) + Sync,
 ) {
     let used = used_len(data.len(), stride, height);
+    debug_assert!(scratch.len() >= per_band * bands(height), "scratch for every band");
     data[..used]
         .par_chunks_mut(stride * ROWS_PER_TASK)
         .zip(scratch.par_chunks_mut(per_band.max(1)))
@@ -49,6 +50,75 @@ fn used_len(len: usize, stride: usize, height: usize) -> usize {
 /// Rows of a band (each without padding).
 pub fn band_rows<T>(band: &mut [T], stride: usize, row_len: usize) -> impl Iterator<Item = &mut [T]> {
     band.chunks_mut(stride).map(move |r| &mut r[..row_len])
+}
+
+/// Compile a row kernel twice: as is (the portable reference) and with AVX2 enabled, and call the
+/// AVX2 copy when the CPU has it. The copies run the same IEEE/integer operations in the same
+/// order (no fast-math, no FMA contraction), so they give the same bytes; AVX2 only lets the
+/// compiler use wider vectors.
+macro_rules! multiversion {
+    ($(#[$m:meta])* $vis:vis fn $name:ident<$T:ident: $B:path>($($a:ident: $t:ty),* $(,)?) $(-> $R:ty)? $body:block) => {
+        $(#[$m])*
+        $vis fn $name<$T: $B>($($a: $t),*) $(-> $R)? {
+            #[inline(always)]
+            fn generic<$T: $B>($($a: $t),*) $(-> $R)? $body
+            #[cfg(target_arch = "x86_64")]
+            #[target_feature(enable = "avx2")]
+            unsafe fn avx2<$T: $B>($($a: $t),*) $(-> $R)? {
+                generic($($a),*)
+            }
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU supports AVX2 (checked just above).
+                return unsafe { avx2($($a),*) };
+            }
+            generic($($a),*)
+        }
+    };
+}
+
+pub(crate) use multiversion;
+
+multiversion! {
+    /// `v = round(v * g)` (f32, half up, clipped to the sample range) with one gain per sample.
+    pub fn mul_round_row<T: Sample>(row: &mut [T], gains: &[f32]) {
+        for (v, &g) in row.iter_mut().zip(gains) {
+            *v = T::from_f32(v.to_f32() * g);
+        }
+    }
+}
+
+multiversion! {
+    /// Largest sample of a row (`T::default()` for an empty row).
+    pub fn max_of_row<T: Sample>(row: &[T]) -> T {
+        row.iter().fold(T::default(), |m, &v| if v > m { v } else { m })
+    }
+}
+
+multiversion! {
+    /// `v = min((v * gq + 2^15) >> 16, MAX)`: a gain in Q16 fixed point, rounded half up.
+    pub fn scale_q16_row<T: Sample>(row: &mut [T], gq: u32) {
+        if T::MAX_U32 == 255 && gq < 1 << 24 {
+            // 8-bit: the product fits in u32, which vectorises.
+            for v in row.iter_mut() {
+                *v = T::from_u32_sat((v.to_u32() * gq + 32768) >> 16);
+            }
+        } else {
+            for v in row.iter_mut() {
+                let p = (v.to_u32() as u64 * gq as u64 + 32768) >> 16;
+                *v = T::from_u32_sat(p.min(T::MAX_U32 as u64) as u32);
+            }
+        }
+    }
+}
+
+multiversion! {
+    /// `v = min(v + a, MAX)` with one addend per sample.
+    pub fn add_sat_row<T: Sample>(row: &mut [T], add: &[u32]) {
+        for (v, &a) in row.iter_mut().zip(add) {
+            *v = T::from_u32_sat(v.to_u32().saturating_add(a));
+        }
+    }
 }
 
 /// Four interleaved xoshiro256++ streams stepped together: the same algorithm as [`Rng`], laid
@@ -71,6 +141,11 @@ impl RngLanes {
             }
         }
         RngLanes { s }
+    }
+
+    /// The state, `[word][lane]` (for SIMD kernels that step the lanes in registers).
+    pub(crate) fn state_mut(&mut self) -> &mut [[u64; 4]; 4] {
+        &mut self.s
     }
 
     /// Four 64-bit outputs.
