@@ -32,8 +32,10 @@ pub enum ConfigError {
     Io { file: String, source: std::io::Error },
     #[error("{file}:{line}: {message}")]
     Syntax { file: String, line: usize, message: String },
-    #[error("{file}:{line}: {source}")]
-    Fault { file: String, line: usize, source: FaultError },
+    /// The fault error is part of this message, not a separate cause: `{:#}` (anyhow) would
+    /// otherwise print it twice.
+    #[error("{file}:{line}: {error}")]
+    Fault { file: String, line: usize, error: FaultError },
     #[error("{file}:{line}: {message}")]
     Invalid { file: String, line: usize, message: String },
 }
@@ -151,12 +153,12 @@ impl FaultConfig {
                 }
             };
             let info =
-                faults::create(&name).map_err(|source| ConfigError::Fault { file: file.clone(), line, source })?.info();
+                faults::create(&name).map_err(|error| ConfigError::Fault { file: file.clone(), line, error })?.info();
             let mut params = Params::defaults(info);
             let mut enabled = true;
             for (k, v) in &map {
                 let vline = line_of(text, v.span().start);
-                let err = |source| ConfigError::Fault { file: file.clone(), line: vline, source };
+                let err = |error| ConfigError::Fault { file: file.clone(), line: vline, error };
                 match k.as_str() {
                     "name" => {}
                     "enabled" => match v.get_ref() {
@@ -279,5 +281,18 @@ mod tests {
         assert!(e.contains("x:2:") && e.contains("unknown top-level key"), "{e}");
         let e = FaultConfig::parse("seed = [\n", "x").unwrap_err().to_string();
         assert!(e.starts_with("x:"), "{e}");
+    }
+
+    #[test]
+    fn cli_error_chain_prints_the_message_once() {
+        // `main` prints errors with `{:#}`, which appends every `source()`: the fault error must
+        // not be both in the message and its cause.
+        for text in ["[[effects]]\nname = \"nope\"\n", "[[effects]]\nname = \"gain_offset\"\ngain = 9.0\n"] {
+            let e = anyhow::Error::from(FaultConfig::parse(text, "x.toml").unwrap_err());
+            let shown = format!("{e:#}");
+            let needle = if text.contains("nope") { "unknown effect 'nope'" } else { "gain_offset.gain = 9" };
+            assert_eq!(shown.matches(needle).count(), 1, "{shown}");
+            assert!(shown.starts_with("x.toml:"), "{shown}");
+        }
     }
 }

@@ -135,8 +135,11 @@ impl Sample for u8 {
     }
     #[inline(always)]
     fn from_f32(v: f32) -> Self {
-        // `as` saturates and maps NaN to 0.
-        (v + 0.5) as u8
+        // Round half up and clip: the same results as the saturating `(v + 0.5) as u8` (NaN gives
+        // 0: `max` ignores NaN), written so that the range is explicit and loops vectorise.
+        let x = (v + 0.5).max(0.0).min(255.0);
+        // SAFETY: x is finite and in [0, 255] (NaN became 0 above), so it fits an i32.
+        unsafe { x.to_int_unchecked::<i32>() as u8 }
     }
     #[inline(always)]
     fn from_u32_sat(v: u32) -> Self {
@@ -157,7 +160,9 @@ impl Sample for u16 {
     }
     #[inline(always)]
     fn from_f32(v: f32) -> Self {
-        (v + 0.5) as u16
+        let x = (v + 0.5).max(0.0).min(65535.0);
+        // SAFETY: x is finite and in [0, 65535] (NaN became 0 above), so it fits an i32.
+        unsafe { x.to_int_unchecked::<i32>() as u16 }
     }
     #[inline(always)]
     fn from_u32_sat(v: u32) -> Self {
@@ -482,6 +487,17 @@ mod tests {
             Frame::from_data(4, 2, 4, PixelFormat::Mono16, FrameData::U8(vec![0; 8])),
             Err(FrameError::StorageMismatch { .. })
         ));
+    }
+
+    #[test]
+    fn from_f32_rounds_half_up_and_saturates_like_as() {
+        let mut vals = vec![f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -1e9, 1e9, -0.5, -0.49, 0.49, 0.5];
+        vals.extend((0..300_000).map(|i| -10.0 + i as f32 * 0.2501));
+        for v in vals {
+            assert_eq!(u8::from_f32(v), (v + 0.5) as u8, "{v}");
+            assert_eq!(u16::from_f32(v), (v + 0.5) as u16, "{v}");
+            assert_eq!(u16::from_f32(v * 300.0), (v * 300.0 + 0.5) as u16, "{v}");
+        }
     }
 
     #[test]

@@ -34,17 +34,8 @@ pub struct Timing {
     pub action: Option<&'static str>,
 }
 
-/// Mask outputs of a frame.
-#[derive(Debug, Clone, Default, Serialize)]
-pub struct MaskRecord {
-    /// 16-bit PNG: bit i set where the i-th applied effect changed the pixel.
-    pub labels: String,
-    /// Bit index → effect name.
-    pub bits: Vec<&'static str>,
-    /// Optional per-effect signed delta images.
-    #[serde(skip_serializing_if = "Vec::is_empty")]
-    pub deltas: Vec<String>,
-}
+/// Mask outputs of a frame (see [`crate::masks`]).
+pub use crate::masks::{DeltaFile, MaskRecord};
 
 /// One frame's line.
 #[derive(Debug, Serialize)]

@@ -313,3 +313,73 @@ fn apply_refuses_to_overwrite_its_input() {
         .assert()
         .code(2);
 }
+
+const SPARSE: &str = "seed = 5\n\n[[effects]]\nname = \"hot_pixels\"\nrate = 0.003\n\n[[effects]]\nname = \"vertical_glitch\"\ncount = 2\nmax_offset_px = 7\n";
+
+#[test]
+fn apply_masks_label_exactly_the_changed_pixels_and_name_the_files_in_the_log() {
+    let dir = tempfile::tempdir().unwrap();
+    let inp = dir.path().join("in");
+    std::fs::create_dir(&inp).unwrap();
+    make_inputs(&inp, 3, "");
+    let cfg = dir.path().join("f.toml");
+    std::fs::write(&cfg, SPARSE).unwrap();
+    let plain = dir.path().join("plain");
+    apply(&inp, &plain, &cfg, &["--threads", "2"]);
+    let out = dir.path().join("out");
+    apply(&inp, &out, &cfg, &["--threads", "2", "--mask-deltas"]);
+    assert_eq!(images(&plain), images(&out), "masks do not change the output");
+    let recs = log_records(&out.join("groundtruth.jsonl"));
+    let frames: Vec<_> = recs.iter().filter(|r| r["record"] == "frame").collect();
+    assert_eq!(frames.len(), 3);
+    for r in frames {
+        let m = &r["masks"];
+        let names: Vec<_> = r["effects"].as_array().unwrap().iter().map(|e| e["name"].clone()).collect();
+        assert_eq!(m["bits"].as_array().unwrap(), &names, "bit k = effects[k]");
+        let labels = image::open(m["labels"].as_str().unwrap()).unwrap().into_luma16();
+        let input = image::open(inp.join(r["input"].as_str().unwrap())).unwrap().into_luma8();
+        let output = image::open(r["output"].as_str().unwrap()).unwrap().into_luma8();
+        let mut labelled = 0;
+        for (x, y, l) in labels.enumerate_pixels() {
+            let changed = input.get_pixel(x, y) != output.get_pixel(x, y);
+            if changed {
+                assert_ne!(l.0[0], 0, "a changed pixel is labelled ({x},{y})");
+            }
+            if l.0[0] == 0 {
+                assert!(!changed);
+            } else {
+                labelled += 1;
+            }
+            assert!(l.0[0] < 4, "two effects: bits 0 and 1 only");
+        }
+        assert!(labelled > 0);
+        for d in m["deltas"].as_array().unwrap() {
+            assert!(Path::new(d["path"].as_str().unwrap()).exists());
+        }
+        assert!(m["deltas"].as_array().unwrap().iter().any(|d| d["effect"] == "hot_pixels"));
+    }
+}
+
+#[test]
+fn unknown_effect_error_is_printed_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("x.toml");
+    std::fs::write(&cfg, "[[effects]]\nname = \"jpegg\"\n").unwrap();
+    let inp = dir.path().join("in");
+    std::fs::create_dir(&inp).unwrap();
+    let out = faultcam()
+        .args(["apply", "--in"])
+        .arg(&inp)
+        .arg("--out")
+        .arg(dir.path().join("out"))
+        .arg("--faults")
+        .arg(&cfg)
+        .assert()
+        .code(2)
+        .get_output()
+        .stderr
+        .clone();
+    let err = String::from_utf8(out).unwrap();
+    assert_eq!(err.matches("unknown effect 'jpegg'").count(), 1, "{err}");
+    assert!(err.contains("x.toml:1:") && err.contains("jpeg"), "{err}");
+}

@@ -10,6 +10,9 @@
 //! - `--threads N`: images are decoded and encoded N at a time and effects use N threads
 //!   internally; the chain itself sees the frames in file order, so the output bytes do not
 //!   depend on N.
+//! - `--masks` (`--mask-deltas`): per-pixel fault masks of every written frame in OUT/masks/
+//!   (see `faultcam::masks`), named in the frame records' `masks` field. The chain runs serially
+//!   anyway; masks are written right after each frame's pass so one recorder serves the run.
 //! - Outputs keep the input file name with the output format's extension. Corrupt files, files
 //!   that are not images and files whose size or pixel format differs from the first readable
 //!   file of the full listing are logged as `skip` records and left out.
@@ -18,6 +21,7 @@ use anyhow::{Context, bail};
 use faultcam::faults::Outcome;
 use faultcam::frame::{Frame, FrameData, PixelFormat};
 use faultcam::gtlog::{FrameRecord, FrameStatus, GroundTruthLog};
+use faultcam::masks::{MaskOptions, MaskRecord, MaskRecorder, mask_stem};
 use faultcam::sink::files::{ImageFormat, WriteOptions, output_name, write_image};
 use faultcam::source::SourceError;
 use faultcam::source::files::{self, Item, Shape};
@@ -58,6 +62,14 @@ pub struct Args {
     /// JPEG quality for --format jpg (1..=100).
     #[arg(long, default_value_t = 95, value_parser = clap::value_parser!(u8).range(1..=100))]
     pub quality: u8,
+    /// Write per-pixel fault masks to OUT/masks/: STEM.labels.png, a 16-bit PNG where bit k marks
+    /// the pixels the k-th applied effect changed (the frame record's `effects[k]`).
+    #[arg(long)]
+    pub masks: bool,
+    /// With the masks, write per-effect signed changes as 32-bit float TIFF
+    /// (OUT/masks/STEM.delta-KK-EFFECT.tiff, in DN); implies --masks.
+    #[arg(long)]
+    pub mask_deltas: bool,
 }
 
 /// Per-slot work of one batch.
@@ -72,6 +84,8 @@ struct Slot {
     written: Option<Result<PathBuf, String>>,
     report: FrameReport,
     chain_error: Option<String>,
+    /// Masks written for this frame (with --masks).
+    masks: Option<Result<MaskRecord, String>>,
 }
 
 impl Slot {
@@ -93,6 +107,7 @@ impl Slot {
             written: None,
             report: FrameReport::default(),
             chain_error: None,
+            masks: None,
         }
     }
 }
@@ -154,7 +169,12 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         "files": items.len(),
         "reference": reference.map(|s| s.to_string()),
         "effects": chain.entries().iter().map(|e| e.name()).collect::<Vec<_>>(),
+        "masks": (args.masks || args.mask_deltas).then(|| args.out.join("masks").display().to_string()),
     }))?;
+
+    let mask_dir = args.out.join("masks");
+    // allocation: once per run (buffers sized on the first frame)
+    let mut recorder = (args.masks || args.mask_deltas).then(|| MaskRecorder::new(MaskOptions { deltas: args.mask_deltas }));
 
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().context("cannot start worker threads")?;
     let bar = if std::io::stderr().is_terminal() {
@@ -181,6 +201,7 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
             s.outcome = None;
             s.written = None;
             s.chain_error = None;
+            s.masks = None;
         }
         // 1. Decode in parallel.
         pool.install(|| {
@@ -196,9 +217,19 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
                 }
                 s.frame.seq = s.index as u64;
                 s.frame.pts_ns = 0;
-                match chain.apply(&mut s.frame, &mut s.report) {
+                let result = match recorder.as_mut() {
+                    Some(rec) => chain.apply_recording(&mut s.frame, &mut s.report, rec),
+                    None => chain.apply(&mut s.frame, &mut s.report),
+                };
+                match result {
                     Ok(o) => s.outcome = Some(o),
                     Err(e) => s.chain_error = Some(e.to_string()),
+                }
+                // Masks describe this pass of the chain: write them before the next frame's.
+                if let (Some(rec), Some(Outcome::Keep)) = (recorder.as_mut(), s.outcome) {
+                    let seq = s.frame.seq;
+                    let stem = mask_stem(items.get(seq as usize).map(|i| i.name.as_str()), seq);
+                    s.masks = Some(rec.write(&mask_dir, &stem).map_err(|e| e.to_string()));
                 }
             }
         });
@@ -231,6 +262,9 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
             rec.input = Some(&item.name);
             let out_text;
             let err_text;
+            if let Some(Ok(m)) = &s.masks {
+                rec.masks = Some(m);
+            }
             match (&s.chain_error, &s.written) {
                 (Some(e), _) => {
                     rec.status = FrameStatus::Failed;
@@ -239,6 +273,10 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
                 (None, Some(Ok(p))) => {
                     out_text = p.display().to_string();
                     rec.output = Some(&out_text);
+                    if let Some(Err(e)) = &s.masks {
+                        rec.status = FrameStatus::Failed;
+                        rec.error = Some(e);
+                    }
                 }
                 (None, Some(Err(e))) => {
                     rec.status = FrameStatus::Failed;

@@ -3,6 +3,7 @@
 use super::{Effect, EffectCtx, FaultError, Outcome, Params, Stage, create};
 use crate::config::FaultConfig;
 use crate::frame::Frame;
+use crate::masks::{MAX_MASK_EFFECTS, MaskRecorder};
 
 /// One configured effect.
 pub struct ChainEntry {
@@ -116,25 +117,81 @@ impl Chain {
     /// Apply all enabled effects to `frame` in physical order. Stops at the first effect that
     /// drops the frame. `report` is cleared and filled.
     pub fn apply(&mut self, frame: &mut Frame, report: &mut FrameReport) -> Result<Outcome, FaultError> {
+        self.apply_observed(frame, report, &mut NoObserver)
+    }
+
+    /// [`Chain::apply`], recording per-pixel fault masks into `rec` (see [`crate::masks`]): bit k
+    /// of a pixel's label is set when the k-th applied effect (`report.applied[k]`) changed it.
+    /// The output bytes are the same as without recording.
+    pub fn apply_recording(
+        &mut self,
+        frame: &mut Frame,
+        report: &mut FrameReport,
+        rec: &mut MaskRecorder,
+    ) -> Result<Outcome, FaultError> {
+        let n = self.entries.iter().filter(|e| e.enabled).count();
+        if n > MAX_MASK_EFFECTS {
+            return Err(FaultError::Failed {
+                effect: "masks",
+                reason: format!(
+                    "the chain has {n} enabled effects; masks record at most {MAX_MASK_EFFECTS} (bits of the label)"
+                ),
+            });
+        }
+        rec.begin(frame);
+        self.apply_observed(frame, report, rec)
+    }
+
+    /// [`Chain::apply`] with an observer called around every applied effect (masks, per-effect
+    /// timing). Observers see the frame but cannot change it.
+    pub fn apply_observed(
+        &mut self,
+        frame: &mut Frame,
+        report: &mut FrameReport,
+        obs: &mut dyn ChainObserver,
+    ) -> Result<Outcome, FaultError> {
         report.clear();
         for e in self.entries.iter_mut().filter(|e| e.enabled) {
             let mut ctx = EffectCtx::new(self.seed, frame.seq, e.index);
+            let k = report.applied.len();
+            let name = e.effect.info().name;
             report.applied.push(AppliedEffect {
-                name: e.effect.info().name,
+                name,
                 stage: e.effect.info().stage,
                 index: e.index,
                 seed: ctx.rng.seed(),
                 params: e.params,
             });
+            obs.before_effect(k, name, frame);
             let out = e.effect.apply(frame, &e.params, &mut ctx)?;
+            obs.after_effect(k, name, frame, out);
             report.delay_ns += ctx.delay_ns;
             if out == Outcome::Drop {
-                report.dropped_by = Some(e.effect.info().name);
+                report.dropped_by = Some(name);
                 return Ok(Outcome::Drop);
             }
         }
         Ok(Outcome::Keep)
     }
+}
+
+/// Hooks around each effect of [`Chain::apply_observed`]. `k` is the effect's position among the
+/// effects applied to this frame (its index in `FrameReport::applied`).
+pub trait ChainObserver {
+    /// Just before effect `k` runs on `frame`.
+    fn before_effect(&mut self, k: usize, name: &'static str, frame: &Frame);
+    /// Just after effect `k` ran; `frame` is its output (`outcome` = Drop: the chain stops).
+    fn after_effect(&mut self, k: usize, name: &'static str, frame: &Frame, outcome: Outcome);
+}
+
+/// Observer that does nothing (plain [`Chain::apply`]).
+struct NoObserver;
+
+impl ChainObserver for NoObserver {
+    #[inline(always)]
+    fn before_effect(&mut self, _: usize, _: &'static str, _: &Frame) {}
+    #[inline(always)]
+    fn after_effect(&mut self, _: usize, _: &'static str, _: &Frame, _: Outcome) {}
 }
 
 #[cfg(test)]

@@ -2,6 +2,7 @@
 //! relative to green by sub-pixel amounts (lateral colour of the optics, or a misaligned
 //! three-chip / filter-wheel camera).
 
+use super::kit::{bands, multiversion};
 use super::util::ROWS_PER_TASK;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, PixelFormat};
@@ -37,6 +38,8 @@ pub fn create() -> Box<dyn Effect> {
 pub struct ChannelShift {
     // allocation: once per stream (two w x h planes)
     planes: Vec<u8>,
+    // allocation: once per frame size: one shifted row per band
+    rows: Vec<u8>,
 }
 
 /// Integer part and 8-bit fractional weight of a source offset `-d`:
@@ -80,30 +83,65 @@ impl Effect for ChannelShift {
         let (pr, pb) = self.planes.split_at_mut(w * h);
         data[..used].par_chunks(stride).zip(pr.par_chunks_mut(w).zip(pb.par_chunks_mut(w))).for_each(
             |(row, (r, b))| {
-                for ((px, r), b) in row[..row_len].chunks_exact(3).zip(r.iter_mut()).zip(b.iter_mut()) {
-                    *r = px[0];
-                    *b = px[2];
-                }
+                split_rb(&row[..row_len], r, b, 0u8);
             },
         );
         let planes = &self.planes;
         let active = &active;
-        data[..used].par_chunks_mut(stride * ROWS_PER_TASK).enumerate().for_each(|(band, chunk)| {
-            for (k, row) in chunk.chunks_mut(stride).enumerate() {
-                let y = band * ROWS_PER_TASK + k;
-                for &(c, tx, ty) in active.iter().flatten() {
-                    let plane = &planes[if c == 0 { 0 } else { w * h }..][..w * h];
-                    shift_row(&mut row[..row_len], c, plane, w, h, y, tx, ty);
+        self.rows.resize(w * bands(h), 0);
+        data[..used].par_chunks_mut(stride * ROWS_PER_TASK).zip(self.rows.par_chunks_mut(w)).enumerate().for_each(
+            |(band, (chunk, buf))| {
+                for (k, row) in chunk.chunks_mut(stride).enumerate() {
+                    let y = band * ROWS_PER_TASK + k;
+                    for &(c, tx, ty) in active.iter().flatten() {
+                        let plane = &planes[if c == 0 { 0 } else { w * h }..][..w * h];
+                        shift_row(buf, plane, w, h, y, tx, ty);
+                        put_channel(&mut row[..row_len], buf, c, 0u8);
+                    }
                 }
-            }
-        });
+            },
+        );
         Ok(Outcome::Keep)
     }
 }
 
-/// Write channel `c` of output row `y` from `plane` sampled at (x + tx, y + ty).
-#[allow(clippy::too_many_arguments)]
-fn shift_row(row: &mut [u8], c: usize, plane: &[u8], w: usize, h: usize, y: usize, tx: Tap, ty: Tap) {
+multiversion! {
+    /// De-interleave the red and blue samples of an RGB row.
+    fn split_rb<T: Copy>(rgb: &[u8], r: &mut [u8], b: &mut [u8], _t: T) {
+        for ((px, r), b) in rgb.chunks_exact(3).zip(r.iter_mut()).zip(b.iter_mut()) {
+            *r = px[0];
+            *b = px[2];
+        }
+    }
+}
+
+multiversion! {
+    /// Write `plane` into channel `c` of an RGB row.
+    fn put_channel<T: Copy>(rgb: &mut [u8], plane: &[u8], c: usize, _t: T) {
+        for (px, &v) in rgb.chunks_exact_mut(3).zip(plane) {
+            px[c] = v;
+        }
+    }
+}
+
+multiversion! {
+    /// Bilinear interpolation of the interior: out[x] from a[x], a[x+1], b[x], b[x+1] with
+    /// weights in 1/256 (wx1 = 256 - wx0, wy1 = 256 - wy0), rounded half up.
+    fn bilinear_row<T: Copy>(out: &mut [u8], a: &[u8], b: &[u8], wx0: u32, wy0: u32, _t: T) {
+        let (wx1, wy1) = (256 - wx0, 256 - wy0);
+        let n = out.len();
+        let (a0, a1, b0, b1) = (&a[..n], &a[1..n + 1], &b[..n], &b[1..n + 1]);
+        for ((((o, &p), &q), &r), &s) in out.iter_mut().zip(a0).zip(a1).zip(b0).zip(b1) {
+            let top = wx0 * p as u32 + wx1 * q as u32;
+            let bot = wx0 * r as u32 + wx1 * s as u32;
+            *o = ((wy0 * top + wy1 * bot + 32768) >> 16) as u8;
+        }
+    }
+}
+
+/// Output row `y` of a plane shifted by (tx, ty), sampled at (x + tx, y + ty), into `out`
+/// (`w` samples).
+fn shift_row(out: &mut [u8], plane: &[u8], w: usize, h: usize, y: usize, tx: Tap, ty: Tap) {
     let clampy = |v: i64| v.clamp(0, h as i64 - 1) as usize;
     let y0 = clampy(y as i64 + ty.i);
     let y1 = clampy(y as i64 + ty.i + 1);
@@ -121,12 +159,11 @@ fn shift_row(row: &mut [u8], c: usize, plane: &[u8], w: usize, h: usize, y: usiz
     let clampx = |v: i64| v.clamp(0, w as i64 - 1) as usize;
     for x in (0..lo).chain(hi..w) {
         let xs = x as i64 + tx.i;
-        row[x * 3 + c] = sample(clampx(xs), clampx(xs + 1));
+        out[x] = sample(clampx(xs), clampx(xs + 1));
     }
-    let off = tx.i as isize;
-    for (x, px) in row.chunks_exact_mut(3).enumerate().take(hi).skip(lo) {
-        let x0 = (x as isize + off) as usize;
-        px[c] = sample(x0, x0 + 1);
+    if hi > lo {
+        let s0 = (lo as i64 + tx.i) as usize;
+        bilinear_row(&mut out[lo..hi], &r0[s0..s0 + (hi - lo) + 1], &r1[s0..s0 + (hi - lo) + 1], wx0, wy0, 0u8);
     }
 }
 

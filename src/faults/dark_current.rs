@@ -9,6 +9,8 @@
 //! inside the bucket with a 53-bit uniform and searching the stored CDF. The sampler is therefore
 //! exact (up to f64 rounding of the CDF), not an approximation.
 
+use super::kit::RngLanes;
+use super::noise::add_table_noise;
 use super::util::ROWS_PER_TASK;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, ImageMut, Sample};
@@ -103,8 +105,8 @@ pub fn arrhenius_factor(t_c: f64, t_ref_c: f64, eg_ev: f64) -> f64 {
     (-eg_ev / BOLTZMANN_EV_PER_K * (1.0 / t - 1.0 / t_ref)).exp()
 }
 
-/// Marker for a bucket that straddles a CDF step.
-const AMBIGUOUS: i32 = i32::MIN;
+/// Marker for a bucket that straddles a CDF step (the noise kernel's "resolve" marker).
+const AMBIGUOUS: i32 = super::noise::RESOLVE;
 const BUCKETS: usize = 1 << 16;
 
 /// Exact Poisson sampler for one mean, producing quantised DN offsets.
@@ -264,24 +266,13 @@ fn add_dark<T: Sample>(
     let used = stride * (h - 1) + row_len;
     let max = T::MAX_U32 as i32;
     img.data[..used].par_chunks_mut(stride * ROWS_PER_TASK).enumerate().for_each(|(band, chunk)| {
-        let mut r = rng.derive(band as u64);
+        // Band k: 16-bit bucket indices from derive(k).derive(0) (see faults::noise), straddling
+        // buckets resolved exactly from derive(k).derive(1).
+        let base = rng.derive(band as u64);
+        let mut lanes = RngLanes::new(&base.derive(0));
+        let mut exact = base.derive(1);
         for row in chunk.chunks_mut(stride) {
-            let mut it = row[..row_len].chunks_exact_mut(4);
-            for c in &mut it {
-                let x = r.next_u64();
-                for (j, v) in c.iter_mut().enumerate() {
-                    let n = table.sample((x >> (16 * j)) as usize, &mut r);
-                    *v = T::from_u32_sat((v.to_u32() as i32).saturating_add(n).clamp(0, max) as u32);
-                }
-            }
-            let rest = it.into_remainder();
-            if !rest.is_empty() {
-                let x = r.next_u64();
-                for (j, v) in rest.iter_mut().enumerate() {
-                    let n = table.sample((x >> (16 * j)) as usize, &mut r);
-                    *v = T::from_u32_sat((v.to_u32() as i32).saturating_add(n).clamp(0, max) as u32);
-                }
-            }
+            add_table_noise(&mut row[..row_len], &mut lanes, &table.quant, 16, &mut |u| table.resolve(u, &mut exact));
         }
     });
     // Hot pixels: extra Poisson(lambda * (m - 1)) electrons, drawn serially from their own stream.

@@ -3,10 +3,13 @@
 //! Fast sampler: a 4096-bucket inverse-CDF table whose entries are the *conditional means* of
 //! the standard normal inside each probability bucket (so the table has zero mean and the
 //! variance lost inside the buckets is below 1e-5), with the two extreme buckets (|z| > 3.35,
-//! probability 1/2048) sampled exactly by the inverse CDF. Five 12-bit uniforms come from one
-//! `next_u64`. The noise is pre-quantised: for an integer input v, `round_half_up(v + n)` equals
+//! probability 1/2048) sampled exactly by the inverse CDF. Each sample takes a 16-bit uniform from
+//! the band's [`RngLanes`] and uses its low 12 bits (see [`super::noise`], which also has the
+//! AVX2 path). The noise is pre-quantised: for an integer input v, `round_half_up(v + n)` equals
 //! `v + floor(n + 0.5)`, so the table holds integer DN offsets.
 
+use super::kit::RngLanes;
+use super::noise::{RESOLVE, add_table_noise};
 use super::util::ROWS_PER_TASK;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, Sample};
@@ -226,6 +229,9 @@ impl Effect for GaussianNoise {
         if self.key != Some(sigma.to_bits()) {
             self.quant.clear();
             self.quant.extend(normal.mean.iter().map(|m| (sigma * m + 0.5).floor() as i32));
+            // The two extreme buckets are drawn exactly (tail_q).
+            self.quant[0] = RESOLVE;
+            self.quant[TABLE_SIZE - 1] = RESOLVE;
             self.key = Some(sigma.to_bits());
         }
         let table = Table { normal, quant: &self.quant, sigma };
@@ -245,38 +251,15 @@ fn add_noise<T: Sample>(img: &mut crate::frame::ImageMut<'_, T>, t: &Table<'_>, 
     let (stride, row_len, h) = (img.stride, img.row_len(), img.height);
     let used = stride * (h - 1) + row_len;
     img.data[..used].par_chunks_mut(stride * ROWS_PER_TASK).enumerate().for_each(|(band, chunk)| {
-        let mut r = rng.derive(band as u64);
+        // Band k: table indices from derive(k).derive(0), exact tails from derive(k).derive(1).
+        let base = rng.derive(band as u64);
+        let mut lanes = RngLanes::new(&base.derive(0));
+        let mut exact = base.derive(1);
         for row in chunk.chunks_mut(stride) {
-            noise_row(&mut row[..row_len], t, &mut r);
+            let row = &mut row[..row_len];
+            add_table_noise(row, &mut lanes, t.quant, TABLE_BITS, &mut |idx| tail_q(t, idx, &mut exact));
         }
     });
-}
-
-#[inline]
-fn noise_row<T: Sample>(row: &mut [T], t: &Table<'_>, rng: &mut Rng) {
-    let max = T::MAX_U32 as i32;
-    let q: &[i32; TABLE_SIZE] = match t.quant.try_into() {
-        Ok(q) => q,
-        Err(_) => return,
-    };
-    let mut chunks = row.chunks_exact_mut(5);
-    for c in &mut chunks {
-        let x = rng.next_u64();
-        for (j, v) in c.iter_mut().enumerate() {
-            let idx = ((x >> (TABLE_BITS as usize * j)) as usize) & (TABLE_SIZE - 1);
-            let n = if idx == 0 || idx == TABLE_SIZE - 1 { tail_q(t, idx, rng) } else { q[idx] };
-            *v = T::from_u32_sat((v.to_u32() as i32 + n).clamp(0, max) as u32);
-        }
-    }
-    let rest = chunks.into_remainder();
-    if !rest.is_empty() {
-        let x = rng.next_u64();
-        for (j, v) in rest.iter_mut().enumerate() {
-            let idx = ((x >> (TABLE_BITS as usize * j)) as usize) & (TABLE_SIZE - 1);
-            let n = if idx == 0 || idx == TABLE_SIZE - 1 { tail_q(t, idx, rng) } else { q[idx] };
-            *v = T::from_u32_sat((v.to_u32() as i32 + n).clamp(0, max) as u32);
-        }
-    }
 }
 
 #[cold]

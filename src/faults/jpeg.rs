@@ -184,22 +184,39 @@ fn round_ne(x: f32) -> f32 {
 type IBlock = [[i32; 8]; 8];
 type IRow = [i32; 8];
 
-#[inline(always)]
-fn iadd(a: IRow, b: IRow) -> IRow {
-    std::array::from_fn(|i| a[i] + b[i])
+/// Eight i32 lanes (one block row): the integer DCT is written once over this trait and runs
+/// either on plain arrays (the scalar reference) or on AVX2 registers (same integer operations,
+/// so the same bits).
+trait Lanes: Copy {
+    fn add(self, b: Self) -> Self;
+    fn sub(self, b: Self) -> Self;
+    fn mul(self, k: i32) -> Self;
+    fn shl(self, n: u32) -> Self;
+    /// DESCALE(x, n): add one half, arithmetic shift right.
+    fn descale(self, n: u32) -> Self;
 }
-#[inline(always)]
-fn isub(a: IRow, b: IRow) -> IRow {
-    std::array::from_fn(|i| a[i] - b[i])
-}
-#[inline(always)]
-fn imul(a: IRow, k: i32) -> IRow {
-    a.map(|v| v * k)
-}
-/// DESCALE(x, n): add one half, arithmetic shift right.
-#[inline(always)]
-fn descale(a: IRow, n: u32) -> IRow {
-    a.map(|v| (v + (1 << (n - 1))) >> n)
+
+impl Lanes for IRow {
+    #[inline(always)]
+    fn add(self, b: Self) -> Self {
+        std::array::from_fn(|i| self[i] + b[i])
+    }
+    #[inline(always)]
+    fn sub(self, b: Self) -> Self {
+        std::array::from_fn(|i| self[i] - b[i])
+    }
+    #[inline(always)]
+    fn mul(self, k: i32) -> Self {
+        self.map(|v| v * k)
+    }
+    #[inline(always)]
+    fn shl(self, n: u32) -> Self {
+        self.map(|v| v << n)
+    }
+    #[inline(always)]
+    fn descale(self, n: u32) -> Self {
+        self.map(|v| (v + (1 << (n - 1))) >> n)
+    }
 }
 
 // libjpeg jfdctint.c / jidctint.c constants (CONST_BITS = 13).
@@ -221,86 +238,86 @@ const FIX_3_072711026: i32 = 25172;
 /// libjpeg's integer forward DCT (jfdctint, "islow") along the first index; pass 1 keeps
 /// PASS1_BITS of extra precision, pass 2 removes it (output = 8 x true DCT).
 #[inline(always)]
-fn fdct_int_pass(b: &mut IBlock, pass1: bool) {
-    let tmp0 = iadd(b[0], b[7]);
-    let tmp7 = isub(b[0], b[7]);
-    let tmp1 = iadd(b[1], b[6]);
-    let tmp6 = isub(b[1], b[6]);
-    let tmp2 = iadd(b[2], b[5]);
-    let tmp5 = isub(b[2], b[5]);
-    let tmp3 = iadd(b[3], b[4]);
-    let tmp4 = isub(b[3], b[4]);
-    let tmp10 = iadd(tmp0, tmp3);
-    let tmp13 = isub(tmp0, tmp3);
-    let tmp11 = iadd(tmp1, tmp2);
-    let tmp12 = isub(tmp1, tmp2);
+fn fdct_int_pass<L: Lanes>(b: &mut [L; 8], pass1: bool) {
+    let tmp0 = b[0].add(b[7]);
+    let tmp7 = b[0].sub(b[7]);
+    let tmp1 = b[1].add(b[6]);
+    let tmp6 = b[1].sub(b[6]);
+    let tmp2 = b[2].add(b[5]);
+    let tmp5 = b[2].sub(b[5]);
+    let tmp3 = b[3].add(b[4]);
+    let tmp4 = b[3].sub(b[4]);
+    let tmp10 = tmp0.add(tmp3);
+    let tmp13 = tmp0.sub(tmp3);
+    let tmp11 = tmp1.add(tmp2);
+    let tmp12 = tmp1.sub(tmp2);
     if pass1 {
-        b[0] = iadd(tmp10, tmp11).map(|v| v << PASS1_BITS);
-        b[4] = isub(tmp10, tmp11).map(|v| v << PASS1_BITS);
+        b[0] = tmp10.add(tmp11).shl(PASS1_BITS);
+        b[4] = tmp10.sub(tmp11).shl(PASS1_BITS);
     } else {
-        b[0] = descale(iadd(tmp10, tmp11), PASS1_BITS);
-        b[4] = descale(isub(tmp10, tmp11), PASS1_BITS);
+        b[0] = tmp10.add(tmp11).descale(PASS1_BITS);
+        b[4] = tmp10.sub(tmp11).descale(PASS1_BITS);
     }
     let n = if pass1 { CONST_BITS - PASS1_BITS } else { CONST_BITS + PASS1_BITS };
-    let z1 = imul(iadd(tmp12, tmp13), FIX_0_541196100);
-    b[2] = descale(iadd(z1, imul(tmp13, FIX_0_765366865)), n);
-    b[6] = descale(iadd(z1, imul(tmp12, -FIX_1_847759065)), n);
+    let z1 = tmp12.add(tmp13).mul(FIX_0_541196100);
+    b[2] = z1.add(tmp13.mul(FIX_0_765366865)).descale(n);
+    b[6] = z1.add(tmp12.mul(-FIX_1_847759065)).descale(n);
     // Odd part.
-    let z1 = iadd(tmp4, tmp7);
-    let z2 = iadd(tmp5, tmp6);
-    let z3 = iadd(tmp4, tmp6);
-    let z4 = iadd(tmp5, tmp7);
-    let z5 = imul(iadd(z3, z4), FIX_1_175875602);
-    let tmp4 = imul(tmp4, FIX_0_298631336);
-    let tmp5 = imul(tmp5, FIX_2_053119869);
-    let tmp6 = imul(tmp6, FIX_3_072711026);
-    let tmp7 = imul(tmp7, FIX_1_501321110);
-    let z1 = imul(z1, -FIX_0_899976223);
-    let z2 = imul(z2, -FIX_2_562915447);
-    let z3 = iadd(imul(z3, -FIX_1_961570560), z5);
-    let z4 = iadd(imul(z4, -FIX_0_390180644), z5);
-    b[7] = descale(iadd(iadd(tmp4, z1), z3), n);
-    b[5] = descale(iadd(iadd(tmp5, z2), z4), n);
-    b[3] = descale(iadd(iadd(tmp6, z2), z3), n);
-    b[1] = descale(iadd(iadd(tmp7, z1), z4), n);
+    let z1 = tmp4.add(tmp7);
+    let z2 = tmp5.add(tmp6);
+    let z3 = tmp4.add(tmp6);
+    let z4 = tmp5.add(tmp7);
+    let z5 = z3.add(z4).mul(FIX_1_175875602);
+    let tmp4 = tmp4.mul(FIX_0_298631336);
+    let tmp5 = tmp5.mul(FIX_2_053119869);
+    let tmp6 = tmp6.mul(FIX_3_072711026);
+    let tmp7 = tmp7.mul(FIX_1_501321110);
+    let z1 = z1.mul(-FIX_0_899976223);
+    let z2 = z2.mul(-FIX_2_562915447);
+    let z3 = z3.mul(-FIX_1_961570560).add(z5);
+    let z4 = z4.mul(-FIX_0_390180644).add(z5);
+    b[7] = tmp4.add(z1).add(z3).descale(n);
+    b[5] = tmp5.add(z2).add(z4).descale(n);
+    b[3] = tmp6.add(z2).add(z3).descale(n);
+    b[1] = tmp7.add(z1).add(z4).descale(n);
 }
 
 /// libjpeg's integer inverse DCT (jidctint) along the first index; `n` is the final descale
 /// (CONST_BITS - PASS1_BITS after pass 1, CONST_BITS + PASS1_BITS + 3 after pass 2).
 #[inline(always)]
-fn idct_int_pass(b: &mut IBlock, n: u32) {
-    let z1 = imul(iadd(b[2], b[6]), FIX_0_541196100);
-    let tmp2 = iadd(z1, imul(b[6], -FIX_1_847759065));
-    let tmp3 = iadd(z1, imul(b[2], FIX_0_765366865));
-    let tmp0 = iadd(b[0], b[4]).map(|v| v << CONST_BITS);
-    let tmp1 = isub(b[0], b[4]).map(|v| v << CONST_BITS);
-    let tmp10 = iadd(tmp0, tmp3);
-    let tmp13 = isub(tmp0, tmp3);
-    let tmp11 = iadd(tmp1, tmp2);
-    let tmp12 = isub(tmp1, tmp2);
+fn idct_int_pass<L: Lanes>(b: &mut [L; 8], n: u32) {
+    let z1 = b[2].add(b[6]).mul(FIX_0_541196100);
+    let tmp2 = z1.add(b[6].mul(-FIX_1_847759065));
+    let tmp3 = z1.add(b[2].mul(FIX_0_765366865));
+    let tmp0 = b[0].add(b[4]).shl(CONST_BITS);
+    let tmp1 = b[0].sub(b[4]).shl(CONST_BITS);
+    let tmp10 = tmp0.add(tmp3);
+    let tmp13 = tmp0.sub(tmp3);
+    let tmp11 = tmp1.add(tmp2);
+    let tmp12 = tmp1.sub(tmp2);
     // Odd part.
     let (t0, t1, t2, t3) = (b[7], b[5], b[3], b[1]);
-    let z1 = iadd(t0, t3);
-    let z2 = iadd(t1, t2);
-    let z3 = iadd(t0, t2);
-    let z4 = iadd(t1, t3);
-    let z5 = imul(iadd(z3, z4), FIX_1_175875602);
-    let z1 = imul(z1, -FIX_0_899976223);
-    let z2 = imul(z2, -FIX_2_562915447);
-    let z3 = iadd(imul(z3, -FIX_1_961570560), z5);
-    let z4 = iadd(imul(z4, -FIX_0_390180644), z5);
-    let t0 = iadd(imul(t0, FIX_0_298631336), iadd(z1, z3));
-    let t1 = iadd(imul(t1, FIX_2_053119869), iadd(z2, z4));
-    let t2 = iadd(imul(t2, FIX_3_072711026), iadd(z2, z3));
-    let t3 = iadd(imul(t3, FIX_1_501321110), iadd(z1, z4));
-    b[0] = descale(iadd(tmp10, t3), n);
-    b[7] = descale(isub(tmp10, t3), n);
-    b[1] = descale(iadd(tmp11, t2), n);
-    b[6] = descale(isub(tmp11, t2), n);
-    b[2] = descale(iadd(tmp12, t1), n);
-    b[5] = descale(isub(tmp12, t1), n);
-    b[3] = descale(iadd(tmp13, t0), n);
-    b[4] = descale(isub(tmp13, t0), n);
+    let z1 = t0.add(t3);
+    let z2 = t1.add(t2);
+    let z3 = t0.add(t2);
+    let z4 = t1.add(t3);
+    let z5 = z3.add(z4).mul(FIX_1_175875602);
+    let z1 = z1.mul(-FIX_0_899976223);
+    let z2 = z2.mul(-FIX_2_562915447);
+    let z3 = z3.mul(-FIX_1_961570560).add(z5);
+    let z4 = z4.mul(-FIX_0_390180644).add(z5);
+    let t0 = t0.mul(FIX_0_298631336).add(z1.add(z3));
+    let t1 = t1.mul(FIX_2_053119869).add(z2.add(z4));
+    let t2 = t2.mul(FIX_3_072711026).add(z2.add(z3));
+    let t3 = t3.mul(FIX_1_501321110).add(z1.add(z4));
+    b[0] = tmp10.add(t3).descale(n);
+    b[7] = tmp10.sub(t3).descale(n);
+    b[1] = tmp11.add(t2).descale(n);
+    b[6] = tmp11.sub(t2).descale(n);
+    b[2] = tmp12.add(t1).descale(n);
+    b[5] = tmp12.sub(t1).descale(n);
+    b[3] = tmp13.add(t0).descale(n);
+    b[4] = tmp13.sub(t0).descale(n);
 }
 
 #[inline(always)]
@@ -320,7 +337,8 @@ fn itranspose(b: &mut IBlock) {
 pub struct IQuant {
     q: IBlock,
     half: IBlock,
-    recip: [[u64; 8]; 8],
+    /// ceil(2^32 / (8 Q)) < 2^29.
+    recip: [[u32; 8]; 8],
 }
 
 impl IQuant {
@@ -332,7 +350,7 @@ impl IQuant {
                 out.q[v][u] = table[v * 8 + u] as i32;
                 out.half[v][u] = (qv / 2) as i32;
                 // floor(n / qv) = (n * ceil(2^32 / qv)) >> 32 exactly for n < 2^32 / qv (n < 2^15 here).
-                out.recip[v][u] = (1u64 << 32).div_ceil(qv);
+                out.recip[v][u] = (1u64 << 32).div_ceil(qv) as u32;
             }
         }
         out
@@ -347,13 +365,14 @@ pub fn roundtrip_block_int(b: &mut IBlock, q: &IQuant) {
     fdct_int_pass(b, true);
     itranspose(b);
     fdct_int_pass(b, false);
+    // Quantise and dequantise: a = |c| + Q*8/2, level = floor(a / (Q*8)) by the exact reciprocal.
     for v in 0..8 {
-        for u in 0..8 {
-            let c = b[v][u];
-            let a = (c.unsigned_abs() as u64 + q.half[v][u] as u64) * q.recip[v][u];
-            let level = (a >> 32) as i32;
-            b[v][u] = if c < 0 { -level } else { level } * q.q[v][u];
-        }
+        let (c, half, recip, qq) = (b[v], q.half[v], q.recip[v], q.q[v]);
+        b[v] = std::array::from_fn(|u| {
+            let a = c[u].unsigned_abs() + half[u] as u32;
+            let level = ((a as u64 * recip[u] as u64) >> 32) as i32 * qq[u];
+            if c[u] < 0 { -level } else { level }
+        });
     }
     idct_int_pass(b, CONST_BITS - PASS1_BITS);
     itranspose(b);
@@ -407,11 +426,318 @@ pub fn roundtrip_block(b: &mut Block, q: &Quant) {
     idct_pass(b);
 }
 
-/// Block round trip, compiled for AVX2 (same integer arithmetic, so bit-identical output).
+/// AVX2 implementation of [`roundtrip_block_int`]: the same integer operations on eight lanes
+/// at a time (checked against the scalar reference in the tests).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn roundtrip_block_int_avx2(b: &mut IBlock, q: &IQuant) {
-    roundtrip_block_int(b, q)
+mod avx2 {
+    use super::{CONST_BITS, IBlock, IQuant, Lanes, PASS1_BITS, fdct_int_pass, idct_int_pass};
+    use std::arch::x86_64::*;
+
+    #[derive(Clone, Copy)]
+    pub struct V(__m256i);
+
+    // SAFETY (all methods): only called from `roundtrip`, which runs with AVX2 enabled (its
+    // caller checked the CPU); `#[inline(always)]` puts the intrinsics in that context.
+    impl Lanes for V {
+        #[inline(always)]
+        fn add(self, b: Self) -> Self {
+            V(unsafe { _mm256_add_epi32(self.0, b.0) })
+        }
+        #[inline(always)]
+        fn sub(self, b: Self) -> Self {
+            V(unsafe { _mm256_sub_epi32(self.0, b.0) })
+        }
+        #[inline(always)]
+        fn mul(self, k: i32) -> Self {
+            V(unsafe { _mm256_mullo_epi32(self.0, _mm256_set1_epi32(k)) })
+        }
+        #[inline(always)]
+        fn shl(self, n: u32) -> Self {
+            V(unsafe { _mm256_sll_epi32(self.0, _mm_cvtsi32_si128(n as i32)) })
+        }
+        #[inline(always)]
+        fn descale(self, n: u32) -> Self {
+            unsafe {
+                let r = _mm256_add_epi32(self.0, _mm256_set1_epi32(1 << (n - 1)));
+                V(_mm256_sra_epi32(r, _mm_cvtsi32_si128(n as i32)))
+            }
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn transpose(r: &mut [V; 8]) {
+        unsafe {
+            let t0 = _mm256_unpacklo_epi32(r[0].0, r[1].0);
+            let t1 = _mm256_unpackhi_epi32(r[0].0, r[1].0);
+            let t2 = _mm256_unpacklo_epi32(r[2].0, r[3].0);
+            let t3 = _mm256_unpackhi_epi32(r[2].0, r[3].0);
+            let t4 = _mm256_unpacklo_epi32(r[4].0, r[5].0);
+            let t5 = _mm256_unpackhi_epi32(r[4].0, r[5].0);
+            let t6 = _mm256_unpacklo_epi32(r[6].0, r[7].0);
+            let t7 = _mm256_unpackhi_epi32(r[6].0, r[7].0);
+            let u0 = _mm256_unpacklo_epi64(t0, t2);
+            let u1 = _mm256_unpackhi_epi64(t0, t2);
+            let u2 = _mm256_unpacklo_epi64(t1, t3);
+            let u3 = _mm256_unpackhi_epi64(t1, t3);
+            let u4 = _mm256_unpacklo_epi64(t4, t6);
+            let u5 = _mm256_unpackhi_epi64(t4, t6);
+            let u6 = _mm256_unpacklo_epi64(t5, t7);
+            let u7 = _mm256_unpackhi_epi64(t5, t7);
+            r[0] = V(_mm256_permute2x128_si256(u0, u4, 0x20));
+            r[1] = V(_mm256_permute2x128_si256(u1, u5, 0x20));
+            r[2] = V(_mm256_permute2x128_si256(u2, u6, 0x20));
+            r[3] = V(_mm256_permute2x128_si256(u3, u7, 0x20));
+            r[4] = V(_mm256_permute2x128_si256(u0, u4, 0x31));
+            r[5] = V(_mm256_permute2x128_si256(u1, u5, 0x31));
+            r[6] = V(_mm256_permute2x128_si256(u2, u6, 0x31));
+            r[7] = V(_mm256_permute2x128_si256(u3, u7, 0x31));
+        }
+    }
+
+    /// Upper 32 bits of the unsigned 32x32-bit products, lane by lane.
+    #[inline(always)]
+    unsafe fn mulhi_epu32(a: __m256i, b: __m256i) -> __m256i {
+        unsafe {
+            let even = _mm256_srli_epi64(_mm256_mul_epu32(a, b), 32);
+            let odd = _mm256_mul_epu32(_mm256_srli_epi64(a, 32), _mm256_srli_epi64(b, 32));
+            _mm256_blend_epi32(even, odd, 0b1010_1010)
+        }
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn roundtrip(b: &mut IBlock, q: &IQuant) {
+        unsafe {
+            let mut r: [V; 8] = std::array::from_fn(|i| V(_mm256_loadu_si256(b[i].as_ptr() as *const __m256i)));
+            transpose(&mut r);
+            fdct_int_pass(&mut r, true);
+            transpose(&mut r);
+            fdct_int_pass(&mut r, false);
+            for (v, row) in r.iter_mut().enumerate() {
+                let c = row.0;
+                let half = _mm256_loadu_si256(q.half[v].as_ptr() as *const __m256i);
+                let recip = _mm256_loadu_si256(q.recip[v].as_ptr() as *const __m256i);
+                let qq = _mm256_loadu_si256(q.q[v].as_ptr() as *const __m256i);
+                let a = _mm256_add_epi32(_mm256_abs_epi32(c), half);
+                let level = _mm256_mullo_epi32(mulhi_epu32(a, recip), qq);
+                // sign(c) * level (level is 0 where c is 0).
+                row.0 = _mm256_sign_epi32(level, c);
+            }
+            idct_int_pass(&mut r, CONST_BITS - PASS1_BITS);
+            transpose(&mut r);
+            idct_int_pass(&mut r, CONST_BITS + PASS1_BITS + 3);
+            transpose(&mut r);
+            let (lo, hi, off) = (_mm256_setzero_si256(), _mm256_set1_epi32(255), _mm256_set1_epi32(128));
+            for (i, row) in r.iter().enumerate() {
+                let v = _mm256_min_epi32(_mm256_max_epi32(_mm256_add_epi32(row.0, off), lo), hi);
+                _mm256_storeu_si256(b[i].as_mut_ptr() as *mut __m256i, v);
+            }
+        }
+    }
+
+    /// `FIX(c) * v` products and rounding of libjpeg's colour conversion, eight lanes at a time.
+    #[inline(always)]
+    unsafe fn lin3(r: __m256i, g: __m256i, b: __m256i, kr: i32, kg: i32, kb: i32, add: i32) -> __m256i {
+        unsafe {
+            let s = _mm256_add_epi32(
+                _mm256_mullo_epi32(r, _mm256_set1_epi32(kr)),
+                _mm256_add_epi32(_mm256_mullo_epi32(g, _mm256_set1_epi32(kg)), _mm256_mullo_epi32(b, _mm256_set1_epi32(kb))),
+            );
+            _mm256_srai_epi32(_mm256_add_epi32(s, _mm256_set1_epi32(add)), 16)
+        }
+    }
+
+    /// Eight i32 lanes (0..=255) to eight bytes.
+    #[inline(always)]
+    unsafe fn pack8(v: __m256i) -> u64 {
+        unsafe {
+            let p16 = _mm256_packus_epi32(v, v); // per 128-bit lane: a0..a3 a0..a3
+            let p8 = _mm256_packus_epi16(p16, p16); // per lane: a0..a3 x4
+            let lo = _mm256_extract_epi32(p8, 0) as u32 as u64;
+            let hi = _mm256_extract_epi32(p8, 4) as u32 as u64;
+            lo | hi << 32
+        }
+    }
+
+    /// AVX2 version of `rgb_to_ycc_row_scalar` (same integers).
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn rgb_to_ycc_row(src: &[u8], y: &mut [u8], cb: &mut [u8], cr: &mut [u8]) {
+        use super::{CBCR_OFFSET, ONE_HALF, fix};
+        let n = y.len().min(cb.len()).min(cr.len()).min(src.len() / 3);
+        let mut i = 0;
+        // Each lane gathers 4 bytes (R, G, B and the next pixel's R): stop one pixel early.
+        let idx = _mm256_setr_epi32(0, 3, 6, 9, 12, 15, 18, 21);
+        let m = _mm256_set1_epi32(0xff);
+        while i + 9 <= n {
+            // SAFETY: bytes 3i .. 3i + 25 are inside `src` (i + 9 <= n pixels).
+            let px = unsafe { _mm256_i32gather_epi32::<1>(src.as_ptr().add(3 * i) as *const i32, idx) };
+            let r = _mm256_and_si256(px, m);
+            let g = _mm256_and_si256(_mm256_srli_epi32(px, 8), m);
+            let b = _mm256_and_si256(_mm256_srli_epi32(px, 16), m);
+            unsafe {
+                let yv = lin3(r, g, b, fix(0.299), fix(0.587), fix(0.114), ONE_HALF);
+                let cbv = lin3(r, g, b, -fix(0.168_74), -fix(0.331_26), fix(0.5), CBCR_OFFSET + ONE_HALF - 1);
+                let crv = lin3(r, g, b, fix(0.5), -fix(0.418_69), -fix(0.081_31), CBCR_OFFSET + ONE_HALF - 1);
+                y[i..i + 8].copy_from_slice(&pack8(yv).to_le_bytes());
+                cb[i..i + 8].copy_from_slice(&pack8(cbv).to_le_bytes());
+                cr[i..i + 8].copy_from_slice(&pack8(crv).to_le_bytes());
+            }
+            i += 8;
+        }
+        super::rgb_to_ycc_row_scalar(&src[3 * i..3 * n], &mut y[i..n], &mut cb[i..n], &mut cr[i..n]);
+    }
+
+    /// AVX2 version of `ycc_to_rgb_row_scalar` (same integers).
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn ycc_to_rgb_row(y: &[u8], cb: &[u8], cr: &[u8], out: &mut [u8]) {
+        use super::{ONE_HALF, fix};
+        let n = y.len().min(cb.len()).min(cr.len()).min(out.len() / 3);
+        let mut i = 0;
+        // Byte shuffles that interleave [r0 g0 r1 g1 .. r7 g7] and [b0 .. b7] into 24 bytes.
+        let rg0 = _mm_setr_epi8(0, 1, -1, 2, 3, -1, 4, 5, -1, 6, 7, -1, 8, 9, -1, 10);
+        let b0 = _mm_setr_epi8(-1, -1, 0, -1, -1, 1, -1, -1, 2, -1, -1, 3, -1, -1, 4, -1);
+        let rg1 = _mm_setr_epi8(11, -1, 12, 13, -1, 14, 15, -1, -1, -1, -1, -1, -1, -1, -1, -1);
+        let b1 = _mm_setr_epi8(-1, 5, -1, -1, 6, -1, -1, 7, -1, -1, -1, -1, -1, -1, -1, -1);
+        let (lo, hi) = (_mm256_setzero_si256(), _mm256_set1_epi32(255));
+        let c128 = _mm256_set1_epi32(128);
+        while i + 8 <= n {
+            let load = |s: &[u8]| -> __m256i {
+                let b: [u8; 8] = s[i..i + 8].try_into().unwrap_or([0; 8]);
+                _mm256_cvtepu8_epi32(_mm_set_epi64x(0, i64::from_le_bytes(b)))
+            };
+            let (yv, cbx, crx) = (load(y), _mm256_sub_epi32(load(cb), c128), _mm256_sub_epi32(load(cr), c128));
+            let half = _mm256_set1_epi32(ONE_HALF);
+            let r = _mm256_add_epi32(
+                yv,
+                _mm256_srai_epi32(_mm256_add_epi32(_mm256_mullo_epi32(crx, _mm256_set1_epi32(fix(1.402))), half), 16),
+            );
+            let gs = _mm256_add_epi32(
+                _mm256_add_epi32(_mm256_mullo_epi32(cbx, _mm256_set1_epi32(-fix(0.344_14))), half),
+                _mm256_mullo_epi32(crx, _mm256_set1_epi32(-fix(0.714_14))),
+            );
+            let g = _mm256_add_epi32(yv, _mm256_srai_epi32(gs, 16));
+            let b = _mm256_add_epi32(
+                yv,
+                _mm256_srai_epi32(_mm256_add_epi32(_mm256_mullo_epi32(cbx, _mm256_set1_epi32(fix(1.772))), half), 16),
+            );
+            let clamp = |v: __m256i| _mm256_min_epi32(_mm256_max_epi32(v, lo), hi);
+            // SAFETY: AVX2 is enabled in this function.
+            let (rb, gb, bb) = unsafe { (pack8(clamp(r)), pack8(clamp(g)), pack8(clamp(b))) };
+            let rg = _mm_unpacklo_epi8(_mm_set_epi64x(0, rb as i64), _mm_set_epi64x(0, gb as i64));
+            let bv = _mm_set_epi64x(0, bb as i64);
+            let o0 = _mm_or_si128(_mm_shuffle_epi8(rg, rg0), _mm_shuffle_epi8(bv, b0));
+            let o1 = _mm_or_si128(_mm_shuffle_epi8(rg, rg1), _mm_shuffle_epi8(bv, b1));
+            let mut bytes = [0u8; 32];
+            // SAFETY: `bytes` holds 32 bytes; unaligned stores.
+            unsafe {
+                _mm_storeu_si128(bytes.as_mut_ptr() as *mut __m128i, o0);
+                _mm_storeu_si128(bytes.as_mut_ptr().add(16) as *mut __m128i, o1);
+            }
+            out[3 * i..3 * i + 24].copy_from_slice(&bytes[..24]);
+            i += 8;
+        }
+        super::ycc_to_rgb_row_scalar(&y[i..n], &cb[i..n], &cr[i..n], &mut out[3 * i..3 * n]);
+    }
+
+    /// AVX2 version of `fancy_row_scalar` (same integers).
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn fancy_row(near: &[u8], far: &[u8], cs: &mut [i32], out: &mut [u8]) {
+        let n = cs.len();
+        let w = out.len();
+        if n < 10 {
+            return super::fancy_row_scalar(near, far, cs, out);
+        }
+        for ((c, &a), &b) in cs.iter_mut().zip(near).zip(far) {
+            *c = 3 * a as i32 + b as i32;
+        }
+        // Interior columns c = 1 .. n-1 in steps of 8 (needs c-1 .. c+8 inside cs).
+        let (e8, o7) = (_mm256_set1_epi32(8), _mm256_set1_epi32(7));
+        let mut c = 1;
+        while c + 9 <= n {
+            // SAFETY: indices c-1 .. c+8 are inside `cs` (c >= 1, c + 9 <= n).
+            let (t, l, r) = unsafe {
+                let p = cs.as_ptr();
+                (
+                    _mm256_loadu_si256(p.add(c) as *const __m256i),
+                    _mm256_loadu_si256(p.add(c - 1) as *const __m256i),
+                    _mm256_loadu_si256(p.add(c + 1) as *const __m256i),
+                )
+            };
+            let t3 = _mm256_add_epi32(_mm256_add_epi32(t, t), t);
+            let even = _mm256_srai_epi32(_mm256_add_epi32(_mm256_add_epi32(t3, l), e8), 4);
+            let odd = _mm256_srai_epi32(_mm256_add_epi32(_mm256_add_epi32(t3, r), o7), 4);
+            // Interleave even/odd: 16 outputs for columns c .. c+8.
+            let a = _mm256_unpacklo_epi32(even, odd); // e0 o0 e1 o1 | e4 o4 e5 o5
+            let b = _mm256_unpackhi_epi32(even, odd); // e2 o2 e3 o3 | e6 o6 e7 o7
+            let first = _mm256_permute2x128_si256(a, b, 0x20); // e0 o0 e1 o1 e2 o2 e3 o3
+            let second = _mm256_permute2x128_si256(a, b, 0x31); // e4 .. o7
+            // SAFETY: AVX2 is enabled in this function.
+            let (p0, p1) = unsafe { (pack8(first), pack8(second)) };
+            out[2 * c..2 * c + 8].copy_from_slice(&p0.to_le_bytes());
+            out[2 * c + 8..2 * c + 16].copy_from_slice(&p1.to_le_bytes());
+            c += 8;
+        }
+        // The rest (both edges and the tail) as the scalar reference does it.
+        let edge = |x: usize| -> u8 {
+            let c = x / 2;
+            let this = cs[c];
+            let v = if x & 1 == 0 {
+                (3 * this + cs[c.saturating_sub(1)] + 8) >> 4
+            } else {
+                (3 * this + cs[(c + 1).min(n - 1)] + 7) >> 4
+            };
+            v as u8
+        };
+        out[0] = edge(0);
+        out[1] = edge(1);
+        for x in 2 * c..w {
+            out[x] = edge(x);
+        }
+    }
+
+    /// Round trip of the 8x8 block of `plane` whose top-left sample is `off` (rows `pitch`
+    /// apart), in place.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn roundtrip_in_plane(plane: &mut [u8], off: usize, pitch: usize, q: &IQuant) {
+        let mut b: IBlock = [[0; 8]; 8];
+        for (dy, row) in b.iter_mut().enumerate() {
+            let src: [u8; 8] = plane[off + dy * pitch..][..8].try_into().unwrap_or([128; 8]);
+            *row = src.map(|v| v as i32 - 128);
+        }
+        // SAFETY: AVX2 is enabled in this function (the caller checked the CPU).
+        unsafe { roundtrip(&mut b, q) };
+        for (dy, row) in b.iter().enumerate() {
+            let dst = &mut plane[off + dy * pitch..][..8];
+            for (d, &v) in dst.iter_mut().zip(row) {
+                *d = v as u8;
+            }
+        }
+    }
+}
+
+/// Scalar reference of [`avx2::roundtrip_in_plane`].
+fn roundtrip_in_plane_scalar(plane: &mut [u8], off: usize, pitch: usize, q: &IQuant) {
+    let mut b: IBlock = [[0; 8]; 8];
+    for (dy, row) in b.iter_mut().enumerate() {
+        for (v, &s) in row.iter_mut().zip(&plane[off + dy * pitch..][..8]) {
+            *v = s as i32 - 128;
+        }
+    }
+    roundtrip_block_int(&mut b, q);
+    for (dy, row) in b.iter().enumerate() {
+        for (d, &v) in plane[off + dy * pitch..][..8].iter_mut().zip(row) {
+            *d = v as u8;
+        }
+    }
+}
+
+/// The fastest implementation of the in-plane block round trip (all give the same bits).
+fn plane_block_fn() -> fn(&mut [u8], usize, usize, &IQuant) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        return |p, o, s, q| unsafe { avx2::roundtrip_in_plane(p, o, s, q) };
+    }
+    roundtrip_in_plane_scalar
 }
 
 /// The fastest implementation of [`roundtrip_block_int`] this CPU runs (all give the same bits).
@@ -419,66 +745,151 @@ fn block_fn() -> fn(&mut IBlock, &IQuant) {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2 (checked just above).
-        return |b, q| unsafe { roundtrip_block_int_avx2(b, q) };
+        return |b, q| unsafe { avx2::roundtrip(b, q) };
     }
     roundtrip_block_int
 }
 
-/// Fixed-point colour conversion tables (libjpeg `jccolor.c` / `jdcolor.c`).
-struct Color {
-    // allocation: once per effect instance (8 x 256 entries)
-    ry: Vec<i32>,
-    gy: Vec<i32>,
-    by: Vec<i32>,
-    rcb: Vec<i32>,
-    gcb: Vec<i32>,
-    bcb: Vec<i32>,
-    gcr: Vec<i32>,
-    bcr: Vec<i32>,
-    cr_r: Vec<i32>,
-    cb_b: Vec<i32>,
-    cr_g: Vec<i32>,
-    cb_g: Vec<i32>,
+/// libjpeg's fixed-point colour conversion (`jccolor.c` / `jdcolor.c`, SCALEBITS = 16). libjpeg
+/// tabulates the products `FIX(c) * i`; computing them directly gives the same integers and lets
+/// the compiler vectorise whole rows.
+const fn fix(x: f64) -> i32 {
+    (x * 65536.0 + 0.5) as i32
+}
+const ONE_HALF: i32 = 1 << 15;
+const CBCR_OFFSET: i32 = 128 << 16;
+
+/// Pixels per step of the row conversions: fixed-size planar blocks the compiler vectorises.
+const CONV: usize = 16;
+
+#[inline(always)]
+fn ycc_of(r: i32, g: i32, b: i32) -> (u8, u8, u8) {
+    let y = (fix(0.299) * r + fix(0.587) * g + fix(0.114) * b + ONE_HALF) >> 16;
+    let cb = (-fix(0.168_74) * r - fix(0.331_26) * g + fix(0.5) * b + CBCR_OFFSET + ONE_HALF - 1) >> 16;
+    let cr = (fix(0.5) * r - fix(0.418_69) * g - fix(0.081_31) * b + CBCR_OFFSET + ONE_HALF - 1) >> 16;
+    (y as u8, cb as u8, cr as u8)
 }
 
-impl Color {
-    fn new() -> Color {
-        const SB: i32 = 16;
-        let fix = |x: f64| (x * (1 << SB) as f64 + 0.5) as i32;
-        let half = 1 << (SB - 1);
-        let off = 128 << SB;
-        let t = |f: &dyn Fn(i32) -> i32| (0..256).map(f).collect::<Vec<i32>>();
-        Color {
-            ry: t(&|i| fix(0.299) * i),
-            gy: t(&|i| fix(0.587) * i),
-            by: t(&|i| fix(0.114) * i + half),
-            rcb: t(&|i| -fix(0.168_74) * i),
-            gcb: t(&|i| -fix(0.331_26) * i),
-            bcb: t(&|i| fix(0.5) * i + off + half - 1),
-            gcr: t(&|i| -fix(0.418_69) * i),
-            bcr: t(&|i| -fix(0.081_31) * i),
-            cr_r: t(&|i| (fix(1.402) * (i - 128) + half) >> SB),
-            cb_b: t(&|i| (fix(1.772) * (i - 128) + half) >> SB),
-            cr_g: t(&|i| -fix(0.714_14) * (i - 128)),
-            cb_g: t(&|i| -fix(0.344_14) * (i - 128) + half),
+#[inline(always)]
+fn rgb_of(y: i32, cb: i32, cr: i32) -> [u8; 3] {
+    let (cbx, crx) = (cb - 128, cr - 128);
+    let r = y + ((fix(1.402) * crx + ONE_HALF) >> 16);
+    let g = y + ((-fix(0.344_14) * cbx + ONE_HALF - fix(0.714_14) * crx) >> 16);
+    let b = y + ((fix(1.772) * cbx + ONE_HALF) >> 16);
+    [r.clamp(0, 255) as u8, g.clamp(0, 255) as u8, b.clamp(0, 255) as u8]
+}
+
+/// One row RGB -> Y, Cb, Cr (full resolution); `src` holds `y.len()` pixels. Scalar reference.
+#[inline(always)]
+fn rgb_to_ycc_row_scalar(src: &[u8], y: &mut [u8], cb: &mut [u8], cr: &mut [u8]) {
+    let n = y.len().min(cb.len()).min(cr.len()).min(src.len() / 3);
+    let mut i = 0;
+    while i + CONV <= n {
+        let (Ok(s), Ok(yo), Ok(cbo), Ok(cro)) = (
+            <&[u8; 3 * CONV]>::try_from(&src[3 * i..3 * (i + CONV)]),
+            <&mut [u8; CONV]>::try_from(&mut y[i..i + CONV]),
+            <&mut [u8; CONV]>::try_from(&mut cb[i..i + CONV]),
+            <&mut [u8; CONV]>::try_from(&mut cr[i..i + CONV]),
+        ) else {
+            break;
+        };
+        let r: [i32; CONV] = std::array::from_fn(|k| s[3 * k] as i32);
+        let g: [i32; CONV] = std::array::from_fn(|k| s[3 * k + 1] as i32);
+        let b: [i32; CONV] = std::array::from_fn(|k| s[3 * k + 2] as i32);
+        for k in 0..CONV {
+            (yo[k], cbo[k], cro[k]) = ycc_of(r[k], g[k], b[k]);
         }
+        i += CONV;
     }
-    #[inline(always)]
-    fn ycc(&self, r: u8, g: u8, b: u8) -> (u8, u8, u8) {
-        let (r, g, b) = (r as usize, g as usize, b as usize);
-        let y = (self.ry[r] + self.gy[g] + self.by[b]) >> 16;
-        let cb = (self.rcb[r] + self.gcb[g] + self.bcb[b]) >> 16;
-        let cr = (self.bcb[r] + self.gcr[g] + self.bcr[b]) >> 16;
-        (y as u8, cb as u8, cr as u8)
+    for k in i..n {
+        (y[k], cb[k], cr[k]) = ycc_of(src[3 * k] as i32, src[3 * k + 1] as i32, src[3 * k + 2] as i32);
     }
-    #[inline(always)]
-    fn rgb(&self, y: u8, cb: u8, cr: u8) -> [u8; 3] {
-        let (y, cb, cr) = (y as i32, cb as usize, cr as usize);
-        let r = y + self.cr_r[cr];
-        let g = y + ((self.cb_g[cb] + self.cr_g[cr]) >> 16);
-        let b = y + self.cb_b[cb];
-        [r.clamp(0, 255) as u8, g.clamp(0, 255) as u8, b.clamp(0, 255) as u8]
+}
+
+/// One row Y, Cb, Cr -> RGB with libjpeg's range limit. Scalar reference.
+#[inline(always)]
+fn ycc_to_rgb_row_scalar(y: &[u8], cb: &[u8], cr: &[u8], out: &mut [u8]) {
+    let n = y.len().min(cb.len()).min(cr.len()).min(out.len() / 3);
+    let mut i = 0;
+    while i + CONV <= n {
+        let (Ok(yi), Ok(cbi), Ok(cri), Ok(o)) = (
+            <&[u8; CONV]>::try_from(&y[i..i + CONV]),
+            <&[u8; CONV]>::try_from(&cb[i..i + CONV]),
+            <&[u8; CONV]>::try_from(&cr[i..i + CONV]),
+            <&mut [u8; 3 * CONV]>::try_from(&mut out[3 * i..3 * (i + CONV)]),
+        ) else {
+            break;
+        };
+        let px: [[u8; 3]; CONV] = std::array::from_fn(|k| rgb_of(yi[k] as i32, cbi[k] as i32, cri[k] as i32));
+        for k in 0..CONV {
+            o[3 * k..3 * k + 3].copy_from_slice(&px[k]);
+        }
+        i += CONV;
     }
+    for k in i..n {
+        out[3 * k..3 * k + 3].copy_from_slice(&rgb_of(y[k] as i32, cb[k] as i32, cr[k] as i32));
+    }
+}
+
+/// libjpeg's h2v2 "fancy" (triangular) upsampling of one output row: `near` is the chroma row
+/// nearest to the output row, `far` the other neighbour; `cs` scratch (column sums), `out` has the
+/// output width (`cs.len() = ceil(out.len() / 2)` real chroma columns).
+#[inline(always)]
+fn fancy_row_scalar(near: &[u8], far: &[u8], cs: &mut [i32], out: &mut [u8]) {
+    let n = cs.len();
+    for ((c, &a), &b) in cs.iter_mut().zip(near).zip(far) {
+        *c = 3 * a as i32 + b as i32;
+    }
+    // Edges: the missing neighbour is the column itself.
+    let edge = |x: usize| -> u8 {
+        let c = x / 2;
+        let this = cs[c];
+        let v = if x & 1 == 0 {
+            (3 * this + cs[c.saturating_sub(1)] + 8) >> 4
+        } else {
+            (3 * this + cs[(c + 1).min(n - 1)] + 7) >> 4
+        };
+        v as u8
+    };
+    let w = out.len();
+    if n < 3 {
+        for x in 0..w {
+            out[x] = edge(x);
+        }
+        return;
+    }
+    out[0] = edge(0);
+    out[1] = edge(1);
+    // Interior columns 1..n-1 (both neighbours exist), two outputs each.
+    for (pair, win) in out[2..2 * (n - 1)].chunks_exact_mut(2).zip(cs.windows(3)) {
+        let t = 3 * win[1];
+        pair[0] = ((t + win[0] + 8) >> 4) as u8;
+        pair[1] = ((t + win[2] + 7) >> 4) as u8;
+    }
+    for x in 2 * (n - 1)..w {
+        out[x] = edge(x);
+    }
+}
+
+/// Row converters of one CPU (AVX2 or the scalar references; the same integers either way).
+#[derive(Clone, Copy)]
+struct RowFns {
+    to_ycc: fn(&[u8], &mut [u8], &mut [u8], &mut [u8]),
+    to_rgb: fn(&[u8], &[u8], &[u8], &mut [u8]),
+    fancy: fn(&[u8], &[u8], &mut [i32], &mut [u8]),
+}
+
+fn row_fns() -> RowFns {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY (all three): the CPU supports AVX2 (checked just above).
+        return RowFns {
+            to_ycc: |s, y, b, r| unsafe { avx2::rgb_to_ycc_row(s, y, b, r) },
+            to_rgb: |y, b, r, o| unsafe { avx2::ycc_to_rgb_row(y, b, r, o) },
+            fancy: |n, f, c, o| unsafe { avx2::fancy_row(n, f, c, o) },
+        };
+    }
+    RowFns { to_ycc: rgb_to_ycc_row_scalar, to_rgb: ycc_to_rgb_row_scalar, fancy: fancy_row_scalar }
 }
 
 /// The effect: tables and padded component planes, kept across frames.
@@ -488,7 +899,10 @@ pub struct Jpeg {
     luma: Option<Quant>,
     iluma: Option<IQuant>,
     ichroma: Option<IQuant>,
-    color: Option<Color>,
+    // allocation: once per frame size: per band, full-resolution chroma of two rows (encode) and
+    // upsampled chroma rows and column sums (decode)
+    rows8: Vec<u8>,
+    rows32: Vec<i32>,
     // allocation: once per stream (component planes padded to whole MCUs)
     y: Vec<u8>,
     cb: Vec<u8>,
@@ -566,11 +980,15 @@ fn gray<T: Sample>(img: &mut ImageMut<'_, T>, q: &Quant, scale: f32) {
 /// row/column, as libjpeg pads to whole blocks.
 fn gray8(data: &mut [u8], w: usize, h: usize, stride: usize, q: &IQuant) {
     let used = stride * (h - 1) + w;
-    let f = block_fn();
+    let (f, fp) = (block_fn(), plane_block_fn());
     data[..used].par_chunks_mut(stride * ROWS_PER_TASK).for_each(|chunk| {
         let rows = chunk.len().div_ceil(stride);
         for by in (0..rows).step_by(8) {
             for bx in (0..w).step_by(8) {
+                if bx + 8 <= w && by + 8 <= rows {
+                    fp(chunk, by * stride + bx, stride, q);
+                    continue;
+                }
                 let mut b: IBlock = [[0; 8]; 8];
                 for (dy, brow) in b.iter_mut().enumerate() {
                     let r = &chunk[(by + dy).min(rows - 1) * stride..];
@@ -598,25 +1016,12 @@ fn gray8(data: &mut [u8], w: usize, h: usize, stride: usize, q: &IQuant) {
 
 /// Round trip of a tightly packed u8 plane whose size is a multiple of 8 in both directions.
 fn plane_roundtrip(plane: &mut [u8], pw: usize, q: &IQuant) {
-    let f = block_fn();
+    let f = plane_block_fn();
     plane.par_chunks_mut(pw * ROWS_PER_TASK).for_each(|chunk| {
         let rows = chunk.len() / pw;
         for by in (0..rows).step_by(8) {
             for bx in (0..pw).step_by(8) {
-                let mut b: IBlock = [[0; 8]; 8];
-                for (dy, brow) in b.iter_mut().enumerate() {
-                    let r = &chunk[(by + dy) * pw + bx..][..8];
-                    for (v, s) in brow.iter_mut().zip(r) {
-                        *v = *s as i32 - 128;
-                    }
-                }
-                f(&mut b, q);
-                for (dy, brow) in b.iter().enumerate() {
-                    let r = &mut chunk[(by + dy) * pw + bx..][..8];
-                    for (s, v) in r.iter_mut().zip(brow) {
-                        *s = *v as u8;
-                    }
-                }
+                f(chunk, by * pw + bx, pw, q);
             }
         }
     });
@@ -631,53 +1036,55 @@ impl Jpeg {
         self.y.resize(pw * ph, 0);
         self.cb.resize(cw * chh, 0);
         self.cr.resize(cw * chh, 0);
-        let color = self.color.get_or_insert_with(Color::new);
+        let nb = ph.div_ceil(ROWS_PER_TASK);
+        self.rows8.resize(nb * 4 * pw, 0);
+        self.rows32.resize(nb * 2 * pw, 0);
         let Some(data) = frame.as_u8_mut() else {
             return;
         };
         let used = stride * (h - 1) + w * 3;
         let data = &mut data[..used];
-        // 1. RGB -> YCbCr (+ 2x2 averaging), padded by edge replication.
+        let fns = row_fns();
+        // 1. RGB -> YCbCr, edges replicated to whole MCUs; chroma 2x2 averaged with libjpeg's
+        //    alternating bias (1, 2, 1, 2, ...) or kept (4:4:4).
         let csub = if sub { 2 } else { 1 };
         let band_c = ROWS_PER_TASK / csub;
         {
             let src: &[u8] = data;
-            let px = |x: usize, y: usize| {
-                let i = y.min(h - 1) * stride + x.min(w - 1) * 3;
-                (src[i], src[i + 1], src[i + 2])
-            };
             self.y
                 .par_chunks_mut(pw * ROWS_PER_TASK)
                 .zip(self.cb.par_chunks_mut(cw * band_c).zip(self.cr.par_chunks_mut(cw * band_c)))
+                .zip(self.rows8.par_chunks_mut(4 * pw))
                 .enumerate()
-                .for_each(|(band, (yp, (cbp, crp)))| {
+                .for_each(|(band, ((yp, (cbp, crp)), rows))| {
                     let y0 = band * ROWS_PER_TASK;
-                    for (dy, yrow) in yp.chunks_mut(pw).enumerate() {
-                        for (x, out) in yrow.iter_mut().enumerate() {
-                            let (r, g, b) = px(x, y0 + dy);
-                            *out = color.ycc(r, g, b).0;
+                    let (cbf, crf) = rows.split_at_mut(2 * pw);
+                    for (cy, (cbrow, crrow)) in cbp.chunks_mut(cw).zip(crp.chunks_mut(cw)).enumerate() {
+                        for k in 0..csub {
+                            let dy = cy * csub + k;
+                            let yy = (y0 + dy).min(h - 1);
+                            let yrow = &mut yp[dy * pw..(dy + 1) * pw];
+                            let (cbk, crk) = (&mut cbf[k * pw..(k + 1) * pw], &mut crf[k * pw..(k + 1) * pw]);
+                            (fns.to_ycc)(&src[yy * stride..yy * stride + w * 3], &mut yrow[..w], &mut cbk[..w], &mut crk[..w]);
+                            let (ly, lb, lr) = (yrow[w - 1], cbk[w - 1], crk[w - 1]);
+                            yrow[w..].fill(ly);
+                            cbk[w..].fill(lb);
+                            crk[w..].fill(lr);
                         }
-                    }
-                    for (dy, (cbrow, crrow)) in cbp.chunks_mut(cw).zip(crp.chunks_mut(cw)).enumerate() {
-                        let yy = y0 + dy * csub;
-                        for (cx, (cbo, cro)) in cbrow.iter_mut().zip(crrow.iter_mut()).enumerate() {
-                            if sub {
-                                let bias = 1 + (cx & 1) as i32; // 1, 2, 1, 2, ...
-                                let (mut sb, mut sr) = (bias, bias);
-                                for (ox, oy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                                    let (r, g, b) = px(2 * cx + ox, yy + oy);
-                                    let (_, cb, cr) = color.ycc(r, g, b);
-                                    sb += cb as i32;
-                                    sr += cr as i32;
-                                }
-                                *cbo = (sb >> 2) as u8;
-                                *cro = (sr >> 2) as u8;
-                            } else {
-                                let (r, g, b) = px(cx, yy);
-                                let (_, cb, cr) = color.ycc(r, g, b);
-                                *cbo = cb;
-                                *cro = cr;
+                        if sub {
+                            let (b0, b1) = cbf.split_at(pw);
+                            let (r0, r1) = crf.split_at(pw);
+                            for (cx, (cbo, cro)) in cbrow.iter_mut().zip(crrow.iter_mut()).enumerate() {
+                                let bias = 1 + (cx & 1) as u32;
+                                let i = 2 * cx;
+                                let sb = b0[i] as u32 + b0[i + 1] as u32 + b1[i] as u32 + b1[i + 1] as u32;
+                                let sr = r0[i] as u32 + r0[i + 1] as u32 + r1[i] as u32 + r1[i + 1] as u32;
+                                *cbo = ((sb + bias) >> 2) as u8;
+                                *cro = ((sr + bias) >> 2) as u8;
                             }
+                        } else {
+                            cbrow.copy_from_slice(&cbf[..pw]);
+                            crrow.copy_from_slice(&crf[..pw]);
                         }
                     }
                 });
@@ -689,40 +1096,31 @@ impl Jpeg {
         // 3. Upsample (libjpeg h2v2 fancy) and YCbCr -> RGB.
         let (yp, cbp, crp) = (&self.y, &self.cb, &self.cr);
         let (cw_real, ch_real) = if sub { (w.div_ceil(2), h.div_ceil(2)) } else { (w, h) };
-        data.par_chunks_mut(stride * ROWS_PER_TASK).enumerate().for_each(|(band, chunk)| {
-            for (dy, row) in chunk.chunks_mut(stride).enumerate() {
-                let y = band * ROWS_PER_TASK + dy;
-                let yrow = &yp[y * pw..][..w];
-                let out = &mut row[..w * 3];
-                if !sub {
-                    for (x, o) in out.chunks_exact_mut(3).enumerate() {
-                        o.copy_from_slice(&color.rgb(yrow[x], cbp[y * cw + x], crp[y * cw + x]));
+        data.par_chunks_mut(stride * ROWS_PER_TASK)
+            .zip(self.rows8.par_chunks_mut(4 * pw))
+            .zip(self.rows32.par_chunks_mut(2 * pw))
+            .enumerate()
+            .for_each(|(band, ((chunk, rows), sums))| {
+                let (ucb, ucr) = rows.split_at_mut(2 * pw);
+                let (ucb, ucr) = (&mut ucb[..w], &mut ucr[..w]);
+                let (sb, sr) = sums.split_at_mut(pw);
+                let (sb, sr) = (&mut sb[..cw_real], &mut sr[..cw_real]);
+                for (dy, row) in chunk.chunks_mut(stride).enumerate() {
+                    let y = band * ROWS_PER_TASK + dy;
+                    let yrow = &yp[y * pw..][..w];
+                    let out = &mut row[..w * 3];
+                    if !sub {
+                        (fns.to_rgb)(yrow, &cbp[y * cw..][..w], &crp[y * cw..][..w], out);
+                        continue;
                     }
-                    continue;
+                    let cy = y / 2;
+                    let far = if y.is_multiple_of(2) { cy.saturating_sub(1) } else { (cy + 1).min(ch_real - 1) };
+                    let (n0, n1) = (cy * cw, far * cw);
+                    (fns.fancy)(&cbp[n0..n0 + cw_real], &cbp[n1..n1 + cw_real], sb, ucb);
+                    (fns.fancy)(&crp[n0..n0 + cw_real], &crp[n1..n1 + cw_real], sr, ucr);
+                    (fns.to_rgb)(yrow, ucb, ucr, out);
                 }
-                let cy = y / 2;
-                let far = if y.is_multiple_of(2) { cy.saturating_sub(1) } else { (cy + 1).min(ch_real - 1) };
-                let (n0, n1) = (cy * cw, far * cw);
-                let colsum = |p: &[u8], c: usize| 3 * p[n0 + c] as i32 + p[n1 + c] as i32;
-                for (x, o) in out.chunks_exact_mut(3).enumerate() {
-                    let c = x / 2;
-                    let up = |p: &[u8]| -> u8 {
-                        let this = colsum(p, c);
-                        let v = if cw_real == 1 {
-                            (this * 4 + 8 - (x & 1) as i32) >> 4
-                        } else if x & 1 == 0 {
-                            if c == 0 { (this * 4 + 8) >> 4 } else { (this * 3 + colsum(p, c - 1) + 8) >> 4 }
-                        } else if c + 1 >= cw_real {
-                            (this * 4 + 7) >> 4
-                        } else {
-                            (this * 3 + colsum(p, c + 1) + 7) >> 4
-                        };
-                        v as u8
-                    };
-                    o.copy_from_slice(&color.rgb(yrow[x], up(cbp), up(crp)));
-                }
-            }
-        });
+            });
     }
 }
 
@@ -796,6 +1194,62 @@ mod tests {
 
     fn random_block(r: &mut Rng) -> Block {
         std::array::from_fn(|_| std::array::from_fn(|_| r.range(-128.0, 127.0) as f32))
+    }
+
+    #[test]
+    fn simd_block_round_trip_equals_the_scalar_reference() {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            let mut r = Rng::new(17);
+            for trial in 0..3000 {
+                let q = 1 + (trial % 100) as u32;
+                let table = if trial % 2 == 0 { &STD_LUMA } else { &STD_CHROMA };
+                let iq = IQuant::new(&scaled_table(table, q));
+                // Random blocks, flat blocks and extreme checkerboards (largest coefficients).
+                let block: IBlock = std::array::from_fn(|y| {
+                    std::array::from_fn(|x| match trial % 3 {
+                        0 => r.below(256) as i32 - 128,
+                        1 => (trial % 256) as i32 - 128,
+                        _ => if (x + y) % 2 == 0 { 127 } else { -128 },
+                    })
+                });
+                let (mut a, mut b) = (block, block);
+                roundtrip_block_int(&mut a, &iq);
+                // SAFETY: AVX2 is available (checked above).
+                unsafe { avx2::roundtrip(&mut b, &iq) };
+                assert_eq!(a, b, "trial {trial} quality {q}");
+            }
+        }
+    }
+
+    #[test]
+    fn simd_colour_rows_equal_the_scalar_references() {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            let mut r = Rng::new(5);
+            for n in (0..70).chain([255, 960, 1921]) {
+                let src: Vec<u8> = (0..3 * n).map(|_| r.below(256) as u8).collect();
+                let (mut a, mut b) = ((vec![0u8; n], vec![0u8; n], vec![0u8; n]), (vec![0u8; n], vec![0u8; n], vec![0u8; n]));
+                rgb_to_ycc_row_scalar(&src, &mut a.0, &mut a.1, &mut a.2);
+                // SAFETY: AVX2 is available (checked above).
+                unsafe { avx2::rgb_to_ycc_row(&src, &mut b.0, &mut b.1, &mut b.2) };
+                assert_eq!(a, b, "rgb -> ycc, {n} px");
+                let (mut o1, mut o2) = (vec![0u8; 3 * n], vec![0u8; 3 * n]);
+                ycc_to_rgb_row_scalar(&src[..n], &src[n..2 * n], &src[2 * n..], &mut o1);
+                // SAFETY: as above.
+                unsafe { avx2::ycc_to_rgb_row(&src[..n], &src[n..2 * n], &src[2 * n..], &mut o2) };
+                assert_eq!(o1, o2, "ycc -> rgb, {n} px");
+                let cw = n.div_ceil(2);
+                if cw > 0 {
+                    let (mut c1, mut c2) = (vec![0i32; cw], vec![0i32; cw]);
+                    let (mut u1, mut u2) = (vec![0u8; n], vec![0u8; n]);
+                    fancy_row_scalar(&src[..cw], &src[cw..2 * cw], &mut c1, &mut u1);
+                    // SAFETY: as above.
+                    unsafe { avx2::fancy_row(&src[..cw], &src[cw..2 * cw], &mut c2, &mut u2) };
+                    assert_eq!(u1, u2, "fancy upsampling, {n} px");
+                }
+            }
+        }
     }
 
     #[test]

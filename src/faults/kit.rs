@@ -1,6 +1,6 @@
 //! Building blocks of the physics library (helper "physlib"): parallel row bands with
 //! thread-count-independent randomness, a multi-lane random generator for per-sample noise,
-//! sparse Bernoulli sampling, fixed-point gain maps and the seeded benchmark scene.
+//! sparse Bernoulli sampling, fixed-point gain maps, benchmark parameters and scenes.
 //!
 //! Determinism: work is split into bands of [`ROWS_PER_TASK`] rows whatever the thread count;
 //! band `k` draws from `ctx.rng.derive(k)`, so the bytes never depend on how rayon schedules.
@@ -30,6 +30,7 @@ pub fn par_bands_with<T: Send, S: Send>(
     f: impl Fn(usize, usize, &mut [T], &mut [S]) + Sync,
 ) {
     let used = used_len(data.len(), stride, height);
+    debug_assert!(scratch.len() >= per_band * bands(height), "scratch for every band");
     data[..used]
         .par_chunks_mut(stride * ROWS_PER_TASK)
         .zip(scratch.par_chunks_mut(per_band.max(1)))
@@ -49,6 +50,75 @@ fn used_len(len: usize, stride: usize, height: usize) -> usize {
 /// Rows of a band (each without padding).
 pub fn band_rows<T>(band: &mut [T], stride: usize, row_len: usize) -> impl Iterator<Item = &mut [T]> {
     band.chunks_mut(stride).map(move |r| &mut r[..row_len])
+}
+
+/// Compile a row kernel twice: as is (the portable reference) and with AVX2 enabled, and call the
+/// AVX2 copy when the CPU has it. The copies run the same IEEE/integer operations in the same
+/// order (no fast-math, no FMA contraction), so they give the same bytes; AVX2 only lets the
+/// compiler use wider vectors.
+macro_rules! multiversion {
+    ($(#[$m:meta])* $vis:vis fn $name:ident<$T:ident: $B:path>($($a:ident: $t:ty),* $(,)?) $(-> $R:ty)? $body:block) => {
+        $(#[$m])*
+        $vis fn $name<$T: $B>($($a: $t),*) $(-> $R)? {
+            #[inline(always)]
+            fn generic<$T: $B>($($a: $t),*) $(-> $R)? $body
+            #[cfg(target_arch = "x86_64")]
+            #[target_feature(enable = "avx2")]
+            unsafe fn avx2<$T: $B>($($a: $t),*) $(-> $R)? {
+                generic($($a),*)
+            }
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU supports AVX2 (checked just above).
+                return unsafe { avx2($($a),*) };
+            }
+            generic($($a),*)
+        }
+    };
+}
+
+pub(crate) use multiversion;
+
+multiversion! {
+    /// `v = round(v * g)` (f32, half up, clipped to the sample range) with one gain per sample.
+    pub fn mul_round_row<T: Sample>(row: &mut [T], gains: &[f32]) {
+        for (v, &g) in row.iter_mut().zip(gains) {
+            *v = T::from_f32(v.to_f32() * g);
+        }
+    }
+}
+
+multiversion! {
+    /// Largest sample of a row (`T::default()` for an empty row).
+    pub fn max_of_row<T: Sample>(row: &[T]) -> T {
+        row.iter().fold(T::default(), |m, &v| if v > m { v } else { m })
+    }
+}
+
+multiversion! {
+    /// `v = min((v * gq + 2^15) >> 16, MAX)`: a gain in Q16 fixed point, rounded half up.
+    pub fn scale_q16_row<T: Sample>(row: &mut [T], gq: u32) {
+        if T::MAX_U32 == 255 && gq < 1 << 24 {
+            // 8-bit: the product fits in u32, which vectorises.
+            for v in row.iter_mut() {
+                *v = T::from_u32_sat((v.to_u32() * gq + 32768) >> 16);
+            }
+        } else {
+            for v in row.iter_mut() {
+                let p = (v.to_u32() as u64 * gq as u64 + 32768) >> 16;
+                *v = T::from_u32_sat(p.min(T::MAX_U32 as u64) as u32);
+            }
+        }
+    }
+}
+
+multiversion! {
+    /// `v = min(v + a, MAX)` with one addend per sample.
+    pub fn add_sat_row<T: Sample>(row: &mut [T], add: &[u32]) {
+        for (v, &a) in row.iter_mut().zip(add) {
+            *v = T::from_u32_sat(v.to_u32().saturating_add(a));
+        }
+    }
 }
 
 /// Four interleaved xoshiro256++ streams stepped together: the same algorithm as [`Rng`], laid
@@ -71,6 +141,11 @@ impl RngLanes {
             }
         }
         RngLanes { s }
+    }
+
+    /// The state, `[word][lane]` (for SIMD kernels that step the lanes in registers).
+    pub(crate) fn state_mut(&mut self) -> &mut [[u64; 4]; 4] {
+        &mut self.s
     }
 
     /// Four 64-bit outputs.
@@ -251,6 +326,77 @@ impl SparsePattern {
             self.active_key = Some(rate.to_bits());
         }
         &self.active
+    }
+}
+
+/// Visible, study-like parameters of an effect for benchmarks and whole-library tests: every
+/// effect does real work (no identity settings), at strengths like `hil/campaigns/original8.toml`.
+/// Effects not listed take their defaults (which are already active).
+pub fn bench_params(name: &str) -> Result<super::Params, super::FaultError> {
+    let mut p = super::default_params(name)?;
+    let set: &[(&str, f64)] = match name {
+        "lens_flare" => &[("ghosts", 5.0), ("intensity", 0.08)],
+        "motion_blur" => &[("length_px", 10.0), ("angle_deg", 30.0)],
+        "channel_shift" => &[("dx_r", 1.3), ("dy_r", -0.6), ("dx_b", -1.1), ("dy_b", 0.8)],
+        "dark_current" => &[("mean_dn", 3.0), ("hot_pixel_rate", 5e-4)],
+        "blooming" => &[("full_well_fraction", 0.95), ("spread_px", 2.0), ("exposure_gain", 1.2)],
+        "smear" => &[("strength", 0.002), ("sat_level", 0.95)],
+        "gaussian_noise" => &[("sigma_dn", 3.0)],
+        "vertical_glitch" | "horizontal_glitch" => &[("count", 2.0), ("max_offset_px", 24.0)],
+        "gain_offset" => &[("gain", 1.2), ("offset_dn", 4.0)],
+        "gamma" => &[("gamma", 2.2)],
+        "jpeg" => &[("quality", 75.0)],
+        "cosmic_rays" => &[("rate", 2e-5), ("track_len_px", 8.0)],
+        "bit_flip" => &[("rate", 1e-5)],
+        "dead_pixels" => &[("rate", 1e-4)],
+        _ => &[],
+    };
+    for (k, v) in set {
+        p.set(k, *v)?;
+    }
+    Ok(p)
+}
+
+/// Input scenes for benchmarks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Scene {
+    /// The procedural spacecraft of the `synth:` source (default pose, seed 0): dark sky, lit
+    /// bus and solar wings, a few small saturated glints. The representative case.
+    Spacecraft,
+    /// [`bench_scene`]: a large bright textured body that overflows the full well over wide areas
+    /// when over-exposed (a stress case for blooming).
+    Stress,
+}
+
+impl Scene {
+    pub fn parse(s: &str) -> Option<Scene> {
+        match s {
+            "spacecraft" | "synth" => Some(Scene::Spacecraft),
+            "stress" | "bench" => Some(Scene::Stress),
+            _ => None,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Scene::Spacecraft => "spacecraft",
+            Scene::Stress => "stress",
+        }
+    }
+    /// Render the scene (deterministic in size and format).
+    pub fn render(self, width: u32, height: u32, format: PixelFormat) -> Result<Frame, crate::frame::FrameError> {
+        match self {
+            Scene::Stress => bench_scene(width, height, format, 1),
+            // The synth source needs at least 16x16 pixels.
+            Scene::Spacecraft if width < 16 || height < 16 => bench_scene(width, height, format, 1),
+            Scene::Spacecraft => {
+                let mut f = Frame::new(width, height, format)?;
+                let cfg = crate::source::synth::SynthConfig { width, height, format, ..Default::default() };
+                crate::source::synth::SynthSource::new(cfg).render_into(0, &mut f);
+                f.seq = 0;
+                f.pts_ns = 0;
+                Ok(f)
+            }
+        }
     }
 }
 

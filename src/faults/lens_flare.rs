@@ -2,6 +2,7 @@
 //! surfaces. Each ghost is an out-of-focus image of the aperture stop (a disc, or a polygon for a
 //! bladed iris) centred on the line from the source through the optical centre.
 
+use super::kit::{max_of_row, multiversion};
 use super::util::ROWS_PER_TASK;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, ImageMut, ImageRef, Sample};
@@ -158,6 +159,8 @@ pub struct LensFlare {
     stack: Vec<u32>,
     rows: Vec<bool>,
     ghosts: [Ghost; MAX_GHOSTS],
+    // allocation: once per frame size: per band, three rows of floats for rendering
+    render_scratch: Vec<f32>,
 }
 
 /// Brightest blob: centroid and flux above threshold.
@@ -195,7 +198,7 @@ fn find_source<T: Sample>(
     let (w, h, ch) = (img.width, img.height, img.channels);
     let thr_t = T::from_u32_sat(thr);
     // Rows that hold any sample >= thr (vectorisable max per row, in parallel).
-    rows.par_iter_mut().enumerate().for_each(|(y, r)| *r = img.row(y).iter().any(|v| *v >= thr_t));
+    rows.par_iter_mut().enumerate().for_each(|(y, r)| *r = max_of_row(img.row(y)) >= thr_t);
     let mut best: Option<Source> = None;
     for y0 in (0..h).filter(|&y| rows[y]) {
         let row = img.row(y0);
@@ -265,65 +268,98 @@ impl Effect for LensFlare {
             }
         };
         let n = layout(p, ctx.pattern_seed, w, h, frame.channels(), fs, s, &mut self.ghosts);
-        let ghosts = &self.ghosts[..n];
         let opacity = 1.0 - p.get("transparency") as f32;
-        with_image_mut!(frame, img => render(&mut img, ghosts, opacity));
+        self.render_scratch.resize(3 * w * frame.channels() * super::kit::bands(h), 0.0);
+        let (ghosts, scratch) = (&self.ghosts[..n], &mut self.render_scratch);
+        with_image_mut!(frame, img => render(&mut img, ghosts, opacity, scratch));
         Ok(Outcome::Keep)
     }
 }
 
-/// Coverage in [0, 1] of ghost `g` at pixel centre (x, y).
-#[inline]
-fn coverage(g: &Ghost, normals: &[(f32, f32)], x: f32, y: f32) -> f32 {
-    let (dx, dy) = (x - g.cx, y - g.cy);
-    let d = if normals.is_empty() {
-        (dx * dx + dy * dy).sqrt()
-    } else {
-        // Polygon "radius": largest projection on an edge normal, divided by cos(pi/n), so the
-        // boundary sits at d = circumradius.
-        normals.iter().fold(f32::MIN, |m, &(nx, ny)| m.max(dx * nx + dy * ny))
-    };
-    let s = ((g.radius - d) / g.edge + 0.5).clamp(0.0, 1.0);
-    s * s * (3.0 - 2.0 * s)
+multiversion! {
+    /// Smoothstep coverage of one row segment: `d` holds the distance measure (disc: Euclidean;
+    /// polygon: largest normal projection) and becomes the coverage.
+    fn coverage_row<T: Copy>(d: &mut [f32], radius: f32, edge: f32, _t: T) {
+        for v in d.iter_mut() {
+            let s = ((radius - *v) / edge + 0.5).clamp(0.0, 1.0);
+            *v = s * s * (3.0 - 2.0 * s);
+        }
+    }
 }
 
-fn render<T: Sample>(img: &mut ImageMut<'_, T>, ghosts: &[Ghost], opacity: f32) {
+multiversion! {
+    /// `v = round(v * (1 - a * opacity) + a * level)` per sample (a, level expanded per sample).
+    fn blend_row<T: Sample>(row: &mut [T], a: &[f32], level: &[f32], opacity: f32) {
+        for ((v, &a), &l) in row.iter_mut().zip(a).zip(level) {
+            *v = T::from_f32(v.to_f32() * (1.0 - a * opacity) + a * l);
+        }
+    }
+}
+
+/// Render the ghosts. Per row of a ghost's bounding box: the distance measure of every pixel
+/// (vectorised over x), its smoothstep coverage, then the blend over the samples (coverage and
+/// level expanded per sample). Pixels with zero coverage blend to themselves.
+fn render<T: Sample>(img: &mut ImageMut<'_, T>, ghosts: &[Ghost], opacity: f32, scratch: &mut [f32]) {
     let (stride, row_len, w, h, ch) = (img.stride, img.row_len(), img.width, img.height, img.channels);
     let used = stride * (h - 1) + row_len;
-    img.data[..used].par_chunks_mut(stride * ROWS_PER_TASK).enumerate().for_each(|(band, chunk)| {
-        let y_band = band * ROWS_PER_TASK;
-        for g in ghosts {
-            let reach = g.radius + g.edge;
-            let y0 = (g.cy - reach).floor().max(y_band as f32) as usize;
-            let y1 = ((g.cy + reach).ceil() + 1.0).min((y_band + ROWS_PER_TASK).min(h) as f32);
-            let x0 = (g.cx - reach).floor().max(0.0) as usize;
-            let x1 = ((g.cx + reach).ceil() + 1.0).min(w as f32);
-            if y1 <= y0 as f32 || x1 <= x0 as f32 {
-                continue;
-            }
-            let (y1, x1) = (y1 as usize, x1 as usize);
-            let mut normals = [(0f32, 0f32); 12];
-            let nb = if g.blades >= 3 { g.blades as usize } else { 0 };
-            let inv_cos = 1.0 / (std::f32::consts::PI / nb.max(1) as f32).cos();
-            for (i, nrm) in normals.iter_mut().enumerate().take(nb) {
-                let a = g.rotation + (2 * i + 1) as f32 * std::f32::consts::PI / nb as f32;
-                *nrm = (a.cos() * inv_cos, a.sin() * inv_cos);
-            }
-            for y in y0..y1 {
-                let row = &mut chunk[(y - y_band) * stride..][..row_len];
-                for x in x0..x1 {
-                    let a = coverage(g, &normals[..nb], x as f32, y as f32);
-                    if a <= 0.0 {
-                        continue;
+    let per_band = 3 * w * ch;
+    img.data[..used].par_chunks_mut(stride * ROWS_PER_TASK).zip(scratch.par_chunks_mut(per_band)).enumerate().for_each(
+        |(band, (chunk, scratch))| {
+            let (dist, rest) = scratch.split_at_mut(w * ch);
+            let (aexp, lexp) = rest.split_at_mut(w * ch);
+            let y_band = band * ROWS_PER_TASK;
+            for g in ghosts {
+                let reach = g.radius + g.edge;
+                let y0 = (g.cy - reach).floor().max(y_band as f32) as usize;
+                let y1 = ((g.cy + reach).ceil() + 1.0).min((y_band + ROWS_PER_TASK).min(h) as f32);
+                let x0 = (g.cx - reach).floor().max(0.0) as usize;
+                let x1 = ((g.cx + reach).ceil() + 1.0).min(w as f32);
+                if y1 <= y0 as f32 || x1 <= x0 as f32 {
+                    continue;
+                }
+                let (y1, x1) = (y1 as usize, x1 as usize);
+                let nx = x1 - x0;
+                let mut normals = [(0f32, 0f32); 12];
+                let nb = if g.blades >= 3 { g.blades as usize } else { 0 };
+                let inv_cos = 1.0 / (std::f32::consts::PI / nb.max(1) as f32).cos();
+                for (i, nrm) in normals.iter_mut().enumerate().take(nb) {
+                    let a = g.rotation + (2 * i + 1) as f32 * std::f32::consts::PI / nb as f32;
+                    *nrm = (a.cos() * inv_cos, a.sin() * inv_cos);
+                }
+                for y in y0..y1 {
+                    let dy = y as f32 - g.cy;
+                    let d = &mut dist[..nx];
+                    if nb == 0 {
+                        for (k, v) in d.iter_mut().enumerate() {
+                            let dx = (x0 + k) as f32 - g.cx;
+                            *v = (dx * dx + dy * dy).sqrt();
+                        }
+                    } else {
+                        // Polygon "radius": largest projection on an edge normal, divided by
+                        // cos(pi/n), so the boundary sits at d = circumradius.
+                        d.fill(f32::MIN);
+                        for &(nx_, ny_) in &normals[..nb] {
+                            let base = dy * ny_;
+                            for (k, v) in d.iter_mut().enumerate() {
+                                let dx = (x0 + k) as f32 - g.cx;
+                                *v = v.max(dx * nx_ + base);
+                            }
+                        }
                     }
-                    for c in 0..ch {
-                        let v = &mut row[x * ch + c];
-                        *v = T::from_f32(v.to_f32() * (1.0 - a * opacity) + a * g.level[c]);
+                    coverage_row(d, g.radius, g.edge, 0u8);
+                    let (ae, le) = (&mut aexp[..nx * ch], &mut lexp[..nx * ch]);
+                    for ((a, l), &cov) in ae.chunks_exact_mut(ch).zip(le.chunks_exact_mut(ch)).zip(d.iter()) {
+                        a.fill(cov);
+                        for (c, lv) in l.iter_mut().enumerate() {
+                            *lv = g.level[c];
+                        }
                     }
+                    let row = &mut chunk[(y - y_band) * stride + x0 * ch..][..nx * ch];
+                    blend_row(row, ae, le, opacity);
                 }
             }
-        }
-    });
+        },
+    );
 }
 
 #[cfg(test)]
@@ -425,6 +461,66 @@ mod tests {
             // Mean plateau = intensity * FS = 76.5 DN, up to rounding of each plateau (0.5 DN).
             let mean = plateau / comps.len() as f64;
             assert!((mean - 76.5).abs() <= 0.5, "mean plateau {mean}");
+        }
+    }
+
+    /// Scalar reference: coverage in [0, 1] of ghost `g` at pixel centre (x, y).
+            fn coverage(g: &Ghost, normals: &[(f32, f32)], x: f32, y: f32) -> f32 {
+        let (dx, dy) = (x - g.cx, y - g.cy);
+        let d = if normals.is_empty() {
+            (dx * dx + dy * dy).sqrt()
+        } else {
+            // Polygon "radius": largest projection on an edge normal, divided by cos(pi/n), so the
+            // boundary sits at d = circumradius.
+            normals.iter().fold(f32::MIN, |m, &(nx, ny)| m.max(dx * nx + dy * ny))
+        };
+        let s = ((g.radius - d) / g.edge + 0.5).clamp(0.0, 1.0);
+        s * s * (3.0 - 2.0 * s)
+    }
+
+    #[test]
+    fn row_renderer_equals_the_per_pixel_reference() {
+        for (fmt, blades, opacity) in [(PixelFormat::Rgb8, 6u32, 0.0f32), (PixelFormat::Mono16, 0, 0.4), (PixelFormat::Mono8, 5, 1.0)] {
+            let (w, h) = (150usize, 140usize);
+            let mut orig = spot_frame(fmt, 20, 30);
+            orig.as_u8_mut().map(|d| d.iter_mut().enumerate().for_each(|(i, v)| *v = v.saturating_add((i % 97) as u8)));
+            let ghosts: Vec<Ghost> = (0..4)
+                .map(|k| Ghost {
+                    cx: 20.0 + 31.3 * k as f32,
+                    cy: 100.0 - 17.1 * k as f32,
+                    radius: 9.0 + 5.0 * k as f32,
+                    edge: 2.0,
+                    level: [40.0 * fmt.dn_scale(), 70.0 * fmt.dn_scale(), 20.0 * fmt.dn_scale()],
+                    blades,
+                    rotation: 0.3 * k as f32,
+                    t: 0.0,
+                })
+                .collect();
+            let mut f = orig.clone();
+            let mut scratch = vec![0f32; 3 * w * fmt.channels() * crate::faults::kit::bands(h)];
+            with_image_mut!(f, img => render(&mut img, &ghosts, opacity, &mut scratch));
+            let mut want = orig.clone();
+            for g in &ghosts {
+                let mut normals = [(0f32, 0f32); 12];
+                let nb = if g.blades >= 3 { g.blades as usize } else { 0 };
+                let inv_cos = 1.0 / (std::f32::consts::PI / nb.max(1) as f32).cos();
+                for (i, nrm) in normals.iter_mut().enumerate().take(nb) {
+                    let a = g.rotation + (2 * i + 1) as f32 * std::f32::consts::PI / nb as f32;
+                    *nrm = (a.cos() * inv_cos, a.sin() * inv_cos);
+                }
+                for y in 0..h {
+                    for x in 0..w {
+                        let a = coverage(g, &normals[..nb], x as f32, y as f32);
+                        if a > 0.0 {
+                            for c in 0..fmt.channels() {
+                                let v = want.get(x, y, c);
+                                want.set(x, y, c, v * (1.0 - a * opacity) + a * g.level[c]);
+                            }
+                        }
+                    }
+                }
+            }
+            assert!(f == want, "{fmt}: row renderer differs from the per-pixel reference");
         }
     }
 

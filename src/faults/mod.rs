@@ -9,6 +9,8 @@
 pub mod chain;
 /// Helpers of the physics library: row bands, random lanes, sparse sampling, bench scene.
 pub mod kit;
+/// Table-driven per-sample noise kernel (scalar reference + AVX2).
+pub mod noise;
 pub mod registry;
 pub mod util;
 

@@ -1,6 +1,6 @@
 //! `prnu`: photo-response non-uniformity, a fixed per-pixel gain pattern.
 
-use super::kit::{band_rows, par_bands};
+use super::kit::{band_rows, bands, mul_round_row, par_bands_with};
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, Sample};
 use crate::rng::Rng;
@@ -31,6 +31,8 @@ pub struct Prnu {
     key: Option<(u32, u32, u64)>,
     // allocation: once per (size, seed): one f32 per pixel
     z: Vec<f32>,
+    // allocation: once per frame size: per band, one row of per-sample gains
+    rows: Vec<f32>,
 }
 
 impl Prnu {
@@ -61,16 +63,16 @@ fn apply_gain<T: Sample, const CH: usize>(
     width: usize,
     z: &[f32],
     sigma: f32,
+    rows: &mut [f32],
 ) {
-    par_bands(data, stride, height, |_, y0, band| {
+    par_bands_with(data, stride, height, rows, width * CH, |_, y0, band, gains| {
         for (i, row) in band_rows(band, stride, width * CH).enumerate() {
             let zrow = &z[(y0 + i) * width..(y0 + i + 1) * width];
-            for (px, &n) in row.chunks_exact_mut(CH).zip(zrow) {
-                let g = (1.0 + sigma * n).max(0.0);
-                for v in px.iter_mut() {
-                    *v = T::from_f32(v.to_f32() * g);
-                }
+            // Per-sample gains (channels share the pixel's), then a flat loop that vectorises.
+            for (e, &n) in gains.chunks_exact_mut(CH).zip(zrow) {
+                e.fill((1.0 + sigma * n).max(0.0));
             }
+            mul_round_row(row, gains);
         }
     });
 }
@@ -89,11 +91,13 @@ impl Effect for Prnu {
             return Ok(Outcome::Keep);
         }
         let (w, h, stride, ch) = (frame.width, frame.height, frame.stride, frame.channels());
-        let z = self.pattern(w, h, ctx.pattern_seed);
+        self.pattern(w, h, ctx.pattern_seed);
         let (w, h) = (w as usize, h as usize);
+        self.rows.resize(w * ch * bands(h), 0.0);
+        let (z, rows) = (&self.z, &mut self.rows);
         with_image_mut!(frame, img => match ch {
-            3 => apply_gain::<_, 3>(img.data, stride, h, w, z, sigma),
-            _ => apply_gain::<_, 1>(img.data, stride, h, w, z, sigma),
+            3 => apply_gain::<_, 3>(img.data, stride, h, w, z, sigma, rows),
+            _ => apply_gain::<_, 1>(img.data, stride, h, w, z, sigma, rows),
         });
         Ok(Outcome::Keep)
     }

@@ -1,6 +1,6 @@
 //! `stray_light`: smooth additive veiling glare from a bright source outside the field of view.
 
-use super::kit::{band_rows, par_bands_with};
+use super::kit::{add_sat_row, band_rows, par_bands_with};
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, Sample};
 use crate::with_image_mut;
@@ -67,17 +67,15 @@ fn add_field<T: Sample, const CH: usize>(
     scratch: &mut [u32],
 ) {
     let w = lx.len();
-    par_bands_with(data, stride, h, scratch, w, |_, y0, band, add| {
+    par_bands_with(data, stride, h, scratch, w * CH, |_, y0, band, add| {
         for (i, row) in band_rows(band, stride, w * CH).enumerate() {
             let fy = ly[y0 + i];
-            for (a, &fx) in add.iter_mut().zip(lx) {
-                *a = (fx * fy + 0.5) as u32;
+            // Per-sample addends (all channels of a pixel get the same), then a flat loop.
+            for (a, &fx) in add.chunks_exact_mut(CH).zip(lx) {
+                // fx * fy is in [0, amplitude]: round half up as u16 sample rounding does.
+                a.fill(u16::from_f32(fx * fy) as u32);
             }
-            for (px, &a) in row.chunks_exact_mut(CH).zip(add.iter()) {
-                for v in px.iter_mut() {
-                    *v = T::from_u32_sat(v.to_u32() + a);
-                }
-            }
+            add_sat_row(row, add);
         }
     });
 }
@@ -101,10 +99,9 @@ impl Effect for StrayLight {
             let (lx, ly) = lobe(w, h, amp, p.get("angle_deg"), p.get("distance"), p.get("width"));
             self.lx = lx;
             self.ly = ly;
-            self.scratch.clear();
-            self.scratch.resize(w as usize * super::kit::bands(h as usize), 0);
             self.key = Some((w, h, pk));
         }
+        self.scratch.resize(w as usize * frame.channels() * super::kit::bands(h as usize), 0);
         let (stride, ch) = (frame.stride, frame.channels());
         let (lx, ly, scratch) = (&self.lx, &self.ly, &mut self.scratch);
         with_image_mut!(frame, img => match ch {

@@ -1,6 +1,6 @@
 //! `vignetting`: radial fall-off of the irradiance towards the image corners.
 
-use super::kit::{band_rows, par_bands};
+use super::kit::{band_rows, bands, mul_round_row, par_bands_with};
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, Sample};
 use crate::with_image_mut;
@@ -43,6 +43,8 @@ pub struct Vignetting {
     // allocation: once per (size, parameters): gains of the upper half of the rows (the lower
     // half mirrors them), one f32 per pixel
     map: Vec<f32>,
+    // allocation: once per frame size: per band, one row of per-sample gains
+    rows: Vec<f32>,
 }
 
 impl Vignetting {
@@ -68,17 +70,23 @@ impl Vignetting {
     }
 }
 
-fn apply_map<T: Sample, const CH: usize>(data: &mut [T], stride: usize, h: usize, w: usize, map: &[f32]) {
-    par_bands(data, stride, h, |_, y0, band| {
+fn apply_map<T: Sample, const CH: usize>(data: &mut [T], stride: usize, h: usize, w: usize, map: &[f32], rows: &mut [f32]) {
+    par_bands_with(data, stride, h, rows, w * CH, |_, y0, band, gx| {
         for (i, row) in band_rows(band, stride, w * CH).enumerate() {
             let y = y0 + i;
             let my = y.min(h - 1 - y);
             let grow = &map[my * w..(my + 1) * w];
-            for (px, &g) in row.chunks_exact_mut(CH).zip(grow) {
-                for v in px.iter_mut() {
-                    *v = T::from_f32(v.to_f32() * g);
+            // One gain per sample (channels share the pixel's gain), then a flat loop that
+            // vectorises: v' = round(v * g).
+            let gain: &[f32] = if CH == 1 {
+                grow
+            } else {
+                for (e, &g) in gx.chunks_exact_mut(CH).zip(grow) {
+                    e.fill(g);
                 }
-            }
+                gx
+            };
+            mul_round_row(row, gain);
         }
     });
 }
@@ -98,10 +106,11 @@ impl Effect for Vignetting {
         }
         self.ensure(frame.width, frame.height, strength, p.get("field_deg"));
         let (w, h, stride, ch) = (frame.width as usize, frame.height as usize, frame.stride, frame.channels());
-        let map = &self.map;
+        self.rows.resize(w * ch * bands(h), 0.0);
+        let (map, rows) = (&self.map, &mut self.rows);
         with_image_mut!(frame, img => match ch {
-            3 => apply_map::<_, 3>(img.data, stride, h, w, map),
-            _ => apply_map::<_, 1>(img.data, stride, h, w, map),
+            3 => apply_map::<_, 3>(img.data, stride, h, w, map, rows),
+            _ => apply_map::<_, 1>(img.data, stride, h, w, map, rows),
         });
         Ok(Outcome::Keep)
     }
