@@ -525,7 +525,11 @@ mod tests {
                     }
                 }
                 assert_eq!(rec.changed_pixels(k), changed);
-                assert!(changed > 0 || (names[k] == "channel_shift" && ch == 1), "{format}: {} changed nothing", names[k]);
+                assert!(
+                    changed > 0 || (names[k] == "channel_shift" && ch == 1),
+                    "{format}: {} changed nothing",
+                    names[k]
+                );
                 assert!(changed < (w * h) as u64 || names[k] == "gaussian_noise", "{} changed everything", names[k]);
             }
             for y in 0..h {

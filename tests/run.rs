@@ -317,3 +317,76 @@ fn every_example_campaign_runs() {
         assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains(": ok:"), "{}", p.display());
     }
 }
+
+/// `--masks` on a stream: every delivered frame gets a 16-bit label PNG named in its record,
+/// and the labels are exact: `gain_offset` with offset 3 DN changes every pixel
+/// that is not already at full scale; `hot_pixels` (sensor stage, so applied first) change only a
+/// fixed, small set of pixels.
+#[test]
+fn masks_are_written_for_every_delivered_frame_and_are_exact() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = write_cfg(
+        dir.path(),
+        "seed = 9\n[[effects]]\nname = \"gain_offset\"\noffset_dn = 3\n\n[[effects]]\nname = \"hot_pixels\"\nrate = 0.001\n",
+    );
+    let (clean_dir, out_dir, masks) = (dir.path().join("clean"), dir.path().join("out"), dir.path().join("masks"));
+    let src = "synth:?width=96&height=64&frames=4&seed=3";
+    let none = write_cfg_named(dir.path(), "none.toml", "seed = 0\n");
+    ok(faultcam()
+        .args(["--source", src, "--sink"])
+        .arg(format!("files:{}", clean_dir.display()))
+        .arg("--faults")
+        .arg(&none));
+    let log = dir.path().join("gt.jsonl");
+    ok(faultcam()
+        .args(["--source", src, "--sink"])
+        .arg(format!("files:{}", out_dir.display()))
+        .arg("--faults")
+        .arg(&cfg)
+        .arg("--log")
+        .arg(&log)
+        .arg("--masks")
+        .arg(&masks));
+    let recs = records(&log);
+    let fr = frames(&recs);
+    assert_eq!(fr.len(), 4);
+    let mut hot_sets = Vec::new();
+    for r in fr {
+        let m = &r["masks"];
+        assert_eq!(m["bits"], serde_json::json!(["hot_pixels", "gain_offset"]), "bits in application order");
+        let bits: Vec<&str> = m["bits"].as_array().unwrap().iter().map(|b| b.as_str().unwrap()).collect();
+        let (kg, kh) = (
+            bits.iter().position(|b| *b == "gain_offset").unwrap(),
+            bits.iter().position(|b| *b == "hot_pixels").unwrap(),
+        );
+        let labels = image::open(m["labels"].as_str().unwrap()).unwrap().to_luma16();
+        let seq = r["seq"].as_u64().unwrap();
+        let clean = image::open(clean_dir.join(format!("frame_{seq:06}.png"))).unwrap().to_luma8();
+        let out = image::open(out_dir.join(format!("frame_{seq:06}.png"))).unwrap().to_luma8();
+        let mut hot = Vec::new();
+        for (x, y, l) in labels.enumerate_pixels() {
+            let l = l.0[0];
+            let (c, o) = (clean.get_pixel(x, y).0[0], out.get_pixel(x, y).0[0]);
+            assert_eq!(l == 0, c == o, "({x},{y}): label {l:#b}, clean {c}, out {o}: unchanged pixels have label 0");
+            if l & (1 << kh) != 0 {
+                hot.push((x, y));
+            }
+            // Hot pixels come first (sensor), gain_offset after (readout).
+            let after_hot = if l & (1 << kh) != 0 { None } else { Some(c) };
+            if let Some(v) = after_hot {
+                assert_eq!(l & (1 << kg) != 0, v < 255, "({x},{y}) value {v}: gain_offset bit");
+            }
+        }
+        assert!(!hot.is_empty() && hot.len() < 64 * 96 / 100, "a few hot pixels: {}", hot.len());
+        assert_eq!(m["changed_px"][kh].as_u64().unwrap(), hot.len() as u64);
+        hot_sets.push(hot);
+    }
+    // Hot pixels are a fixed pattern: the same pixels on every frame.
+    assert!(hot_sets.windows(2).all(|w| w[0] == w[1]));
+}
+
+fn write_cfg_named(dir: &Path, name: &str, text: &str) -> std::path::PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}

@@ -78,6 +78,15 @@ pub struct Args {
     /// Validate the fault configuration and campaign (every problem with its line), then exit.
     #[arg(long)]
     pub check: bool,
+    /// Write per-pixel fault masks of every delivered frame into this folder: STEM.labels.png, a
+    /// 16-bit PNG where bit k marks the pixels the k-th applied effect of the frame record
+    /// changed (see README "Per-pixel fault masks"); named in each frame record's `masks` field.
+    #[arg(long)]
+    pub masks: Option<PathBuf>,
+    /// With --masks, also write each effect's signed change as a 32-bit float TIFF
+    /// (STEM.delta-KK-EFFECT.tiff, in DN).
+    #[arg(long, requires = "masks")]
+    pub mask_deltas: bool,
 }
 
 fn parse_overrun(s: &str) -> Result<OverrunPolicy, String> {
@@ -243,9 +252,16 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
             Some(p) => anyhow::bail!("--progress-s {p} is not accepted; accepted: a positive number of seconds"),
             None => None,
         },
+        masks: args.masks.as_ref().map(|dir| pipeline::MaskSettings {
+            dir: dir.clone(),
+            opts: faultcam::masks::MaskOptions { deltas: args.mask_deltas },
+        }),
         ..Default::default()
     };
     opts.validate()?;
+    if let Some(dir) = &args.masks {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create the masks folder {}", dir.display()))?;
+    }
 
     let log_path = args.log.clone().unwrap_or_else(|| default_log(sink_uri));
     let mut log = faultcam::gtlog::GroundTruthLog::create(&log_path)
@@ -271,9 +287,8 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         "threads": threads,
         "trigger": args.trigger,
         "replay_triggers": args.replay_triggers.as_ref().map(|p| p.display().to_string()),
+        "masks": args.masks.as_ref().map(|p| p.display().to_string()),
     }))?;
-    // A place for per-pixel fault masks (`--masks`, owned by `apply`) would go here: the
-    // pipeline's sink stage fills `FrameRecord::masks`.
     let summary = pipeline::run(src, snk, chain, controllers, &opts, &mut log)?;
     drop(log);
     eprint!("{summary}");

@@ -540,7 +540,10 @@ mod avx2 {
         unsafe {
             let s = _mm256_add_epi32(
                 _mm256_mullo_epi32(r, _mm256_set1_epi32(kr)),
-                _mm256_add_epi32(_mm256_mullo_epi32(g, _mm256_set1_epi32(kg)), _mm256_mullo_epi32(b, _mm256_set1_epi32(kb))),
+                _mm256_add_epi32(
+                    _mm256_mullo_epi32(g, _mm256_set1_epi32(kg)),
+                    _mm256_mullo_epi32(b, _mm256_set1_epi32(kb)),
+                ),
             );
             _mm256_srai_epi32(_mm256_add_epi32(s, _mm256_set1_epi32(add)), 16)
         }
@@ -1065,7 +1068,12 @@ impl Jpeg {
                             let yy = (y0 + dy).min(h - 1);
                             let yrow = &mut yp[dy * pw..(dy + 1) * pw];
                             let (cbk, crk) = (&mut cbf[k * pw..(k + 1) * pw], &mut crf[k * pw..(k + 1) * pw]);
-                            (fns.to_ycc)(&src[yy * stride..yy * stride + w * 3], &mut yrow[..w], &mut cbk[..w], &mut crk[..w]);
+                            (fns.to_ycc)(
+                                &src[yy * stride..yy * stride + w * 3],
+                                &mut yrow[..w],
+                                &mut cbk[..w],
+                                &mut crk[..w],
+                            );
                             let (ly, lb, lr) = (yrow[w - 1], cbk[w - 1], crk[w - 1]);
                             yrow[w..].fill(ly);
                             cbk[w..].fill(lb);
@@ -1210,7 +1218,13 @@ mod tests {
                     std::array::from_fn(|x| match trial % 3 {
                         0 => r.below(256) as i32 - 128,
                         1 => (trial % 256) as i32 - 128,
-                        _ => if (x + y) % 2 == 0 { 127 } else { -128 },
+                        _ => {
+                            if (x + y) % 2 == 0 {
+                                127
+                            } else {
+                                -128
+                            }
+                        }
                     })
                 });
                 let (mut a, mut b) = (block, block);
@@ -1229,7 +1243,8 @@ mod tests {
             let mut r = Rng::new(5);
             for n in (0..70).chain([255, 960, 1921]) {
                 let src: Vec<u8> = (0..3 * n).map(|_| r.below(256) as u8).collect();
-                let (mut a, mut b) = ((vec![0u8; n], vec![0u8; n], vec![0u8; n]), (vec![0u8; n], vec![0u8; n], vec![0u8; n]));
+                let (mut a, mut b) =
+                    ((vec![0u8; n], vec![0u8; n], vec![0u8; n]), (vec![0u8; n], vec![0u8; n], vec![0u8; n]));
                 rgb_to_ycc_row_scalar(&src, &mut a.0, &mut a.1, &mut a.2);
                 // SAFETY: AVX2 is available (checked above).
                 unsafe { avx2::rgb_to_ycc_row(&src, &mut b.0, &mut b.1, &mut b.2) };

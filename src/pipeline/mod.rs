@@ -43,11 +43,13 @@ use crate::faults::chain::{Chain, FrameReport};
 use crate::faults::{EffectCtx, Outcome};
 use crate::frame::{Frame, FrameData, PixelFormat};
 use crate::gtlog::{FrameRecord, FrameStatus, GroundTruthLog, Timing};
+use crate::masks::{MaskOptions, MaskRecord, MaskRecorder, mask_stem};
 use crate::sink::{Sink, SinkError};
 use crate::source::Source;
 use crossbeam_channel::{Receiver, RecvTimeoutError, Select, Sender, TrySendError, bounded};
 use degrade::Degrader;
 use std::collections::VecDeque;
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
@@ -138,6 +140,16 @@ pub struct PipelineOptions {
     pub stop_grace: Duration,
     /// Print a progress line to stderr this often.
     pub progress_every: Option<Duration>,
+    /// Record per-pixel fault masks of every delivered frame and write them to this folder
+    /// (see [`crate::masks`]); named in the frame records' `masks` field.
+    pub masks: Option<MaskSettings>,
+}
+
+/// Where and what per-pixel fault masks the pipeline writes.
+#[derive(Debug, Clone)]
+pub struct MaskSettings {
+    pub dir: PathBuf,
+    pub opts: MaskOptions,
 }
 
 impl Default for PipelineOptions {
@@ -155,6 +167,7 @@ impl Default for PipelineOptions {
             stop: Arc::new(AtomicBool::new(false)),
             stop_grace: Duration::from_secs(2),
             progress_every: None,
+            masks: None,
         }
     }
 }
@@ -232,6 +245,8 @@ struct Slot {
     chain_ns: u64,
     ready_ns: u64,
     due_ns: u64,
+    /// Masks written for this frame (`PipelineOptions::masks`).
+    masks: Option<MaskRecord>,
 }
 
 fn empty_frame() -> Frame {
@@ -273,6 +288,7 @@ impl Slot {
             chain_ns: 0,
             ready_ns: 0,
             due_ns: 0,
+            masks: None,
         })
     }
     fn reset(&mut self) {
@@ -289,6 +305,7 @@ impl Slot {
         self.chain_ns = 0;
         self.ready_ns = 0;
         self.due_ns = 0;
+        self.masks = None;
     }
 }
 
@@ -553,6 +570,8 @@ struct FaultStage<'a> {
     degraded: u64,
     error: Option<String>,
     last_t: u64,
+    /// Per-pixel fault masks (`PipelineOptions::masks`).
+    masks: Option<MaskRecorder>,
 }
 
 impl FaultStage<'_> {
@@ -668,11 +687,24 @@ impl FaultStage<'_> {
             self.degraded += 1;
         }
         let t = Instant::now();
-        let result = self.chain.apply(&mut slot.frame, &mut slot.report);
+        let result = match self.masks.as_mut() {
+            Some(rec) => self.chain.apply_recording(&mut slot.frame, &mut slot.report, rec),
+            None => self.chain.apply(&mut slot.frame, &mut slot.report),
+        };
         slot.chain_ns = t.elapsed().as_nanos() as u64;
         self.degrader.restore(&mut self.chain);
         match result {
-            Ok(Outcome::Keep) => slot.state = SlotState::Pending,
+            Ok(Outcome::Keep) => {
+                slot.state = SlotState::Pending;
+                if let (Some(rec), Some(m)) = (self.masks.as_mut(), self.opts.masks.as_ref()) {
+                    // allocation: per frame, only with masks on (PNG/TIFF encoding, file names).
+                    let stem = mask_stem(slot.has_item.then_some(slot.item.as_str()), seq);
+                    match rec.write(&m.dir, &stem) {
+                        Ok(r) => slot.masks = Some(r),
+                        Err(e) => slot.error = Some(e.to_string()),
+                    }
+                }
+            }
             Ok(Outcome::Drop) => slot.state = SlotState::DroppedByFault,
             Err(e) => {
                 slot.state = SlotState::Failed;
@@ -827,7 +859,7 @@ impl SinkStage<'_> {
             dropped_by: slot.report.dropped_by,
             effects: if status == FrameStatus::DroppedOverrun { &[] } else { &slot.report.applied },
             output,
-            masks: None,
+            masks: if status == FrameStatus::Delivered { slot.masks.as_ref() } else { None },
             timing: Some(&timing),
             error,
         };
@@ -1098,6 +1130,7 @@ pub fn run(
         degraded: 0,
         error: None,
         last_t: 0,
+        masks: opts.masks.as_ref().map(|m| MaskRecorder::new(m.opts)),
     };
 
     let sink_end = std::thread::scope(|s| {
