@@ -31,7 +31,11 @@ fn sizes() -> Vec<(u32, u32)> {
             .collect();
     }
     let benchmarking = std::env::args().any(|a| a == "--bench");
-    if benchmarking || std::env::var_os("FAULTCAM_BENCH_FULL").is_some() { FULL_SIZES.to_vec() } else { TEST_SIZES.to_vec() }
+    if benchmarking || std::env::var_os("FAULTCAM_BENCH_FULL").is_some() {
+        FULL_SIZES.to_vec()
+    } else {
+        TEST_SIZES.to_vec()
+    }
 }
 
 fn pool() -> rayon::ThreadPool {

@@ -424,13 +424,14 @@ fn write_tiff_f32(path: &Path, w: u32, h: u32, channels: usize, data: &[f32]) ->
     let res = (|| -> Result<(), String> {
         let file = std::fs::File::create(&tmp).map_err(|e| format!("cannot create {}: {e}", tmp.display()))?;
         let mut buf = std::io::BufWriter::new(file);
-        let mut enc = TiffEncoder::new(&mut buf).map_err(|e| e.to_string())?;
-        if channels == 3 {
-            enc.write_image::<colortype::RGB32Float>(w, h, data).map_err(|e| e.to_string())?;
-        } else {
-            enc.write_image::<colortype::Gray32Float>(w, h, data).map_err(|e| e.to_string())?;
+        {
+            let mut enc = TiffEncoder::new(&mut buf).map_err(|e| e.to_string())?;
+            if channels == 3 {
+                enc.write_image::<colortype::RGB32Float>(w, h, data).map_err(|e| e.to_string())?;
+            } else {
+                enc.write_image::<colortype::Gray32Float>(w, h, data).map_err(|e| e.to_string())?;
+            }
         }
-        drop(enc);
         std::io::Write::flush(&mut buf).map_err(|e| e.to_string())
     })();
     if let Err(e) = res {
@@ -525,7 +526,11 @@ mod tests {
                     }
                 }
                 assert_eq!(rec.changed_pixels(k), changed);
-                assert!(changed > 0 || (names[k] == "channel_shift" && ch == 1), "{format}: {} changed nothing", names[k]);
+                assert!(
+                    changed > 0 || (names[k] == "channel_shift" && ch == 1),
+                    "{format}: {} changed nothing",
+                    names[k]
+                );
                 assert!(changed < (w * h) as u64 || names[k] == "gaussian_noise", "{} changed everything", names[k]);
             }
             for y in 0..h {

@@ -145,26 +145,26 @@ fn main() {
         // Name the culprits: allocations inside each effect of the chain.
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().expect("pool");
         for format in [PixelFormat::Mono8, PixelFormat::Rgb8, PixelFormat::Mono16] {
-          pool.install(|| {
-            let input = bench_scene(320, 240, format, 3).expect("scene");
-            let mut chain = full_chain();
-            let mut obs = PerEffect { start: 0, counts: vec![0; names.len()], names: vec![""; names.len()] };
-            let mut report = FrameReport::default();
-            let mut f = input.clone();
-            for i in 0..WARMUP + MEASURED {
-                f.copy_from(&input);
-                f.seq = i;
-                if i == WARMUP {
-                    obs.counts.iter_mut().for_each(|c| *c = 0);
+            pool.install(|| {
+                let input = bench_scene(320, 240, format, 3).expect("scene");
+                let mut chain = full_chain();
+                let mut obs = PerEffect { start: 0, counts: vec![0; names.len()], names: vec![""; names.len()] };
+                let mut report = FrameReport::default();
+                let mut f = input.clone();
+                for i in 0..WARMUP + MEASURED {
+                    f.copy_from(&input);
+                    f.seq = i;
+                    if i == WARMUP {
+                        obs.counts.iter_mut().for_each(|c| *c = 0);
+                    }
+                    let _ = chain.apply_observed(&mut f, &mut report, &mut obs);
                 }
-                let _ = chain.apply_observed(&mut f, &mut report, &mut obs);
-            }
-            for (n, c) in obs.names.iter().zip(&obs.counts) {
-                if *c > 0 {
-                    eprintln!("alloc: {format}: {c} allocations in {n} over {MEASURED} frames");
+                for (n, c) in obs.names.iter().zip(&obs.counts) {
+                    if *c > 0 {
+                        eprintln!("alloc: {format}: {c} allocations in {n} over {MEASURED} frames");
+                    }
                 }
-            }
-          });
+            });
         }
         eprintln!("alloc: FAILED: allocations per frame in steady state: {}", failures.join("; "));
         std::process::exit(1);

@@ -97,7 +97,8 @@ fn mad(a: &Frame, b: &Frame) -> f64 {
 #[test]
 fn the_change_grows_with_the_strength_parameter() {
     // (effect, parameter, three values from weak to strong, extra settings)
-    let cases: &[(&str, &str, [f64; 3], &[(&str, f64)])] = &[
+    type Case = (&'static str, &'static str, [f64; 3], &'static [(&'static str, f64)]);
+    let cases: &[Case] = &[
         ("lens_flare", "intensity", [0.02, 0.08, 0.3], &[]),
         ("stray_light", "amplitude_dn", [5.0, 30.0, 120.0], &[]),
         ("vignetting", "strength", [0.1, 0.3, 0.8], &[]),
@@ -215,7 +216,10 @@ fn same_seed_same_bytes_on_one_and_two_threads_for_the_whole_library() {
             })
         };
         let one = run(1);
-        assert!(one.iter().any(|o| o.2.as_ref().is_some_and(|f| f.as_u8() != input.as_u8() || f.as_u16() != input.as_u16())));
+        assert!(
+            one.iter()
+                .any(|o| o.2.as_ref().is_some_and(|f| f.as_u8() != input.as_u8() || f.as_u16() != input.as_u16()))
+        );
         assert!(one == run(2), "{format}: output differs between 1 and 2 threads");
     }
 }
@@ -229,7 +233,8 @@ fn register(reference: &[f64], moved: &[f64], w: usize, h: usize) -> (f64, f64) 
         let (fx, fy) = (x - x0, y - y0);
         let (x0, y0) = (x0 as usize, y0 as usize);
         let at = |xx: usize, yy: usize| img[yy * w + xx];
-        (1.0 - fy) * ((1.0 - fx) * at(x0, y0) + fx * at(x0 + 1, y0)) + fy * ((1.0 - fx) * at(x0, y0 + 1) + fx * at(x0 + 1, y0 + 1))
+        (1.0 - fy) * ((1.0 - fx) * at(x0, y0) + fx * at(x0 + 1, y0))
+            + fy * ((1.0 - fx) * at(x0, y0 + 1) + fx * at(x0 + 1, y0 + 1))
     };
     let (mut dx, mut dy) = (0.0f64, 0.0f64);
     for _ in 0..30 {
@@ -274,7 +279,8 @@ fn channel_shift_moves_red_and_blue_by_the_requested_amount_measured_by_registra
     let mut input = Frame::new(w as u32, h as u32, PixelFormat::Rgb8).unwrap();
     for y in 0..h {
         for x in 0..w {
-            let v = 128.0 + waves.iter().map(|&(kx, ky, ph, a)| a * (kx * x as f64 + ky * y as f64 + ph).sin()).sum::<f64>();
+            let v = 128.0
+                + waves.iter().map(|&(kx, ky, ph, a)| a * (kx * x as f64 + ky * y as f64 + ph).sin()).sum::<f64>();
             for c in 0..3 {
                 input.set(x, y, c, v as f32);
             }
@@ -285,7 +291,8 @@ fn channel_shift_moves_red_and_blue_by_the_requested_amount_measured_by_registra
     };
     for shift in [[0.37, -0.81, -1.26, 0.55], [2.5, 1.75, -0.2, -3.1]] {
         let mut f = input.clone();
-        let p = params("channel_shift", &[("dx_r", shift[0]), ("dy_r", shift[1]), ("dx_b", shift[2]), ("dy_b", shift[3])]);
+        let p =
+            params("channel_shift", &[("dx_r", shift[0]), ("dy_r", shift[1]), ("dx_b", shift[2]), ("dy_b", shift[3])]);
         create("channel_shift").unwrap().apply(&mut f, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
         let g = plane(&f, 1);
         assert_eq!(g, plane(&input, 1), "green is the reference and is untouched");
@@ -293,7 +300,9 @@ fn channel_shift_moves_red_and_blue_by_the_requested_amount_measured_by_registra
         let (bx, by) = register(&g, &plane(&f, 2), w, h);
         // +dx moves content right, +dy down. Rounding to whole DN on a texture of ~30 DN
         // contrast limits registration to a few hundredths of a pixel.
-        for (got, want, what) in [(rx, shift[0], "dx_r"), (ry, shift[1], "dy_r"), (bx, shift[2], "dx_b"), (by, shift[3], "dy_b")] {
+        for (got, want, what) in
+            [(rx, shift[0], "dx_r"), (ry, shift[1], "dy_r"), (bx, shift[2], "dx_b"), (by, shift[3], "dy_b")]
+        {
             assert!((got - want).abs() < 0.03, "{what}: registered {got:.4} px, requested {want} px");
         }
     }

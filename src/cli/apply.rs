@@ -174,7 +174,8 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
 
     let mask_dir = args.out.join("masks");
     // allocation: once per run (buffers sized on the first frame)
-    let mut recorder = (args.masks || args.mask_deltas).then(|| MaskRecorder::new(MaskOptions { deltas: args.mask_deltas }));
+    let mut recorder =
+        (args.masks || args.mask_deltas).then(|| MaskRecorder::new(MaskOptions { deltas: args.mask_deltas }));
 
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().context("cannot start worker threads")?;
     let bar = if std::io::stderr().is_terminal() {

@@ -73,8 +73,10 @@ fn thread_cpu_ns() -> u64 {
 
 fn parse_size(s: &str) -> anyhow::Result<(u32, u32)> {
     let (w, h) = s.split_once(['x', 'X']).with_context(|| format!("--size {s}: expected WxH, e.g. 1920x1200"))?;
-    let (w, h): (u32, u32) =
-        (w.parse().with_context(|| format!("--size {s}: bad width"))?, h.parse().with_context(|| format!("--size {s}: bad height"))?);
+    let (w, h): (u32, u32) = (
+        w.parse().with_context(|| format!("--size {s}: bad width"))?,
+        h.parse().with_context(|| format!("--size {s}: bad height"))?,
+    );
     if !(8..=16384).contains(&w) || !(8..=16384).contains(&h) {
         bail!("--size {s}: width and height must be 8..=16384");
     }
@@ -172,7 +174,13 @@ impl ChainObserver for Timer {
 }
 
 /// Time a chain: the whole chain per frame, and each effect inside it.
-fn time_chain(chain: &mut Chain, input: &Frame, a: &Args, threads: usize, per_effect: bool) -> anyhow::Result<Vec<Row>> {
+fn time_chain(
+    chain: &mut Chain,
+    input: &Frame,
+    a: &Args,
+    threads: usize,
+    per_effect: bool,
+) -> anyhow::Result<Vec<Row>> {
     let cpu = threads == 1;
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().context("cannot start worker threads")?;
     let names: Vec<(&'static str, &'static str)> =
@@ -216,8 +224,13 @@ fn time_chain(chain: &mut Chain, input: &Frame, a: &Args, threads: usize, per_ef
                 rows.push(s.row(name.to_string(), stage, px, None, cpu));
             }
         }
-        rows.push(total.row(if per_effect { "chain".into() } else { names.first().map_or("-", |n| n.0).into() },
-            if per_effect { "all" } else { names.first().map_or("-", |n| n.1) }, px, Some(digest), cpu));
+        rows.push(total.row(
+            if per_effect { "chain".into() } else { names.first().map_or("-", |n| n.0).into() },
+            if per_effect { "all" } else { names.first().map_or("-", |n| n.1) },
+            px,
+            Some(digest),
+            cpu,
+        ));
         Ok(rows)
     })
 }
@@ -265,7 +278,7 @@ pub fn run(a: Args) -> anyhow::Result<u8> {
             _ => Err(anyhow::anyhow!("--format {s} is not accepted; expected mono8, rgb8 or mono16")),
         })
         .collect::<anyhow::Result<_>>()?;
-    if a.threads.iter().any(|&t| t == 0) {
+    if a.threads.contains(&0) {
         bail!("--threads must be at least 1");
     }
     let scene = Scene::parse(&a.scene)
@@ -283,7 +296,9 @@ pub fn run(a: Args) -> anyhow::Result<u8> {
             .unwrap_or_default()
     );
     if a.markdown {
-        println!("\n| case | effect | stage | size | format | threads | p50 ms | p99 ms | max ms | cpu p50 ms | Mpx/s | digest |");
+        println!(
+            "\n| case | effect | stage | size | format | threads | p50 ms | p99 ms | max ms | cpu p50 ms | Mpx/s | digest |"
+        );
         println!("|---|---|---|---|---|---|---:|---:|---:|---:|---:|---|");
     }
     for &(w, h) in &sizes {

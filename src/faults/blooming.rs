@@ -920,7 +920,8 @@ mod tests {
         assert!(b.rounds() < DIFFUSION_ROUNDS, "rounds {}", b.rounds());
         assert!(b.fallback_dn() > 1000.0, "the breadth-first fill placed the rest: {}", b.fallback_dn());
         // A small spot: every round makes progress, all rounds run.
-        let small = check_charge(PixelFormat::Mono16, &[("full_well_fraction", 0.8), ("spread_px", 1.5)], &[(60, 45, 3, 3)]);
+        let small =
+            check_charge(PixelFormat::Mono16, &[("full_well_fraction", 0.8), ("spread_px", 1.5)], &[(60, 45, 3, 3)]);
         assert_eq!(small.rounds(), DIFFUSION_ROUNDS);
         for axis in [1.0, 2.0] {
             check_charge(

@@ -295,7 +295,9 @@ fn add_dark<T: Sample>(
         let mut lanes = RngLanes::new(&base.derive(0));
         let mut exact = base.derive(1);
         for row in chunk.chunks_mut(stride) {
-            add_table_noise(&mut row[..row_len], &mut lanes, &table.quant, table.bits, &mut |u| table.resolve(u, &mut exact));
+            add_table_noise(&mut row[..row_len], &mut lanes, &table.quant, table.bits, &mut |u| {
+                table.resolve(u, &mut exact)
+            });
         }
     });
     // Hot pixels: extra Poisson(lambda * (m - 1)) electrons, drawn serially from their own stream.
@@ -350,7 +352,17 @@ mod tests {
             // At most one straddling bucket per count value in the bulk.
             assert!(t.ambiguous_buckets() <= t.cdf.len(), "lambda {lam}");
             // Small means use the small table, the largest the fine one.
-            assert_eq!(t.bits(), if lam < 10.0 { 12 } else if lam > 1000.0 { 16 } else { t.bits() }, "lambda {lam}");
+            assert_eq!(
+                t.bits(),
+                if lam < 10.0 {
+                    12
+                } else if lam > 1000.0 {
+                    16
+                } else {
+                    t.bits()
+                },
+                "lambda {lam}"
+            );
             let mut r = Rng::new(lam.to_bits());
             let n = 200_000;
             let xs: Vec<f64> = (0..n).map(|_| t.sample(r.below(1 << 16) as usize, &mut r) as f64).collect();

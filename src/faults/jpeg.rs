@@ -541,7 +541,10 @@ mod avx2 {
         unsafe {
             let s = _mm256_add_epi32(
                 _mm256_mullo_epi32(r, _mm256_set1_epi32(kr)),
-                _mm256_add_epi32(_mm256_mullo_epi32(g, _mm256_set1_epi32(kg)), _mm256_mullo_epi32(b, _mm256_set1_epi32(kb))),
+                _mm256_add_epi32(
+                    _mm256_mullo_epi32(g, _mm256_set1_epi32(kg)),
+                    _mm256_mullo_epi32(b, _mm256_set1_epi32(kb)),
+                ),
             );
             _mm256_srai_epi32(_mm256_add_epi32(s, _mm256_set1_epi32(add)), 16)
         }
@@ -734,7 +737,11 @@ mod avx2 {
             unsafe {
                 let v = _mm256_loadu_si256(row.as_ptr() as *const __m256i);
                 let bytes = pack8(v);
-                std::ptr::copy_nonoverlapping(bytes.to_le_bytes().as_ptr(), plane.as_mut_ptr().add(off + dy * pitch), 8);
+                std::ptr::copy_nonoverlapping(
+                    bytes.to_le_bytes().as_ptr(),
+                    plane.as_mut_ptr().add(off + dy * pitch),
+                    8,
+                );
             }
         }
     }
@@ -909,12 +916,19 @@ multiversion! {
     }
 }
 
+/// RGB row in; Y, Cb, Cr rows out.
+type ToYcc = fn(&[u8], &mut [u8], &mut [u8], &mut [u8]);
+/// Y, Cb, Cr rows in; RGB row out.
+type ToRgb = fn(&[u8], &[u8], &[u8], &mut [u8]);
+/// Near and far chroma rows, column-sum scratch, upsampled row out.
+type Fancy = fn(&[u8], &[u8], &mut [i32], &mut [u8]);
+
 /// Row converters of one CPU (AVX2 or the scalar references; the same integers either way).
 #[derive(Clone, Copy)]
 struct RowFns {
-    to_ycc: fn(&[u8], &mut [u8], &mut [u8], &mut [u8]),
-    to_rgb: fn(&[u8], &[u8], &[u8], &mut [u8]),
-    fancy: fn(&[u8], &[u8], &mut [i32], &mut [u8]),
+    to_ycc: ToYcc,
+    to_rgb: ToRgb,
+    fancy: Fancy,
 }
 
 fn row_fns() -> RowFns {
@@ -1103,7 +1117,12 @@ impl Jpeg {
                             let yy = (y0 + dy).min(h - 1);
                             let yrow = &mut yp[dy * pw..(dy + 1) * pw];
                             let (cbk, crk) = (&mut cbf[k * pw..(k + 1) * pw], &mut crf[k * pw..(k + 1) * pw]);
-                            (fns.to_ycc)(&src[yy * stride..yy * stride + w * 3], &mut yrow[..w], &mut cbk[..w], &mut crk[..w]);
+                            (fns.to_ycc)(
+                                &src[yy * stride..yy * stride + w * 3],
+                                &mut yrow[..w],
+                                &mut cbk[..w],
+                                &mut crk[..w],
+                            );
                             let (ly, lb, lr) = (yrow[w - 1], cbk[w - 1], crk[w - 1]);
                             yrow[w..].fill(ly);
                             cbk[w..].fill(lb);
@@ -1241,8 +1260,14 @@ mod tests {
                 let block: IBlock = std::array::from_fn(|y| {
                     std::array::from_fn(|x| match trial % 3 {
                         0 => r.below(256) as i32 - 128,
-                        1 => (trial % 256) as i32 - 128,
-                        _ => if (x + y) % 2 == 0 { 127 } else { -128 },
+                        1 => (trial % 256) - 128,
+                        _ => {
+                            if (x + y) % 2 == 0 {
+                                127
+                            } else {
+                                -128
+                            }
+                        }
                     })
                 });
                 let (mut a, mut b) = (block, block);
@@ -1261,7 +1286,8 @@ mod tests {
             let mut r = Rng::new(5);
             for n in (0..70).chain([255, 960, 1921]) {
                 let src: Vec<u8> = (0..3 * n).map(|_| r.below(256) as u8).collect();
-                let (mut a, mut b) = ((vec![0u8; n], vec![0u8; n], vec![0u8; n]), (vec![0u8; n], vec![0u8; n], vec![0u8; n]));
+                let (mut a, mut b) =
+                    ((vec![0u8; n], vec![0u8; n], vec![0u8; n]), (vec![0u8; n], vec![0u8; n], vec![0u8; n]));
                 rgb_to_ycc_row_scalar(&src, &mut a.0, &mut a.1, &mut a.2);
                 // SAFETY: AVX2 is available (checked above).
                 unsafe { avx2::rgb_to_ycc_row(&src, &mut b.0, &mut b.1, &mut b.2) };

@@ -474,7 +474,7 @@ mod tests {
     }
 
     /// Scalar reference: coverage in [0, 1] of ghost `g` at pixel centre (x, y).
-            fn coverage(g: &Ghost, normals: &[(f32, f32)], x: f32, y: f32) -> f32 {
+    fn coverage(g: &Ghost, normals: &[(f32, f32)], x: f32, y: f32) -> f32 {
         let (dx, dy) = (x - g.cx, y - g.cy);
         let d = if normals.is_empty() {
             (dx * dx + dy * dy).sqrt()
@@ -489,10 +489,14 @@ mod tests {
 
     #[test]
     fn row_renderer_equals_the_per_pixel_reference() {
-        for (fmt, blades, opacity) in [(PixelFormat::Rgb8, 6u32, 0.0f32), (PixelFormat::Mono16, 0, 0.4), (PixelFormat::Mono8, 5, 1.0)] {
+        for (fmt, blades, opacity) in
+            [(PixelFormat::Rgb8, 6u32, 0.0f32), (PixelFormat::Mono16, 0, 0.4), (PixelFormat::Mono8, 5, 1.0)]
+        {
             let (w, h) = (150usize, 140usize);
             let mut orig = spot_frame(fmt, 20, 30);
-            orig.as_u8_mut().map(|d| d.iter_mut().enumerate().for_each(|(i, v)| *v = v.saturating_add((i % 97) as u8)));
+            if let Some(d) = orig.as_u8_mut() {
+                d.iter_mut().enumerate().for_each(|(i, v)| *v = v.saturating_add((i % 97) as u8));
+            }
             let ghosts: Vec<Ghost> = (0..4)
                 .map(|k| Ghost {
                     cx: 20.0 + 31.3 * k as f32,

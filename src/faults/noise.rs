@@ -69,7 +69,9 @@ mod avx2 {
     #[inline(always)]
     fn rotl(x: __m256i, k: i32) -> __m256i {
         // SAFETY (and below): only inlined into `add_table_noise`, which enables AVX2.
-        unsafe { _mm256_or_si256(_mm256_sll_epi64(x, _mm_cvtsi32_si128(k)), _mm256_srl_epi64(x, _mm_cvtsi32_si128(64 - k))) }
+        unsafe {
+            _mm256_or_si256(_mm256_sll_epi64(x, _mm_cvtsi32_si128(k)), _mm256_srl_epi64(x, _mm_cvtsi32_si128(64 - k)))
+        }
     }
 
     /// One xoshiro256++ step of the four lanes (the same arithmetic as `RngLanes::next4`).
@@ -98,7 +100,8 @@ mod avx2 {
     ) {
         let st = lanes.state_mut();
         // SAFETY: the state is four [u64; 4] arrays (32 bytes each); unaligned loads.
-        let mut s: [__m256i; 4] = std::array::from_fn(|j| unsafe { _mm256_loadu_si256(st[j].as_ptr() as *const __m256i) });
+        let mut s: [__m256i; 4] =
+            std::array::from_fn(|j| unsafe { _mm256_loadu_si256(st[j].as_ptr() as *const __m256i) });
         let mask = _mm256_set1_epi32(((1u32 << bits) - 1) as i32);
         let marker = _mm256_set1_epi32(RESOLVE);
         let (zero, max) = (_mm256_setzero_si256(), _mm256_set1_epi32(T::MAX_U32 as i32));
@@ -110,12 +113,12 @@ mod avx2 {
             let i_hi = _mm256_and_si256(_mm256_cvtepu16_epi32(_mm256_extracti128_si256(r, 1)), mask);
             // SAFETY: every index is masked to `bits` bits and the table holds 1 << bits entries.
             let (mut q_lo, mut q_hi) = unsafe {
-                (
-                    _mm256_i32gather_epi32::<4>(table.as_ptr(), i_lo),
-                    _mm256_i32gather_epi32::<4>(table.as_ptr(), i_hi),
-                )
+                (_mm256_i32gather_epi32::<4>(table.as_ptr(), i_lo), _mm256_i32gather_epi32::<4>(table.as_ptr(), i_hi))
             };
-            let special = _mm256_movemask_epi8(_mm256_or_si256(_mm256_cmpeq_epi32(q_lo, marker), _mm256_cmpeq_epi32(q_hi, marker)));
+            let special = _mm256_movemask_epi8(_mm256_or_si256(
+                _mm256_cmpeq_epi32(q_lo, marker),
+                _mm256_cmpeq_epi32(q_hi, marker),
+            ));
             if special != 0 {
                 // Rare: resolve the marked lanes in sample order, as the scalar reference does.
                 let (mut ql, mut qh, mut il, mut ih) = ([0i32; 8], [0i32; 8], [0i32; 8], [0i32; 8]);
@@ -142,7 +145,10 @@ mod avx2 {
                 let p = chunk.as_mut_ptr();
                 let (v_lo, v_hi) = if wide {
                     let v = _mm256_loadu_si256(p as *const __m256i);
-                    (_mm256_cvtepu16_epi32(_mm256_castsi256_si128(v)), _mm256_cvtepu16_epi32(_mm256_extracti128_si256(v, 1)))
+                    (
+                        _mm256_cvtepu16_epi32(_mm256_castsi256_si128(v)),
+                        _mm256_cvtepu16_epi32(_mm256_extracti128_si256(v, 1)),
+                    )
                 } else {
                     let v = _mm_loadu_si128(p as *const __m128i);
                     (_mm256_cvtepu8_epi32(v), _mm256_cvtepu8_epi32(_mm_srli_si128(v, 8)))
@@ -179,7 +185,10 @@ mod avx2 {
         unsafe {
             let s = _mm256_add_epi32(v, q);
             // Overflow when q > 0 and the sum is negative.
-            let ovf = _mm256_and_si256(_mm256_cmpgt_epi32(q, _mm256_setzero_si256()), _mm256_cmpgt_epi32(_mm256_setzero_si256(), s));
+            let ovf = _mm256_and_si256(
+                _mm256_cmpgt_epi32(q, _mm256_setzero_si256()),
+                _mm256_cmpgt_epi32(_mm256_setzero_si256(), s),
+            );
             _mm256_blendv_epi8(s, _mm256_set1_epi32(i32::MAX), ovf)
         }
     }
@@ -194,9 +203,16 @@ mod tests {
         let mut r = Rng::new(3);
         for bits in [12u32, 16] {
             // Offsets of either sign and size (clipping at both ends), some entries to resolve.
-            let table: Vec<i32> = (0..1usize << bits)
-                .map(|i| if i % 997 == 5 { RESOLVE } else { (r.below(2 * max as u64 + 1) as i64 - max as i64) as i32 / 3 })
-                .collect();
+            let table: Vec<i32> =
+                (0..1usize << bits)
+                    .map(|i| {
+                        if i % 997 == 5 {
+                            RESOLVE
+                        } else {
+                            (r.below(2 * max as u64 + 1) as i64 - max as i64) as i32 / 3
+                        }
+                    })
+                    .collect();
             for n in [0usize, 1, 15, 16, 17, 100, 1921] {
                 let row: Vec<T> = (0..n).map(|_| T::from_u32_sat(r.below(max as u64 + 1) as u32)).collect();
                 let seed = Rng::new(n as u64 + bits as u64);

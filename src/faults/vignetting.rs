@@ -70,7 +70,14 @@ impl Vignetting {
     }
 }
 
-fn apply_map<T: Sample, const CH: usize>(data: &mut [T], stride: usize, h: usize, w: usize, map: &[f32], rows: &mut [f32]) {
+fn apply_map<T: Sample, const CH: usize>(
+    data: &mut [T],
+    stride: usize,
+    h: usize,
+    w: usize,
+    map: &[f32],
+    rows: &mut [f32],
+) {
     par_bands_with(data, stride, h, rows, w * CH, |_, y0, band, gx| {
         for (i, row) in band_rows(band, stride, w * CH).enumerate() {
             let y = y0 + i;
