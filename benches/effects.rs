@@ -1,7 +1,8 @@
 //! Criterion benchmarks: one group per effect (every registered effect, with the visible
 //! parameters of `faults::kit::bench_params`) and one for the eight-fault chain of the original
 //! study (`hil/campaigns/original8.toml`), at 1280x720, 1920x1200 and 3840x2160, Mono8 and Rgb8,
-//! on a seeded synthetic scene; throughput in pixels.
+//! on a seeded synthetic scene (the `synth:` spacecraft, as `faultcam bench`;
+//! `FAULTCAM_BENCH_SCENE=stress` for the over-exposed stress scene); throughput in pixels.
 //!
 //! `cargo bench --bench effects` measures all sizes. Effects run inside a rayon pool of
 //! `FAULTCAM_BENCH_THREADS` threads (default 1: one core). Each iteration is one frame with a new
@@ -13,7 +14,7 @@
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use faultcam::faults::chain::{Chain, FrameReport};
-use faultcam::faults::kit::{bench_params, bench_scene};
+use faultcam::faults::kit::{Scene, bench_params};
 use faultcam::faults::{EffectCtx, create, registry};
 use faultcam::{FaultConfig, Frame, PixelFormat};
 use std::time::{Duration, Instant};
@@ -38,6 +39,10 @@ fn sizes() -> Vec<(u32, u32)> {
     }
 }
 
+fn scene() -> Scene {
+    std::env::var("FAULTCAM_BENCH_SCENE").ok().and_then(|s| Scene::parse(&s)).unwrap_or(Scene::Spacecraft)
+}
+
 fn pool() -> rayon::ThreadPool {
     let n = std::env::var("FAULTCAM_BENCH_THREADS").ok().and_then(|s| s.parse().ok()).unwrap_or(1);
     rayon::ThreadPoolBuilder::new().num_threads(n).build().expect("rayon pool")
@@ -52,7 +57,7 @@ fn effects(c: &mut Criterion) {
     let sizes = sizes();
     let inputs: Vec<Frame> = sizes
         .iter()
-        .flat_map(|&(w, h)| FORMATS.iter().map(move |&f| bench_scene(w, h, f, 1).expect("scene")))
+        .flat_map(|&(w, h)| FORMATS.iter().map(move |&f| scene().render(w, h, f).expect("scene")))
         .collect();
     for r in registry::all() {
         let name = r.info.name;
@@ -96,7 +101,7 @@ fn chain_original8(c: &mut Criterion) {
     configure(&mut group);
     for (w, h) in sizes() {
         for &format in FORMATS {
-            let input = bench_scene(w, h, format, 1).expect("scene");
+            let input = scene().render(w, h, format).expect("scene");
             let mut chain = Chain::from_config(&cfg).expect("chain");
             let mut frame = input.clone();
             let mut report = FrameReport::default();

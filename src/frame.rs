@@ -134,6 +134,8 @@ impl Sample for u8 {
         self as u32
     }
     #[inline(always)]
+    // `max`/`min` rather than `clamp`: they map NaN to a bound (clamp would keep NaN).
+    #[allow(clippy::manual_clamp)]
     fn from_f32(v: f32) -> Self {
         // Round half up and clip: the same results as the saturating `(v + 0.5) as u8` (NaN gives
         // 0: `max` ignores NaN), written so that the range is explicit and loops vectorise.
@@ -159,6 +161,7 @@ impl Sample for u16 {
         self as u32
     }
     #[inline(always)]
+    #[allow(clippy::manual_clamp)] // NaN-safe, see u8
     fn from_f32(v: f32) -> Self {
         let x = (v + 0.5).max(0.0).min(65535.0);
         // SAFETY: x is finite and in [0, 65535] (NaN became 0 above), so it fits an i32.

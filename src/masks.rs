@@ -21,6 +21,14 @@
 //! `{"labels": "…labels.png", "bits": ["lens_flare", …], "changed_px": [1234, …],
 //!   "deltas": [{"bit": 0, "effect": "lens_flare", "path": "…delta-00-lens_flare.tiff"}]}`.
 //!
+//! Streams (`faultcam run`): create one [`MaskRecorder`] per stream (options from the config's
+//! optional `[masks]` section via [`MaskConfig::from_config`], or from the command line), then per
+//! frame call [`apply_with_masks`] instead of `Chain::apply`: it runs the chain, writes the masks
+//! of a kept frame into the folder as `STEM.*` ([`mask_stem`] gives the files sink's naming) and
+//! returns the [`MaskRecord`] to put in the frame record's `masks` field. Run the fault stage's
+//! loop inside a rayon pool (`pool.install`) so that the effects' parallel work does not go
+//! through rayon's global injector, which allocates.
+//!
 //! Real time: the recorder's buffers (a frame copy, one u32 label per pixel, and with deltas one
 //! i16 (8-bit formats) or i32 (Mono16) per sample and effect) are allocated when the frame size
 //! first appears and reused; recording allocates nothing per frame. Only [`MaskRecorder::write`]
@@ -60,6 +68,66 @@ pub enum MaskError {
     NothingRecorded,
     #[error("masks: cannot write {path}: {reason}")]
     Write { path: String, reason: String },
+    /// The chain failed on the frame (nothing was written).
+    #[error(transparent)]
+    Chain(#[from] crate::faults::FaultError),
+    #[error("[masks].{key}: {reason}")]
+    Config { key: String, reason: String },
+}
+
+/// The optional `[masks]` section of a fault config (for `faultcam run`):
+///
+/// ```toml
+/// [masks]
+/// enabled = true      # default true when the section exists
+/// deltas = false      # also write per-effect delta images
+/// dir = "masks"       # folder (relative paths: relative to the run's output)
+/// ```
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct MaskConfig {
+    pub options: MaskOptions,
+    pub dir: Option<std::path::PathBuf>,
+}
+
+impl MaskConfig {
+    /// Read `[masks]` from a config's extra sections; `None` when absent or `enabled = false`.
+    pub fn from_config(cfg: &crate::config::FaultConfig) -> Result<Option<MaskConfig>, MaskError> {
+        let Some(v) = cfg.extra.get("masks") else { return Ok(None) };
+        let bad = |key: &str, reason: &str| MaskError::Config { key: key.into(), reason: reason.into() };
+        let t = v.as_table().ok_or_else(|| bad("", "must be a table: [masks]"))?;
+        let mut out = MaskConfig { options: MaskOptions::default(), dir: None };
+        let mut enabled = true;
+        for (k, v) in t {
+            match (k.as_str(), v) {
+                ("enabled", toml::Value::Boolean(b)) => enabled = *b,
+                ("deltas", toml::Value::Boolean(b)) => out.options.deltas = *b,
+                ("dir", toml::Value::String(d)) => out.dir = Some(d.into()),
+                ("enabled" | "deltas", _) => return Err(bad(k, "must be true or false")),
+                ("dir", _) => return Err(bad(k, "must be a folder name (string)")),
+                _ => return Err(bad(k, "unknown key; accepted: enabled, deltas, dir")),
+            }
+        }
+        Ok(enabled.then_some(out))
+    }
+}
+
+/// One call per frame for a stream: apply the chain recording masks and, when the frame is
+/// kept, write them to `dir` as `stem.*` (see [`MaskRecorder::write`]). Returns the outcome and
+/// the record for the log (`None` for a dropped frame). Recording allocates nothing per frame;
+/// writing encodes PNG/TIFF files.
+pub fn apply_with_masks(
+    chain: &mut crate::faults::chain::Chain,
+    frame: &mut Frame,
+    report: &mut crate::faults::chain::FrameReport,
+    rec: &mut MaskRecorder,
+    dir: &Path,
+    stem: &str,
+) -> Result<(Outcome, Option<MaskRecord>), MaskError> {
+    let out = chain.apply_recording(frame, report, rec)?;
+    if out == Outcome::Drop {
+        return Ok((out, None));
+    }
+    Ok((out, Some(rec.write(dir, stem)?)))
 }
 
 /// One per-effect delta image.
@@ -424,13 +492,14 @@ fn write_tiff_f32(path: &Path, w: u32, h: u32, channels: usize, data: &[f32]) ->
     let res = (|| -> Result<(), String> {
         let file = std::fs::File::create(&tmp).map_err(|e| format!("cannot create {}: {e}", tmp.display()))?;
         let mut buf = std::io::BufWriter::new(file);
-        let mut enc = TiffEncoder::new(&mut buf).map_err(|e| e.to_string())?;
-        if channels == 3 {
-            enc.write_image::<colortype::RGB32Float>(w, h, data).map_err(|e| e.to_string())?;
-        } else {
-            enc.write_image::<colortype::Gray32Float>(w, h, data).map_err(|e| e.to_string())?;
+        {
+            let mut enc = TiffEncoder::new(&mut buf).map_err(|e| e.to_string())?;
+            if channels == 3 {
+                enc.write_image::<colortype::RGB32Float>(w, h, data).map_err(|e| e.to_string())?;
+            } else {
+                enc.write_image::<colortype::Gray32Float>(w, h, data).map_err(|e| e.to_string())?;
+            }
         }
-        drop(enc);
         std::io::Write::flush(&mut buf).map_err(|e| e.to_string())
     })();
     if let Err(e) = res {
@@ -607,6 +676,37 @@ mod tests {
         }
         let e = chain.apply_recording(&mut f, &mut report, &mut rec).unwrap_err().to_string();
         assert!(e.contains("33 enabled effects") && e.contains("at most 32"), "{e}");
+    }
+
+    #[test]
+    fn config_section_and_one_call_helper() {
+        let cfg = crate::config::FaultConfig::parse(
+            "[[effects]]\nname = \"hot_pixels\"\nrate = 0.01\n\n[masks]\ndeltas = true\ndir = \"m\"\n",
+            "t",
+        )
+        .unwrap();
+        let mc = MaskConfig::from_config(&cfg).unwrap().unwrap();
+        assert_eq!(mc, MaskConfig { options: MaskOptions { deltas: true }, dir: Some("m".into()) });
+        let off = crate::config::FaultConfig::parse("[masks]\nenabled = false\n", "t").unwrap();
+        assert_eq!(MaskConfig::from_config(&off).unwrap(), None);
+        let bad = crate::config::FaultConfig::parse("[masks]\ndelta = true\n", "t").unwrap();
+        assert!(MaskConfig::from_config(&bad).unwrap_err().to_string().contains("[masks].delta: unknown key"));
+        assert_eq!(MaskConfig::from_config(&crate::config::FaultConfig::parse("", "t").unwrap()).unwrap(), None);
+
+        let dir = tempfile::tempdir().unwrap();
+        let mut chain = Chain::from_config(&cfg).unwrap();
+        let mut rec = MaskRecorder::new(mc.options);
+        let mut report = FrameReport::default();
+        let mut f = crate::faults::kit::bench_scene(64, 48, PixelFormat::Mono8, 1).unwrap();
+        let (out, m) = apply_with_masks(&mut chain, &mut f, &mut report, &mut rec, dir.path(), "frame_000000").unwrap();
+        assert_eq!(out, Outcome::Keep);
+        let m = m.unwrap();
+        assert_eq!(m.bits, vec!["hot_pixels"]);
+        assert!(std::path::Path::new(&m.labels).exists() && m.deltas.len() == 1);
+        let mut drop_chain = Chain::new(0);
+        drop_chain.push("frame_drop", params("frame_drop", &[("p", 1.0)])).unwrap();
+        let (out, m) = apply_with_masks(&mut drop_chain, &mut f, &mut report, &mut rec, dir.path(), "x").unwrap();
+        assert_eq!((out, m), (Outcome::Drop, None));
     }
 
     #[test]

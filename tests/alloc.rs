@@ -101,6 +101,14 @@ impl faultcam::faults::chain::ChainObserver for PerEffect {
 }
 
 fn main() {
+    // The counter sees allocations (so a zero below means something).
+    let before = ALLOCATIONS.load(Relaxed);
+    let probe = std::hint::black_box(vec![7u8; 100]);
+    if ALLOCATIONS.load(Relaxed) == before || probe.len() != 100 {
+        eprintln!("alloc: FAILED: the counting allocator did not count an allocation");
+        std::process::exit(1);
+    }
+    drop(probe);
     let mut failures = Vec::new();
     let names: Vec<&str> = registry::all().iter().map(|r| r.info.name).collect();
     println!("alloc: {} effects in the chain: {}", names.len(), names.join(", "));

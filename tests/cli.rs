@@ -79,7 +79,8 @@ fn effects_lists_every_registered_effect_with_units() {
         "{text}"
     );
     let err = faultcam().args(["effects", "--name", "nope"]).assert().code(2).get_output().stderr.clone();
-    assert!(String::from_utf8(err).unwrap().contains("known effects: gain_offset"));
+    let err = String::from_utf8(err).unwrap();
+    assert!(err.contains("known effects: lens_flare,") && err.contains("gain_offset"), "{err}");
 }
 
 #[test]
@@ -382,4 +383,52 @@ fn unknown_effect_error_is_printed_once() {
     let err = String::from_utf8(out).unwrap();
     assert_eq!(err.matches("unknown effect 'jpegg'").count(), 1, "{err}");
     assert!(err.contains("x.toml:1:") && err.contains("jpeg"), "{err}");
+}
+
+#[test]
+fn bench_prints_latency_percentiles_and_the_same_digest_on_one_and_two_threads() {
+    let out = faultcam()
+        .args(["bench", "--faults", "hil/campaigns/original8.toml", "--effect", "gamma", "--set", "gamma.gamma=0.5"])
+        .args(["--size", "96x64", "--format", "mono8,rgb8", "--threads", "1,2", "--frames", "4", "--warmup", "1"])
+        .assert()
+        .success()
+        .get_output()
+        .stdout
+        .clone();
+    let text = String::from_utf8(out).unwrap();
+    assert!(text.contains("p50 ms") && text.contains("p99 ms") && text.contains("max ms"), "{text}");
+    // Digest of the chain's output frames: one per (format, threads); equal across thread counts.
+    let digests = |fmt: &str| -> Vec<String> {
+        let mut cur = String::new();
+        let mut out = Vec::new();
+        for line in text.lines() {
+            if line.starts_with("96x64") {
+                cur = line.to_string();
+            } else if line.trim_start().starts_with("chain (") && cur.contains(fmt) {
+                out.push(line.split_whitespace().last().unwrap().to_string());
+            }
+        }
+        out
+    };
+    for fmt in ["mono8", "rgb8"] {
+        let d = digests(fmt);
+        assert_eq!(d.len(), 2, "{fmt}: {text}");
+        assert_eq!(d[0], d[1], "{fmt}: output differs between 1 and 2 threads");
+        assert_eq!(d[0].len(), 16);
+    }
+    assert!(text.lines().any(|l| l.trim_start().starts_with("lens_flare")), "per-effect rows");
+    let md = faultcam()
+        .args(["bench", "--effect", "vignetting", "--size", "64x48", "--frames", "2", "--markdown"])
+        .assert()
+        .success()
+        .get_output()
+        .stdout
+        .clone();
+    let md = String::from_utf8(md).unwrap();
+    assert!(
+        md.contains("| case | effect |") && md.contains("| single | vignetting | optics | 64x48 | rgb8 | 1 |"),
+        "{md}"
+    );
+    faultcam().args(["bench", "--size", "64x48"]).assert().code(2);
+    faultcam().args(["bench", "--effect", "nope"]).assert().code(2);
 }

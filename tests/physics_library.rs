@@ -97,7 +97,8 @@ fn mad(a: &Frame, b: &Frame) -> f64 {
 #[test]
 fn the_change_grows_with_the_strength_parameter() {
     // (effect, parameter, three values from weak to strong, extra settings)
-    let cases: &[(&str, &str, [f64; 3], &[(&str, f64)])] = &[
+    type Case = (&'static str, &'static str, [f64; 3], &'static [(&'static str, f64)]);
+    let cases: &[Case] = &[
         ("lens_flare", "intensity", [0.02, 0.08, 0.3], &[]),
         ("stray_light", "amplitude_dn", [5.0, 30.0, 120.0], &[]),
         ("vignetting", "strength", [0.1, 0.3, 0.8], &[]),

@@ -278,7 +278,7 @@ pub fn run(a: Args) -> anyhow::Result<u8> {
             _ => Err(anyhow::anyhow!("--format {s} is not accepted; expected mono8, rgb8 or mono16")),
         })
         .collect::<anyhow::Result<_>>()?;
-    if a.threads.iter().any(|&t| t == 0) {
+    if a.threads.contains(&0) {
         bail!("--threads must be at least 1");
     }
     let scene = Scene::parse(&a.scene)

@@ -6,7 +6,7 @@
 //! loaded into a floating-point pool; everything else is never touched (or, with an exposure
 //! gain, only rescaled).
 
-use super::kit::{max_of_row, scale_q16_row};
+use super::kit::{max_of_row, multiversion, scale_q16_row};
 use super::util::gaussian_kernel;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, ImageMut, ImageRef, Sample};
@@ -250,29 +250,7 @@ impl Blooming {
         self.hbuf.resize(TILE * lw, 0.0);
         self.lbuf.clear();
         self.lbuf.resize(lh * lw, 0.0);
-        for ly in 0..TILE {
-            let e_row = &self.exc[s * TT + ly * TILE..][..TILE];
-            let h_row = &mut self.hbuf[ly * lw..][..lw];
-            for (lx, &e) in e_row.iter().enumerate() {
-                if e != 0.0 {
-                    for (o, &k) in h_row[lx..lx + self.kh.len()].iter_mut().zip(&self.kh) {
-                        *o += e * k;
-                    }
-                }
-            }
-        }
-        for ly in 0..TILE {
-            let h_row = &self.hbuf[ly * lw..][..lw];
-            if h_row.iter().all(|&x| x == 0.0) {
-                continue;
-            }
-            for (k, &kw) in self.kv.iter().enumerate() {
-                let l_row = &mut self.lbuf[(ly + k) * lw..][..lw];
-                for (o, &hv) in l_row.iter_mut().zip(h_row) {
-                    *o += hv * kw;
-                }
-            }
-        }
+        scatter_passes(&self.exc[s * TT..(s + 1) * TT], &self.kh, &self.kv, &mut self.hbuf, &mut self.lbuf, lw, 0u8);
         self.exc[s * TT..(s + 1) * TT].iter_mut().for_each(|e| *e = 0.0);
         self.has_exc[s] = false;
         let tid = self.active[s] as usize;
@@ -542,23 +520,73 @@ impl Blooming {
     }
 }
 
+multiversion! {
+    /// Separable spread of one tile's excess (`TILE` x `TILE`) into `lbuf` ((TILE + 2 rv) rows of
+    /// `lw` = TILE + 2 rh): horizontal kernel into `hbuf`, then the vertical kernel.
+    fn scatter_passes<T: Copy>(exc: &[f32], kh: &[f32], kv: &[f32], hbuf: &mut [f32], lbuf: &mut [f32], lw: usize, _t: T) {
+        for ly in 0..TILE {
+            let e_row = &exc[ly * TILE..][..TILE];
+            if e_row.iter().all(|&e| e == 0.0) {
+                continue;
+            }
+            let h_row = &mut hbuf[ly * lw..][..lw];
+            // Tap by tap over the whole row (vectorises): h[lx + j] += kh[j] * e[lx].
+            for (j, &k) in kh.iter().enumerate() {
+                for (o, &e) in h_row[j..j + TILE].iter_mut().zip(e_row) {
+                    *o += e * k;
+                }
+            }
+        }
+        for ly in 0..TILE {
+            let h_row = &hbuf[ly * lw..][..lw];
+            if h_row.iter().all(|&x| x == 0.0) {
+                continue;
+            }
+            for (k, &kw) in kv.iter().enumerate() {
+                let l_row = &mut lbuf[(ly + k) * lw..][..lw];
+                for (o, &hv) in l_row.iter_mut().zip(h_row) {
+                    *o += hv * kw;
+                }
+            }
+        }
+    }
+}
+
+multiversion! {
+    fn merge_tile_mv<T: Copy>(cur: &mut [f32], acc: &mut [f32], exc: &mut [f32], well: f32, out: &mut f32, _t: T) {
+        let mut part = [0f32; 8];
+        for ((c8, a8), e8) in cur.chunks_exact_mut(8).zip(acc.chunks_exact_mut(8)).zip(exc.chunks_exact_mut(8)) {
+            for k in 0..8 {
+                let sum = c8[k] + a8[k];
+                let over = (sum - well).max(0.0);
+                a8[k] = 0.0;
+                e8[k] += over;
+                c8[k] = sum.min(well);
+                part[k] += over;
+            }
+        }
+        *out = part.iter().sum();
+    }
+}
+
+multiversion! {
+    /// Maximum of each `seg`-sample segment of `row` into `out` (one per segment, the last one
+    /// possibly shorter).
+    fn segment_max<T: Sample>(row: &[T], seg: usize, out: &mut [T]) {
+        for (o, s) in out.iter_mut().zip(row.chunks(seg)) {
+            *o = s.iter().fold(T::default(), |m, &v| if v > m { v } else { m });
+        }
+    }
+}
+
 /// Add the received charge `acc` to `cur`, move what exceeds the well into `exc`, clear `acc`;
 /// returns the new excess of the tile. Branch-free with eight partial sums, so it vectorises;
 /// the same values as "if c > W { e += c - W; c = W }".
 #[inline]
 fn merge_tile(cur: &mut [f32], acc: &mut [f32], exc: &mut [f32], well: f32) -> f32 {
-    let mut part = [0f32; 8];
-    for ((c8, a8), e8) in cur.chunks_exact_mut(8).zip(acc.chunks_exact_mut(8)).zip(exc.chunks_exact_mut(8)) {
-        for k in 0..8 {
-            let sum = c8[k] + a8[k];
-            let over = (sum - well).max(0.0);
-            a8[k] = 0.0;
-            e8[k] += over;
-            c8[k] = sum.min(well);
-            part[k] += over;
-        }
-    }
-    part.iter().sum()
+    let mut out = 0.0;
+    merge_tile_mv(cur, acc, exc, well, &mut out, 0u8);
+    out
 }
 
 /// 4-neighbours inside the frame, optionally restricted to one axis.
@@ -646,12 +674,16 @@ impl Blooming {
             let view = img.as_ref();
             let thr_t = T::from_u32_sat(thr);
             self.tile_flags.par_chunks_mut(ntx * ch).enumerate().for_each(|(ty, flags)| {
+                let mut maxes = [T::default(); 512];
                 for y in ty * TILE..((ty + 1) * TILE).min(h) {
                     let row = view.row(y);
+                    // Per-tile maxima of the row in one vectorised call: most tiles are rejected.
+                    let maxes = &mut maxes[..ntx.min(512)];
+                    segment_max(row, TILE * ch, maxes);
                     for (tx, f) in flags.chunks_exact_mut(ch).enumerate() {
                         let seg = &row[tx * TILE * ch..((tx + 1) * TILE).min(w) * ch];
-                        // Contiguous maximum first (vectorised): most tiles are rejected here.
-                        if max_of_row(seg) < thr_t {
+                        let m = if tx < maxes.len() { maxes[tx] } else { max_of_row(seg) };
+                        if m < thr_t {
                             continue;
                         }
                         if ch == 1 {
@@ -745,11 +777,18 @@ impl Blooming {
         let used = stride * (h - 1) + w * ch;
         let (ntx, written, lut) = (w.div_ceil(TILE), &self.tile_written, &self.lut);
         img.data[..used].par_chunks_mut(stride * TILE).enumerate().for_each(|(ty, chunk)| {
+            let untouched = |tx: usize| written[(ty * ntx + tx) * ch..][..ch].iter().all(|&b| !b);
             for row in chunk.chunks_mut(stride) {
-                for tx in 0..ntx {
-                    let seg = &mut row[tx * TILE * ch..((tx + 1) * TILE).min(w) * ch];
+                let mut tx = 0;
+                while tx < ntx {
                     let wr = &written[(ty * ntx + tx) * ch..][..ch];
-                    if wr.iter().all(|&b| !b) {
+                    if untouched(tx) {
+                        // A run of tiles the tile pass did not write: one call for the run.
+                        let mut end = tx + 1;
+                        while end < ntx && untouched(end) {
+                            end += 1;
+                        }
+                        let seg = &mut row[tx * TILE * ch..(end * TILE).min(w) * ch];
                         match fixed {
                             Some(gq) => scale_q16_row(seg, gq),
                             None => {
@@ -758,7 +797,12 @@ impl Blooming {
                                 }
                             }
                         }
-                    } else {
+                        tx = end;
+                        continue;
+                    }
+                    let seg = &mut row[tx * TILE * ch..((tx + 1) * TILE).min(w) * ch];
+                    tx += 1;
+                    {
                         for px in seg.chunks_exact_mut(ch) {
                             for (v, &done) in px.iter_mut().zip(wr) {
                                 if !done {

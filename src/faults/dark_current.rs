@@ -3,8 +3,10 @@
 //! temperature, exposure and sensor age (EMVA 1288 doubling temperature or Arrhenius law).
 //!
 //! Fast Poisson sampler: the inverse CDF of Poisson(λ) is tabulated once per parameter change
-//! on 65536 equiprobable buckets; a 16-bit uniform (four per `next_u64`) picks a bucket. When the
-//! whole bucket maps to one count the table gives it directly; the few buckets that straddle a
+//! on 4096 equiprobable buckets (65536 when more than 1/2 % of the 4096 would straddle a CDF
+//! step, i.e. for large means); the low bits of a 16-bit uniform from the band's [`RngLanes`] pick
+//! a bucket (see [`super::noise`], which also has the AVX2 path). When the whole bucket maps to one
+//! count the table gives it directly; the few buckets that straddle a
 //! step of the CDF (at most one per possible count) are resolved exactly by drawing the position
 //! inside the bucket with a 53-bit uniform and searching the stored CDF. The sampler is therefore
 //! exact (up to f64 rounding of the CDF), not an approximation.
@@ -107,7 +109,10 @@ pub fn arrhenius_factor(t_c: f64, t_ref_c: f64, eg_ev: f64) -> f64 {
 
 /// Marker for a bucket that straddles a CDF step (the noise kernel's "resolve" marker).
 const AMBIGUOUS: i32 = super::noise::RESOLVE;
-const BUCKETS: usize = 1 << 16;
+/// Bucket index bits: 12 (a 16 KB table that stays in L1) when at most 1/2 % of the buckets
+/// straddle a CDF step, else 16 (finer buckets, fewer exact resolutions).
+const SMALL_BITS: u32 = 12;
+const LARGE_BITS: u32 = 16;
 
 /// Exact Poisson sampler for one mean, producing quantised DN offsets.
 #[derive(Default)]
@@ -119,6 +124,8 @@ pub struct PoissonTable {
     /// Per bucket: the DN offset, or AMBIGUOUS.
     quant: Vec<i32>,
     dn_per_e: f64,
+    /// Index bits of the buckets (quant.len() = 1 << bits).
+    bits: u32,
 }
 
 impl PoissonTable {
@@ -143,16 +150,31 @@ impl PoissonTable {
         if let Some(last) = self.cdf.last_mut() {
             *last = 1.0;
         }
+        self.fill_buckets(SMALL_BITS);
+        if self.ambiguous_buckets() * 200 > self.quant.len() {
+            self.fill_buckets(LARGE_BITS);
+        }
+    }
+
+    fn fill_buckets(&mut self, bits: u32) {
+        let buckets = 1usize << bits;
+        self.bits = bits;
         self.quant.clear();
         let mut k = 0usize;
-        for u in 0..BUCKETS {
-            let a = u as f64 / BUCKETS as f64;
-            let b = (u + 1) as f64 / BUCKETS as f64;
+        for u in 0..buckets {
+            let a = u as f64 / buckets as f64;
+            let b = (u + 1) as f64 / buckets as f64;
             while self.cdf[k] <= a {
                 k += 1;
             }
-            self.quant.push(if self.cdf[k] >= b { self.offset(k as u64) } else { AMBIGUOUS });
+            let q = if self.cdf[k] >= b { self.offset(k as u64) } else { AMBIGUOUS };
+            self.quant.push(q);
         }
+    }
+
+    /// Index bits of the bucket table.
+    pub fn bits(&self) -> u32 {
+        self.bits
     }
 
     #[inline]
@@ -163,7 +185,7 @@ impl PoissonTable {
     /// Exact count for a straddling bucket `u`.
     #[cold]
     fn resolve(&self, u: usize, rng: &mut Rng) -> i32 {
-        let x = (u as f64 + rng.uniform()) / BUCKETS as f64;
+        let x = (u as f64 + rng.uniform()) / self.quant.len() as f64;
         let k = self.cdf.partition_point(|&c| c <= x);
         self.offset(k as u64)
     }
@@ -171,8 +193,9 @@ impl PoissonTable {
     /// One quantised sample (DN offset) from a 16-bit uniform and the generator.
     #[inline(always)]
     pub fn sample(&self, u16_uniform: usize, rng: &mut Rng) -> i32 {
-        let q = self.quant[u16_uniform & (BUCKETS - 1)];
-        if q == AMBIGUOUS { self.resolve(u16_uniform & (BUCKETS - 1), rng) } else { q }
+        let u = u16_uniform & (self.quant.len() - 1);
+        let q = self.quant[u];
+        if q == AMBIGUOUS { self.resolve(u, rng) } else { q }
     }
 
     /// Number of straddling buckets (diagnostics and tests).
@@ -266,13 +289,15 @@ fn add_dark<T: Sample>(
     let used = stride * (h - 1) + row_len;
     let max = T::MAX_U32 as i32;
     img.data[..used].par_chunks_mut(stride * ROWS_PER_TASK).enumerate().for_each(|(band, chunk)| {
-        // Band k: 16-bit bucket indices from derive(k).derive(0) (see faults::noise), straddling
+        // Band k: bucket indices from derive(k).derive(0) (see faults::noise), straddling
         // buckets resolved exactly from derive(k).derive(1).
         let base = rng.derive(band as u64);
         let mut lanes = RngLanes::new(&base.derive(0));
         let mut exact = base.derive(1);
         for row in chunk.chunks_mut(stride) {
-            add_table_noise(&mut row[..row_len], &mut lanes, &table.quant, 16, &mut |u| table.resolve(u, &mut exact));
+            add_table_noise(&mut row[..row_len], &mut lanes, &table.quant, table.bits, &mut |u| {
+                table.resolve(u, &mut exact)
+            });
         }
     });
     // Hot pixels: extra Poisson(lambda * (m - 1)) electrons, drawn serially from their own stream.
@@ -326,6 +351,18 @@ mod tests {
             t.prepare(lam, 1.0);
             // At most one straddling bucket per count value in the bulk.
             assert!(t.ambiguous_buckets() <= t.cdf.len(), "lambda {lam}");
+            // Small means use the small table, the largest the fine one.
+            assert_eq!(
+                t.bits(),
+                if lam < 10.0 {
+                    12
+                } else if lam > 1000.0 {
+                    16
+                } else {
+                    t.bits()
+                },
+                "lambda {lam}"
+            );
             let mut r = Rng::new(lam.to_bits());
             let n = 200_000;
             let xs: Vec<f64> = (0..n).map(|_| t.sample(r.below(1 << 16) as usize, &mut r) as f64).collect();

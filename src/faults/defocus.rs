@@ -1,6 +1,6 @@
 //! `defocus`: isotropic Gaussian blur (defocus / diffraction / soft optics), separable.
 
-use super::kit::{ROWS_PER_TASK, band_rows, bands, par_bands_with};
+use super::kit::{ROWS_PER_TASK, axpy_row, band_rows, bands, mirrored_row_f32, par_bands_with, round_row};
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, FrameData, Sample};
 use rayon::prelude::*;
@@ -84,18 +84,11 @@ fn row_pass<T: Sample>(src: &[T], stride: usize, w: usize, ch: usize, k: &[f32],
         for (i, orow) in out.chunks_mut(rl).enumerate() {
             let y = b * ROWS_PER_TASK + i;
             let irow = &src[y * stride..y * stride + rl];
-            for (px, p) in pad.chunks_exact_mut(ch).enumerate() {
-                let sx = mirror(px as isize - r as isize, w);
-                for c in 0..ch {
-                    p[c] = irow[sx * ch + c].to_f32();
-                }
-            }
+            mirrored_row_f32(irow, w, ch, r, pad);
             orow.fill(0.0);
             for (j, &kj) in k.iter().enumerate() {
                 let src = &pad[j * ch..j * ch + rl];
-                for (o, &s) in orow.iter_mut().zip(src) {
-                    *o += kj * s;
-                }
+                axpy_row(orow, kj, src, 0u8);
             }
         }
     });
@@ -111,13 +104,9 @@ fn col_pass<T: Sample>(dst: &mut [T], stride: usize, h: usize, rl: usize, k: &[f
             for (j, &kj) in k.iter().enumerate() {
                 let sy = mirror(y as isize + j as isize - r as isize, h);
                 let src = &tmp[sy * rl..(sy + 1) * rl];
-                for (a, &s) in acc.iter_mut().zip(src) {
-                    *a += kj * s;
-                }
+                axpy_row(acc, kj, src, 0u8);
             }
-            for (o, &a) in orow.iter_mut().zip(acc.iter()) {
-                *o = T::from_f32(a);
-            }
+            round_row(orow, acc);
         }
     });
 }

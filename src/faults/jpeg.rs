@@ -12,6 +12,7 @@
 //! Mono16 uses the AAN float DCT (`jfdctflt` / `jidctflt`) at full precision. `codec = encoder`
 //! runs a real encode/decode through the `image` crate instead (reference; allocates per frame).
 
+use super::kit::multiversion;
 use super::util::ROWS_PER_TASK;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, FrameData, ImageMut, PixelFormat, Sample};
@@ -567,15 +568,30 @@ mod avx2 {
         use super::{CBCR_OFFSET, ONE_HALF, fix};
         let n = y.len().min(cb.len()).min(cr.len()).min(src.len() / 3);
         let mut i = 0;
-        // Each lane gathers 4 bytes (R, G, B and the next pixel's R): stop one pixel early.
-        let idx = _mm256_setr_epi32(0, 3, 6, 9, 12, 15, 18, 21);
-        let m = _mm256_set1_epi32(0xff);
-        while i + 9 <= n {
-            // SAFETY: bytes 3i .. 3i + 25 are inside `src` (i + 9 <= n pixels).
-            let px = unsafe { _mm256_i32gather_epi32::<1>(src.as_ptr().add(3 * i) as *const i32, idx) };
-            let r = _mm256_and_si256(px, m);
-            let g = _mm256_and_si256(_mm256_srli_epi32(px, 8), m);
-            let b = _mm256_and_si256(_mm256_srli_epi32(px, 16), m);
+        // De-interleave eight pixels (24 bytes: a 16-byte and an 8-byte load) with byte shuffles.
+        let (r_lo, r_hi) = (
+            _mm_setr_epi8(0, 3, 6, 9, 12, 15, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1),
+            _mm_setr_epi8(-1, -1, -1, -1, -1, -1, 2, 5, -1, -1, -1, -1, -1, -1, -1, -1),
+        );
+        let (g_lo, g_hi) = (
+            _mm_setr_epi8(1, 4, 7, 10, 13, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1),
+            _mm_setr_epi8(-1, -1, -1, -1, -1, 0, 3, 6, -1, -1, -1, -1, -1, -1, -1, -1),
+        );
+        let (b_lo, b_hi) = (
+            _mm_setr_epi8(2, 5, 8, 11, 14, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1),
+            _mm_setr_epi8(-1, -1, -1, -1, -1, 1, 4, 7, -1, -1, -1, -1, -1, -1, -1, -1),
+        );
+        while i + 8 <= n {
+            // SAFETY: bytes 3i .. 3i + 24 are inside `src` (i + 8 <= n pixels).
+            let (lo, hi) = unsafe {
+                let p = src.as_ptr().add(3 * i);
+                (_mm_loadu_si128(p as *const __m128i), _mm_loadl_epi64(p.add(16) as *const __m128i))
+            };
+            let pick = |a: __m128i, b: __m128i| {
+                _mm256_cvtepu8_epi32(_mm_or_si128(_mm_shuffle_epi8(lo, a), _mm_shuffle_epi8(hi, b)))
+            };
+            let (r, g, b) = (pick(r_lo, r_hi), pick(g_lo, g_hi), pick(b_lo, b_hi));
+            // SAFETY: AVX2 is enabled in this function.
             unsafe {
                 let yv = lin3(r, g, b, fix(0.299), fix(0.587), fix(0.114), ONE_HALF);
                 let cbv = lin3(r, g, b, -fix(0.168_74), -fix(0.331_26), fix(0.5), CBCR_OFFSET + ONE_HALF - 1);
@@ -701,17 +717,31 @@ mod avx2 {
     /// apart), in place.
     #[target_feature(enable = "avx2")]
     pub unsafe fn roundtrip_in_plane(plane: &mut [u8], off: usize, pitch: usize, q: &IQuant) {
+        if off + 7 * pitch + 8 > plane.len() {
+            return;
+        }
         let mut b: IBlock = [[0; 8]; 8];
+        let c128 = _mm256_set1_epi32(128);
         for (dy, row) in b.iter_mut().enumerate() {
-            let src: [u8; 8] = plane[off + dy * pitch..][..8].try_into().unwrap_or([128; 8]);
-            *row = src.map(|v| v as i32 - 128);
+            // SAFETY: the block lies inside `plane` (checked above); unaligned 8-byte load and
+            // 32-byte store into the row.
+            unsafe {
+                let v = _mm256_cvtepu8_epi32(_mm_loadl_epi64(plane.as_ptr().add(off + dy * pitch) as *const __m128i));
+                _mm256_storeu_si256(row.as_mut_ptr() as *mut __m256i, _mm256_sub_epi32(v, c128));
+            }
         }
         // SAFETY: AVX2 is enabled in this function (the caller checked the CPU).
         unsafe { roundtrip(&mut b, q) };
         for (dy, row) in b.iter().enumerate() {
-            let dst = &mut plane[off + dy * pitch..][..8];
-            for (d, &v) in dst.iter_mut().zip(row) {
-                *d = v as u8;
+            // SAFETY: as above; values are in 0..=255 after the range limit.
+            unsafe {
+                let v = _mm256_loadu_si256(row.as_ptr() as *const __m256i);
+                let bytes = pack8(v);
+                std::ptr::copy_nonoverlapping(
+                    bytes.to_le_bytes().as_ptr(),
+                    plane.as_mut_ptr().add(off + dy * pitch),
+                    8,
+                );
             }
         }
     }
@@ -874,12 +904,31 @@ fn fancy_row_scalar(near: &[u8], far: &[u8], cs: &mut [i32], out: &mut [u8]) {
     }
 }
 
+multiversion! {
+    /// libjpeg's h2v2 downsampling: the mean of each 2x2 block with the alternating bias 1, 2, 1,
+    /// 2, ... (`out` has half the width of the rows `a` and `b`).
+    fn downsample_h2v2<T: Copy>(out: &mut [u8], a: &[u8], b: &[u8], _t: T) {
+        for (cx, ((o, pa), pb)) in out.iter_mut().zip(a.chunks_exact(2)).zip(b.chunks_exact(2)).enumerate() {
+            let bias = 1 + (cx & 1) as u32;
+            let sum = pa[0] as u32 + pa[1] as u32 + pb[0] as u32 + pb[1] as u32;
+            *o = ((sum + bias) >> 2) as u8;
+        }
+    }
+}
+
+/// RGB row in; Y, Cb, Cr rows out.
+type ToYcc = fn(&[u8], &mut [u8], &mut [u8], &mut [u8]);
+/// Y, Cb, Cr rows in; RGB row out.
+type ToRgb = fn(&[u8], &[u8], &[u8], &mut [u8]);
+/// Near and far chroma rows, column-sum scratch, upsampled row out.
+type Fancy = fn(&[u8], &[u8], &mut [i32], &mut [u8]);
+
 /// Row converters of one CPU (AVX2 or the scalar references; the same integers either way).
 #[derive(Clone, Copy)]
 struct RowFns {
-    to_ycc: fn(&[u8], &mut [u8], &mut [u8], &mut [u8]),
-    to_rgb: fn(&[u8], &[u8], &[u8], &mut [u8]),
-    fancy: fn(&[u8], &[u8], &mut [i32], &mut [u8]),
+    to_ycc: ToYcc,
+    to_rgb: ToRgb,
+    fancy: Fancy,
 }
 
 fn row_fns() -> RowFns {
@@ -1082,14 +1131,8 @@ impl Jpeg {
                         if sub {
                             let (b0, b1) = cbf.split_at(pw);
                             let (r0, r1) = crf.split_at(pw);
-                            for (cx, (cbo, cro)) in cbrow.iter_mut().zip(crrow.iter_mut()).enumerate() {
-                                let bias = 1 + (cx & 1) as u32;
-                                let i = 2 * cx;
-                                let sb = b0[i] as u32 + b0[i + 1] as u32 + b1[i] as u32 + b1[i + 1] as u32;
-                                let sr = r0[i] as u32 + r0[i + 1] as u32 + r1[i] as u32 + r1[i + 1] as u32;
-                                *cbo = ((sb + bias) >> 2) as u8;
-                                *cro = ((sr + bias) >> 2) as u8;
-                            }
+                            downsample_h2v2(cbrow, b0, b1, 0u8);
+                            downsample_h2v2(crrow, r0, r1, 0u8);
                         } else {
                             cbrow.copy_from_slice(&cbf[..pw]);
                             crrow.copy_from_slice(&crf[..pw]);
@@ -1217,7 +1260,7 @@ mod tests {
                 let block: IBlock = std::array::from_fn(|y| {
                     std::array::from_fn(|x| match trial % 3 {
                         0 => r.below(256) as i32 - 128,
-                        1 => (trial % 256) as i32 - 128,
+                        1 => (trial % 256) - 128,
                         _ => {
                             if (x + y) % 2 == 0 {
                                 127

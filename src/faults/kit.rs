@@ -89,6 +89,52 @@ multiversion! {
 }
 
 multiversion! {
+    /// `out += a * x` element by element (f32, no fused multiply-add: the same rounding on every
+    /// path).
+    pub fn axpy_row<T: Copy>(out: &mut [f32], a: f32, x: &[f32], _t: T) {
+        for (o, &v) in out.iter_mut().zip(x) {
+            *o += a * v;
+        }
+    }
+}
+
+multiversion! {
+    /// `out = x as f32` element by element.
+    pub fn to_f32_row<T: Sample>(out: &mut [f32], x: &[T]) {
+        for (o, &v) in out.iter_mut().zip(x) {
+            *o = v.to_f32();
+        }
+    }
+}
+
+/// Row `irow` (`w` pixels of `ch` samples) as f32 into `pad`, mirrored (half-sample symmetric) by
+/// `r` pixels at both ends: `pad` holds `(w + 2r) * ch` samples, pixel p of `pad` is pixel
+/// mirror(p - r) of the row. The interior is converted in one vectorised call.
+pub fn mirrored_row_f32<T: Sample>(irow: &[T], w: usize, ch: usize, r: usize, pad: &mut [f32]) {
+    to_f32_row(&mut pad[r * ch..(r + w) * ch], &irow[..w * ch]);
+    let n2 = 2 * w as isize;
+    let mirror = |i: isize| {
+        let m = i.rem_euclid(n2);
+        if m >= w as isize { (n2 - 1 - m) as usize } else { m as usize }
+    };
+    for px in (0..r).chain(r + w..w + 2 * r) {
+        let sx = mirror(px as isize - r as isize);
+        for c in 0..ch {
+            pad[px * ch + c] = irow[sx * ch + c].to_f32();
+        }
+    }
+}
+
+multiversion! {
+    /// `out = round(acc)`, clipped to the sample range.
+    pub fn round_row<T: Sample>(out: &mut [T], acc: &[f32]) {
+        for (o, &a) in out.iter_mut().zip(acc) {
+            *o = T::from_f32(a);
+        }
+    }
+}
+
+multiversion! {
     /// Largest sample of a row (`T::default()` for an empty row).
     pub fn max_of_row<T: Sample>(row: &[T]) -> T {
         row.iter().fold(T::default(), |m, &v| if v > m { v } else { m })

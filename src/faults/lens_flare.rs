@@ -277,6 +277,31 @@ impl Effect for LensFlare {
 }
 
 multiversion! {
+    /// Distance measure of the pixels x0, x0 + 1, ... of a row at `dy` from the ghost centre:
+    /// Euclidean (disc, no normals) or, for a polygon, the largest projection on an edge normal
+    /// (normals pre-divided by cos(pi/n), so the boundary sits at d = circumradius).
+    fn distance_row<T: Copy>(d: &mut [f32], x0: usize, cx: f32, dy: f32, normals: &[(f32, f32)], _t: T) {
+        // Pixel columns as i32 -> f32 (exact below 2^24; converts in vector registers).
+        let x0 = x0 as i32;
+        if normals.is_empty() {
+            for (k, v) in (0i32..).zip(d.iter_mut()) {
+                let dx = (x0 + k) as f32 - cx;
+                *v = (dx * dx + dy * dy).sqrt();
+            }
+            return;
+        }
+        d.fill(f32::MIN);
+        for &(nx, ny) in normals {
+            let base = dy * ny;
+            for (k, v) in (0i32..).zip(d.iter_mut()) {
+                let dx = (x0 + k) as f32 - cx;
+                *v = v.max(dx * nx + base);
+            }
+        }
+    }
+}
+
+multiversion! {
     /// Smoothstep coverage of one row segment: `d` holds the distance measure (disc: Euclidean;
     /// polygon: largest normal projection) and becomes the coverage.
     fn coverage_row<T: Copy>(d: &mut [f32], radius: f32, edge: f32, _t: T) {
@@ -329,23 +354,7 @@ fn render<T: Sample>(img: &mut ImageMut<'_, T>, ghosts: &[Ghost], opacity: f32, 
                 for y in y0..y1 {
                     let dy = y as f32 - g.cy;
                     let d = &mut dist[..nx];
-                    if nb == 0 {
-                        for (k, v) in d.iter_mut().enumerate() {
-                            let dx = (x0 + k) as f32 - g.cx;
-                            *v = (dx * dx + dy * dy).sqrt();
-                        }
-                    } else {
-                        // Polygon "radius": largest projection on an edge normal, divided by
-                        // cos(pi/n), so the boundary sits at d = circumradius.
-                        d.fill(f32::MIN);
-                        for &(nx_, ny_) in &normals[..nb] {
-                            let base = dy * ny_;
-                            for (k, v) in d.iter_mut().enumerate() {
-                                let dx = (x0 + k) as f32 - g.cx;
-                                *v = v.max(dx * nx_ + base);
-                            }
-                        }
-                    }
+                    distance_row(d, x0, g.cx, dy, &normals[..nb], 0u8);
                     coverage_row(d, g.radius, g.edge, 0u8);
                     let (ae, le) = (&mut aexp[..nx * ch], &mut lexp[..nx * ch]);
                     for ((a, l), &cov) in ae.chunks_exact_mut(ch).zip(le.chunks_exact_mut(ch)).zip(d.iter()) {
@@ -485,7 +494,9 @@ mod tests {
         {
             let (w, h) = (150usize, 140usize);
             let mut orig = spot_frame(fmt, 20, 30);
-            orig.as_u8_mut().map(|d| d.iter_mut().enumerate().for_each(|(i, v)| *v = v.saturating_add((i % 97) as u8)));
+            if let Some(d) = orig.as_u8_mut() {
+                d.iter_mut().enumerate().for_each(|(i, v)| *v = v.saturating_add((i % 97) as u8));
+            }
             let ghosts: Vec<Ghost> = (0..4)
                 .map(|k| Ghost {
                     cx: 20.0 + 31.3 * k as f32,

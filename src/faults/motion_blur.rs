@@ -1,7 +1,7 @@
 //! `motion_blur`: linear motion during the exposure, a normalised line PSF.
 
 use super::defocus::mirror;
-use super::kit::{band_rows, bands, par_bands_with};
+use super::kit::{axpy_row, band_rows, bands, mirrored_row_f32, par_bands_with, round_row};
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, FrameData, Sample};
 use rayon::prelude::*;
@@ -79,12 +79,7 @@ fn build_padded<T: Sample>(src: &[T], stride: usize, w: usize, h: usize, ch: usi
     padded.par_chunks_mut(pw).enumerate().for_each(|(py, prow)| {
         let sy = mirror(py as isize - r as isize, h);
         let irow = &src[sy * stride..sy * stride + w * ch];
-        for (px, p) in prow.chunks_exact_mut(ch).enumerate() {
-            let sx = mirror(px as isize - r as isize, w);
-            for c in 0..ch {
-                p[c] = irow[sx * ch + c].to_f32();
-            }
-        }
+        mirrored_row_f32(irow, w, ch, r, prow);
     });
 }
 
@@ -109,13 +104,9 @@ fn convolve<T: Sample>(
             for &(dx, dy, wt) in taps {
                 let py = (y as isize + r as isize + dy as isize) as usize;
                 let off = py * pw + (r as isize + dx as isize) as usize * ch;
-                for (a, &s) in acc.iter_mut().zip(&padded[off..off + rl]) {
-                    *a += wt * s;
-                }
+                axpy_row(acc, wt, &padded[off..off + rl], 0u8);
             }
-            for (o, &a) in orow.iter_mut().zip(acc.iter()) {
-                *o = T::from_f32(a);
-            }
+            round_row(orow, acc);
         }
     });
 }

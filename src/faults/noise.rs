@@ -62,7 +62,7 @@ pub fn add_table_noise_scalar<T: Sample>(
 }
 
 #[cfg(target_arch = "x86_64")]
-mod avx2 {
+pub(crate) mod avx2 {
     use super::{RESOLVE, RngLanes, Sample};
     use std::arch::x86_64::*;
 
@@ -75,8 +75,9 @@ mod avx2 {
     }
 
     /// One xoshiro256++ step of the four lanes (the same arithmetic as `RngLanes::next4`).
+    /// Only inline into functions with AVX2 enabled.
     #[inline(always)]
-    fn next4(s: &mut [__m256i; 4]) -> __m256i {
+    pub(crate) fn next4(s: &mut [__m256i; 4]) -> __m256i {
         unsafe {
             let out = _mm256_add_epi64(rotl(_mm256_add_epi64(s[0], s[3]), 23), s[0]);
             let t = _mm256_slli_epi64(s[1], 17);
@@ -90,6 +91,24 @@ mod avx2 {
         }
     }
 
+    /// Load the lanes' state into registers (AVX2 context only).
+    #[inline(always)]
+    pub(crate) fn load_state(lanes: &mut RngLanes) -> [__m256i; 4] {
+        let st = lanes.state_mut();
+        // SAFETY: four [u64; 4] arrays of 32 bytes; unaligned loads.
+        std::array::from_fn(|j| unsafe { _mm256_loadu_si256(st[j].as_ptr() as *const __m256i) })
+    }
+
+    /// Store the registers back into the lanes' state (AVX2 context only).
+    #[inline(always)]
+    pub(crate) fn store_state(lanes: &mut RngLanes, s: &[__m256i; 4]) {
+        let st = lanes.state_mut();
+        for j in 0..4 {
+            // SAFETY: as in `load_state`.
+            unsafe { _mm256_storeu_si256(st[j].as_mut_ptr() as *mut __m256i, s[j]) };
+        }
+    }
+
     #[target_feature(enable = "avx2")]
     pub unsafe fn add_table_noise<T: Sample>(
         row: &mut [T],
@@ -98,16 +117,16 @@ mod avx2 {
         bits: u32,
         resolve: &mut dyn FnMut(usize) -> i32,
     ) {
-        let st = lanes.state_mut();
-        // SAFETY: the state is four [u64; 4] arrays (32 bytes each); unaligned loads.
-        let mut s: [__m256i; 4] =
-            std::array::from_fn(|j| unsafe { _mm256_loadu_si256(st[j].as_ptr() as *const __m256i) });
+        let mut s = load_state(lanes);
         let mask = _mm256_set1_epi32(((1u32 << bits) - 1) as i32);
         let marker = _mm256_set1_epi32(RESOLVE);
         let (zero, max) = (_mm256_setzero_si256(), _mm256_set1_epi32(T::MAX_U32 as i32));
         let wide = T::MAX_U32 > 255;
-        let mut chunks = row.chunks_exact_mut(16);
-        for chunk in &mut chunks {
+        // Chunks holding lanes to resolve are written with offset 0 there and fixed up after the
+        // loop, in sample order (so the hot loop has no call and keeps its registers).
+        let mut pending = Pending::new();
+        let n16 = row.len() / 16 * 16;
+        for ci in 0..n16 / 16 {
             let r = next4(&mut s);
             let i_lo = _mm256_and_si256(_mm256_cvtepu16_epi32(_mm256_castsi256_si128(r)), mask);
             let i_hi = _mm256_and_si256(_mm256_cvtepu16_epi32(_mm256_extracti128_si256(r, 1)), mask);
@@ -115,31 +134,27 @@ mod avx2 {
             let (mut q_lo, mut q_hi) = unsafe {
                 (_mm256_i32gather_epi32::<4>(table.as_ptr(), i_lo), _mm256_i32gather_epi32::<4>(table.as_ptr(), i_hi))
             };
-            let special = _mm256_movemask_epi8(_mm256_or_si256(
-                _mm256_cmpeq_epi32(q_lo, marker),
-                _mm256_cmpeq_epi32(q_hi, marker),
-            ));
-            if special != 0 {
-                // Rare: resolve the marked lanes in sample order, as the scalar reference does.
-                let (mut ql, mut qh, mut il, mut ih) = ([0i32; 8], [0i32; 8], [0i32; 8], [0i32; 8]);
-                // SAFETY: eight i32 per array; unaligned stores and loads.
+            let (m_lo, m_hi) = (_mm256_cmpeq_epi32(q_lo, marker), _mm256_cmpeq_epi32(q_hi, marker));
+            if _mm256_movemask_epi8(_mm256_or_si256(m_lo, m_hi)) != 0 {
+                if pending.full() {
+                    pending.flush(row, resolve);
+                }
+                let mut e = PendingChunk { chunk: ci, orig: [0; 16], idx: [0; 16], q: [0; 16] };
+                for (o, v) in e.orig.iter_mut().zip(&row[ci * 16..ci * 16 + 16]) {
+                    *o = v.to_u32() as i32;
+                }
+                // SAFETY: eight i32 per half; unaligned stores.
                 unsafe {
-                    _mm256_storeu_si256(ql.as_mut_ptr() as *mut __m256i, q_lo);
-                    _mm256_storeu_si256(qh.as_mut_ptr() as *mut __m256i, q_hi);
-                    _mm256_storeu_si256(il.as_mut_ptr() as *mut __m256i, i_lo);
-                    _mm256_storeu_si256(ih.as_mut_ptr() as *mut __m256i, i_hi);
+                    _mm256_storeu_si256(e.q.as_mut_ptr() as *mut __m256i, q_lo);
+                    _mm256_storeu_si256(e.q.as_mut_ptr().add(8) as *mut __m256i, q_hi);
+                    _mm256_storeu_si256(e.idx.as_mut_ptr() as *mut __m256i, i_lo);
+                    _mm256_storeu_si256(e.idx.as_mut_ptr().add(8) as *mut __m256i, i_hi);
                 }
-                for (q, i) in ql.iter_mut().zip(il).chain(qh.iter_mut().zip(ih)) {
-                    if *q == RESOLVE {
-                        *q = resolve(i as usize);
-                    }
-                }
-                // SAFETY: as above.
-                unsafe {
-                    q_lo = _mm256_loadu_si256(ql.as_ptr() as *const __m256i);
-                    q_hi = _mm256_loadu_si256(qh.as_ptr() as *const __m256i);
-                }
+                pending.push(e);
+                q_lo = _mm256_andnot_si256(m_lo, q_lo);
+                q_hi = _mm256_andnot_si256(m_hi, q_hi);
             }
+            let chunk = &mut row[ci * 16..ci * 16 + 16];
             // SAFETY: `chunk` holds 16 samples of T (u8 or u16); unaligned loads and stores.
             unsafe {
                 let p = chunk.as_mut_ptr();
@@ -167,15 +182,52 @@ mod avx2 {
                 }
             }
         }
-        let rest = chunks.into_remainder();
-        // SAFETY: as above.
-        unsafe {
-            for j in 0..4 {
-                _mm256_storeu_si256(st[j].as_mut_ptr() as *mut __m256i, s[j]);
-            }
+        pending.flush(row, resolve);
+        store_state(lanes, &s);
+        if n16 < row.len() {
+            super::add_table_noise_scalar(&mut row[n16..], lanes, table, bits, resolve);
         }
-        if !rest.is_empty() {
-            super::add_table_noise_scalar(rest, lanes, table, bits, resolve);
+    }
+
+    /// A chunk of 16 samples with lanes still to resolve: original samples, indices, offsets.
+    #[derive(Clone, Copy)]
+    struct PendingChunk {
+        chunk: usize,
+        orig: [i32; 16],
+        idx: [i32; 16],
+        q: [i32; 16],
+    }
+
+    /// Fixed-capacity list (no allocation) of chunks to fix up, in row order.
+    struct Pending {
+        items: [PendingChunk; 32],
+        len: usize,
+    }
+
+    impl Pending {
+        fn new() -> Pending {
+            Pending { items: [PendingChunk { chunk: 0, orig: [0; 16], idx: [0; 16], q: [0; 16] }; 32], len: 0 }
+        }
+        fn full(&self) -> bool {
+            self.len == self.items.len()
+        }
+        fn push(&mut self, e: PendingChunk) {
+            self.items[self.len] = e;
+            self.len += 1;
+        }
+        /// Resolve the marked lanes in sample order and rewrite those samples.
+        #[cold]
+        fn flush<T: Sample>(&mut self, row: &mut [T], resolve: &mut dyn FnMut(usize) -> i32) {
+            let max = T::MAX_U32 as i32;
+            for e in &self.items[..self.len] {
+                for j in 0..16 {
+                    if e.q[j] == RESOLVE {
+                        let q = resolve(e.idx[j] as usize);
+                        row[e.chunk * 16 + j] = T::from_u32_sat(e.orig[j].saturating_add(q).clamp(0, max) as u32);
+                    }
+                }
+            }
+            self.len = 0;
         }
     }
 
@@ -201,18 +253,15 @@ mod tests {
 
     fn check<T: Sample + std::fmt::Debug + PartialEq>(max: u32) {
         let mut r = Rng::new(3);
-        for bits in [12u32, 16] {
+        // Sparse entries to resolve (the usual case) and dense ones (many pending chunks per row,
+        // so the fix-up list fills and flushes mid-row).
+        for (bits, every) in [(12u32, 997usize), (16, 997), (12, 7)] {
             // Offsets of either sign and size (clipping at both ends), some entries to resolve.
-            let table: Vec<i32> =
-                (0..1usize << bits)
-                    .map(|i| {
-                        if i % 997 == 5 {
-                            RESOLVE
-                        } else {
-                            (r.below(2 * max as u64 + 1) as i64 - max as i64) as i32 / 3
-                        }
-                    })
-                    .collect();
+            let table: Vec<i32> = (0..1usize << bits)
+                .map(|i| {
+                    if i % every == 5 { RESOLVE } else { (r.below(2 * max as u64 + 1) as i64 - max as i64) as i32 / 3 }
+                })
+                .collect();
             for n in [0usize, 1, 15, 16, 17, 100, 1921] {
                 let row: Vec<T> = (0..n).map(|_| T::from_u32_sat(r.below(max as u64 + 1) as u32)).collect();
                 let seed = Rng::new(n as u64 + bits as u64);

@@ -37,7 +37,7 @@ pub fn create_cosmic() -> Box<dyn Effect> {
 
 #[derive(Default)]
 pub struct CosmicRays {
-    // allocation: grows to the largest number of deposits seen, then reused
+    // allocation: once per (rate, size): room for the deposits of mean + 10 sigma hits
     deposits: Vec<(u32, f32)>,
 }
 
@@ -72,8 +72,14 @@ impl Effect for CosmicRays {
             return Ok(Outcome::Keep);
         }
         let (w, h) = (frame.width as usize, frame.height as usize);
-        let hits = ctx.rng.poisson(rate * (w * h) as f64);
+        let mean_hits = rate * (w * h) as f64;
+        let hits = ctx.rng.poisson(mean_hits);
         self.deposits.clear();
+        // Room for far more hits than a frame will have (mean + 10 sigma + 16: a Poisson count
+        // beyond it has probability < 1e-20), so the buffer stops growing after the first frame.
+        let per_hit = if len <= 0.0 { 1 } else { 4 * (len * 8.0).ceil() as usize };
+        let room = (mean_hits + 10.0 * mean_hits.sqrt() + 16.0) as usize * per_hit;
+        self.deposits.reserve(room.max(hits as usize * per_hit));
         for _ in 0..hits {
             let cx = ctx.rng.uniform() as f32 * w as f32 - 0.5;
             let cy = ctx.rng.uniform() as f32 * h as f32 - 0.5;

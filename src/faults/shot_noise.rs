@@ -200,6 +200,7 @@ fn draw_row_fn() -> fn(&mut [u8], &mut RngLanes, &[u32], &mut [u32]) {
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
     use super::RngLanes;
+    use crate::faults::noise::avx2::{load_state, next4, store_state};
     use std::arch::x86_64::*;
 
     /// AVX2 version of `draw_row_scalar`: eight samples per `next4` (the u32 order of
@@ -211,17 +212,16 @@ mod avx2 {
         }
         let n8 = row.len() / 8 * 8;
         let (m8, m16) = (_mm256_set1_epi32(0xff), _mm256_set1_epi32(0xffff));
-        for chunk in row[..n8].chunks_exact_mut(8) {
-            let r4 = lanes.next4();
-            // SAFETY: r4 is 32 bytes; chunk holds 8 bytes; every index v*256 + cell < 65536.
+        let mut s = load_state(lanes);
+        let draw8 = |chunk: &mut [u8], r: __m256i| {
+            // SAFETY: chunk holds 8 bytes; every index v*256 + cell < 65536 = table.len().
             unsafe {
-                let r = _mm256_loadu_si256(r4.as_ptr() as *const __m256i);
                 let v = _mm256_cvtepu8_epi32(_mm_loadl_epi64(chunk.as_ptr() as *const __m128i));
                 let cell = _mm256_and_si256(r, m8);
                 let idx = _mm256_add_epi32(_mm256_slli_epi32(v, 8), cell);
                 let e = _mm256_i32gather_epi32::<4>(table.as_ptr() as *const i32, idx);
-                // own cell when (r >> 8) & 0xffff < threshold (e >> 8, <= 65536): signed compare is
-                // exact for these non-negative values.
+                // Own cell when (r >> 8) & 0xffff < threshold (e >> 8, <= 65536): a signed compare
+                // is exact for these non-negative values.
                 let own = _mm256_cmpgt_epi32(_mm256_srli_epi32(e, 8), _mm256_and_si256(_mm256_srli_epi32(r, 8), m16));
                 let out = _mm256_blendv_epi8(_mm256_and_si256(e, m8), cell, own);
                 let p16 = _mm256_packus_epi32(out, out);
@@ -230,7 +230,19 @@ mod avx2 {
                 let hi = _mm256_extract_epi32(p8, 4) as u32 as u64;
                 chunk.copy_from_slice(&(lo | hi << 32).to_le_bytes());
             }
+        };
+        // Sixteen samples per iteration: two independent gathers in flight.
+        let mut pairs = row[..n8].chunks_exact_mut(16);
+        for pair in &mut pairs {
+            let (r0, r1) = (next4(&mut s), next4(&mut s));
+            let (a, b) = pair.split_at_mut(8);
+            draw8(a, r0);
+            draw8(b, r1);
         }
+        for chunk in pairs.into_remainder().chunks_exact_mut(8) {
+            draw8(chunk, next4(&mut s));
+        }
+        store_state(lanes, &s);
         if n8 < row.len() {
             super::draw_row_scalar(&mut row[n8..], lanes, table, rand);
         }
