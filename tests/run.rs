@@ -390,3 +390,36 @@ fn write_cfg_named(dir: &Path, name: &str, text: &str) -> std::path::PathBuf {
     std::fs::write(&p, text).unwrap();
     p
 }
+
+#[test]
+fn masks_section_of_the_config_enables_masks_next_to_the_log() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = write_cfg(
+        dir.path(),
+        "seed = 2\n[[effects]]\nname = \"hot_pixels\"\nrate = 0.002\n\n[masks]\ndeltas = true\ndir = \"m\"\n",
+    );
+    let log = dir.path().join("run").join("gt.jsonl");
+    std::fs::create_dir_all(log.parent().unwrap()).unwrap();
+    ok(faultcam()
+        .args(["--source", "synth:?width=64&height=48&frames=3&seed=1", "--sink", "null:", "--faults"])
+        .arg(&cfg)
+        .arg("--log")
+        .arg(&log));
+    let recs = records(&log);
+    let fr = frames(&recs);
+    assert_eq!(fr.len(), 3);
+    for r in fr {
+        let labels = Path::new(r["masks"]["labels"].as_str().unwrap()).to_path_buf();
+        assert!(labels.starts_with(dir.path().join("run").join("m")), "{}", labels.display());
+        assert!(labels.exists());
+        let d = r["masks"]["deltas"].as_array().unwrap();
+        assert_eq!(d.len(), 1, "hot_pixels delta image");
+        assert!(Path::new(d[0]["path"].as_str().unwrap()).exists());
+    }
+    // A bad key in [masks] is an error naming it, at --check and at run time.
+    let bad = write_cfg_named(dir.path(), "bad.toml", "[masks]\ndelta = true\n");
+    let out = faultcam().args(["--check", "--faults"]).arg(&bad).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("[masks].delta") && err.contains("accepted: enabled, deltas, dir"), "{err}");
+}

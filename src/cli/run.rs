@@ -173,6 +173,7 @@ pub fn summary_line(s: &Summary) -> String {
 
 fn check(args: &Args, cfg: &FaultConfig) -> anyhow::Result<u8> {
     let campaign = Campaign::from_config(cfg)?;
+    faultcam::masks::MaskConfig::from_config(cfg).with_context(|| format!("{}", args.faults.display()))?;
     let effects: Vec<String> = cfg.effects.iter().map(|e| e.name.clone()).collect();
     println!(
         "{}: ok: {} effects ({}), {} events, trigger names: {}",
@@ -230,6 +231,22 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         (None, true) => Pacing::Timestamps,
         (None, false) => Pacing::Free,
     };
+    let log_path = args.log.clone().unwrap_or_else(|| default_log(sink_uri));
+    // Masks: --masks DIR, else the config's [masks] section (a relative `dir`, default "masks",
+    // is taken relative to the ground-truth log's folder).
+    let mask_settings = match &args.masks {
+        Some(dir) => Some(pipeline::MaskSettings {
+            dir: dir.clone(),
+            opts: faultcam::masks::MaskOptions { deltas: args.mask_deltas },
+        }),
+        None => faultcam::masks::MaskConfig::from_config(&cfg)
+            .with_context(|| format!("{}", args.faults.display()))?
+            .map(|mc| {
+                let dir = mc.dir.unwrap_or_else(|| PathBuf::from("masks"));
+                let dir = if dir.is_absolute() { dir } else { log_path.parent().unwrap_or(Path::new("")).join(dir) };
+                pipeline::MaskSettings { dir, opts: mc.options }
+            }),
+    };
     let stop = Arc::new(AtomicBool::new(false));
     // First SIGINT/SIGTERM: stop cleanly (finish the frames in flight, write the summary);
     // a second one while stopping ends the process at once.
@@ -252,18 +269,15 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
             Some(p) => anyhow::bail!("--progress-s {p} is not accepted; accepted: a positive number of seconds"),
             None => None,
         },
-        masks: args.masks.as_ref().map(|dir| pipeline::MaskSettings {
-            dir: dir.clone(),
-            opts: faultcam::masks::MaskOptions { deltas: args.mask_deltas },
-        }),
+        masks: mask_settings.clone(),
         ..Default::default()
     };
     opts.validate()?;
-    if let Some(dir) = &args.masks {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create the masks folder {}", dir.display()))?;
+    if let Some(m) = &mask_settings {
+        std::fs::create_dir_all(&m.dir)
+            .with_context(|| format!("cannot create the masks folder {}", m.dir.display()))?;
     }
 
-    let log_path = args.log.clone().unwrap_or_else(|| default_log(sink_uri));
     let mut log = faultcam::gtlog::GroundTruthLog::create(&log_path)
         .with_context(|| format!("cannot create {}", log_path.display()))?;
     eprintln!("faultcam: source {}", src.describe());
@@ -287,7 +301,7 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         "threads": threads,
         "trigger": args.trigger,
         "replay_triggers": args.replay_triggers.as_ref().map(|p| p.display().to_string()),
-        "masks": args.masks.as_ref().map(|p| p.display().to_string()),
+        "masks": mask_settings.as_ref().map(|m| m.dir.display().to_string()),
     }))?;
     let summary = pipeline::run(src, snk, chain, controllers, &opts, &mut log)?;
     drop(log);
