@@ -40,6 +40,8 @@ pub struct TestRow {
     pub detected: bool,
     pub size: f64,
     pub size_unit: String,
+    #[serde(rename = "where")]
+    pub where_: String,
     pub evidence: String,
 }
 
@@ -55,6 +57,8 @@ pub struct Report {
     /// deterministic part, since no model can predict the real noise pixel by pixel.
     pub rmse_after_with_noise: f64,
     pub tests: Vec<TestRow>,
+    /// Every forward-model test of the selection (paired mode).
+    pub selection: Vec<super::select::Evidence>,
     pub dropped: Vec<String>,
     pub notes: Vec<String>,
 }
@@ -97,9 +101,11 @@ pub fn build(pairs: &[Pair], loc: &Located, fitted: &Fitted, mut notes: Vec<Stri
                 detected: s.detected,
                 size: round_sig(s.size, 5),
                 size_unit: s.size_unit.to_string(),
+                where_: s.where_.clone(),
                 evidence: s.evidence.clone(),
             })
             .collect(),
+        selection: fitted.selection_tests.clone(),
         dropped: fitted.dropped.clone(),
         notes,
     }

@@ -18,6 +18,7 @@ pub fn run(
         pairs: sims.len().min(reals.len()),
         rmse_after_with_noise: f64::NAN,
         tests: Vec::new(),
+        selection: Vec::new(),
         dropped: Vec::new(),
         notes: vec!["unpaired mode not implemented yet".into()],
     };
