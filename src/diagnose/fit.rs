@@ -278,6 +278,14 @@ fn stochastic_tests(
         pairs.iter().zip(model).map(|(p, m)| p.real.iter().zip(m).map(|(r, q)| r.sub(q)).collect()).collect();
     let mut row = fixed::row_noise(pairs, &loc.masks, &quiet, &resid, model, &noise2);
     row.detected = row.z > z;
+    // Row offsets are part of the per-pixel variance: measure the camera noise without them.
+    let noise2 = if row.detected {
+        let offsets = fixed::row_offsets(pairs, &loc.masks, &resid, &hot);
+        let c = if prnu.detected { prnu_c } else { 0.0 };
+        noise::estimate_with_rows(pairs, &loc.masks, model, loc.quant, c, Some(&hot), Some(&offsets))
+    } else {
+        noise2
+    };
     let mut jp = jpeg::test(pairs);
     jp.detected = jp.z > z.max(8.0) && jp.param("quality").unwrap_or(100.0) < 98.0;
     let (gaussian, shot) = locate::camera_noise(&noise2, z);

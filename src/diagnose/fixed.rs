@@ -9,7 +9,7 @@
 
 use super::img::{FS, Pair, Plane};
 use super::locate::Masks;
-use super::noise::NoiseModel;
+use super::noise::{NoiseModel, RowOffsets};
 use super::stats::{self, Wls};
 use super::{Profile, Signature};
 
@@ -213,6 +213,48 @@ pub fn hot_pixels(
         if recurrence { " in at least two frames" } else { "" }
     );
     (sig, cand, mean_excess)
+}
+
+/// Row-to-row fluctuation of the residual (median of each row, less a running median over nine
+/// rows), per frame and channel.
+pub fn row_offsets(pairs: &[Pair], masks: &[Masks], resid: &[Vec<Plane>], hot: &[Vec<bool>]) -> RowOffsets {
+    pairs
+        .iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let (w, h) = (p.w(), p.h());
+            (0..p.channels())
+                .map(|c| {
+                    let rr = &resid[k][c].data;
+                    let real = &p.real[c].data;
+                    let med: Vec<f64> = (0..h)
+                        .map(|y| {
+                            let v: Vec<f64> = (0..w)
+                                .map(|x| y * w + x)
+                                .filter(|&i| {
+                                    real[i] > 0.0 && real[i] < FS && !hot[k][i] && masks[k].dist_sat[i] > 3.0
+                                })
+                                .map(|i| rr[i] as f64)
+                                .collect();
+                            if v.len() >= 8 { stats::median(&v) } else { f64::NAN }
+                        })
+                        .collect();
+                    (0..h)
+                        .map(|y| {
+                            if !med[y].is_finite() {
+                                return 0.0;
+                            }
+                            let win: Vec<f64> = (y.saturating_sub(4)..(y + 5).min(h))
+                                .map(|j| med[j])
+                                .filter(|v| v.is_finite())
+                                .collect();
+                            (med[y] - stats::median(&win)) as f32
+                        })
+                        .collect()
+                })
+                .collect()
+        })
+        .collect()
 }
 
 /// Row noise by split-half covariance of detrended row means.

@@ -123,9 +123,8 @@ const NBINS: usize = 64;
 /// Largest Laplacian (DN) of the base in a 3x3 neighbourhood for a high-pass sample.
 pub const QUIET_LAPLACIAN: f32 = 2.0;
 
-/// Per-pixel "quiet" mask of a set of base planes: the 4-neighbour Laplacian stays within
-/// `limit` DN over the 3x3 neighbourhood, in every channel.
-pub fn quiet_mask(base: &[Plane], limit: f32) -> Vec<bool> {
+/// Largest |Laplacian| (DN) of the base over the 3x3 neighbourhood, in any channel.
+pub fn laplacian3(base: &[Plane]) -> Vec<f32> {
     let (w, h) = (base[0].w, base[0].h);
     let mut lap = Plane::new(w, h);
     for p in base {
@@ -141,18 +140,33 @@ pub fn quiet_mask(base: &[Plane], limit: f32) -> Vec<bool> {
             }
         }
     }
-    lap.extreme_filter(1, true).data.iter().map(|&v| v <= limit).collect()
+    lap.extreme_filter(1, true).data
 }
 
-/// High-pass samples per level bin.
+/// Per-pixel "quiet" mask of a set of base planes: the 4-neighbour Laplacian stays within
+/// `limit` DN over the 3x3 neighbourhood, in every channel.
+pub fn quiet_mask(base: &[Plane], limit: f32) -> Vec<bool> {
+    laplacian3(base).iter().map(|&v| v <= limit).collect()
+}
+
+/// Laplacian limit for level bins that quiet pixels do not populate (textured scenes): the
+/// residual of a fitted model is noise there too, at the price of a little leakage of misfit.
+pub const TEXTURED_LAPLACIAN: f32 = 8.0;
+
+/// Per-row offsets (frame, channel, row) removed from the residual (row noise).
+pub type RowOffsets = Vec<Vec<Vec<f32>>>;
+
+/// High-pass samples per level bin: (quiet samples, textured samples).
 fn collect(
     pairs: &[Pair],
     masks: &[Masks],
     base: &[Vec<Plane>],
-    quiet: &[Vec<bool>],
+    lap: &[Vec<f32>],
     skip: Option<&[Vec<bool>]>,
-) -> Vec<Vec<f32>> {
-    let mut bins: Vec<Vec<f32>> = vec![Vec::new(); NBINS];
+    rows: Option<&RowOffsets>,
+) -> (Vec<Vec<f32>>, Vec<Vec<f32>>) {
+    let mut quiet_bins: Vec<Vec<f32>> = vec![Vec::new(); NBINS];
+    let mut tex_bins: Vec<Vec<f32>> = vec![Vec::new(); NBINS];
     for (k, p) in pairs.iter().enumerate() {
         let m = &masks[k];
         let (w, h) = (p.w(), p.h());
@@ -161,13 +175,16 @@ fn collect(
         for c in 0..p.channels() {
             let s = &base[k][c].data;
             let r = &p.real[c].data;
+            let off = |y: usize| rows.map(|ro| ro[k][c][y]).unwrap_or(0.0);
             for y in 1..h.saturating_sub(1) {
                 if y % step != 0 {
                     continue;
                 }
+                let (o0, om, op) = (off(y), off(y - 1), off(y + 1));
                 for x in 1..w - 1 {
                     let i = y * w + x;
-                    if !quiet[k][i] || m.dist_sat[i] <= 3.0 {
+                    let l = lap[k][i];
+                    if l > TEXTURED_LAPLACIAN || m.dist_sat[i] <= 3.0 {
                         continue;
                     }
                     let nb = [i - 1, i + 1, i - w, i + w];
@@ -180,14 +197,18 @@ fn collect(
                         continue;
                     }
                     let d = |j: usize| r[j] - s[j];
-                    let hp = d(i) - 0.25 * (d(i - 1) + d(i + 1) + d(i - w) + d(i + w));
+                    let hp = (d(i) - o0) - 0.25 * (d(i - 1) + d(i + 1) - 2.0 * o0 + d(i - w) - om + d(i + w) - op);
                     let b = ((s[i].max(0.0) as f64 / BIN) as usize).min(NBINS - 1);
-                    bins[b].push(hp);
+                    if l <= QUIET_LAPLACIAN {
+                        quiet_bins[b].push(hp);
+                    } else {
+                        tex_bins[b].push(hp);
+                    }
                 }
             }
         }
     }
-    bins
+    (quiet_bins, tex_bins)
 }
 
 /// Interval-censored normal fit of `real = round(clip(base + mu + n))`, n ~ N(0, sigma²), from
@@ -237,12 +258,14 @@ pub fn censored_offset_fit(obs: &[(f32, f32)], q: f64) -> Option<(f64, f64, f64,
 }
 
 /// Censored fits of the dark blocks.
+#[allow(clippy::too_many_arguments)]
 fn low_blocks(
     pairs: &[Pair],
     masks: &[Masks],
     base: &[Vec<Plane>],
-    quiet: &[Vec<bool>],
+    lap: &[Vec<f32>],
     skip: Option<&[Vec<bool>]>,
+    rows: Option<&RowOffsets>,
     low_level: f64,
     quant: f64,
 ) -> Vec<LowBlock> {
@@ -264,14 +287,17 @@ fn low_blocks(
                         for x in bx * B..((bx + 1) * B).min(w) {
                             let i = y * w + x;
                             if s[i] as f64 > low_level
-                                || !quiet[k][i]
+                                || lap[k][i] > QUIET_LAPLACIAN
                                 || m.dist_sat[i] <= 12.0
                                 || m.dist_edge[i] <= 3.0
                                 || skip.is_some_and(|sk| sk[k][i])
                             {
                                 continue;
                             }
-                            obs.push((s[i], r[i]));
+                            // With row offsets removed, the base carries them (the censoring
+                            // happens on the observed value).
+                            let o = rows.map(|ro| ro[k][c][y]).unwrap_or(0.0);
+                            obs.push((s[i] + o, r[i]));
                             sx += x as f64;
                             sy += y as f64;
                         }
@@ -318,15 +344,32 @@ pub fn estimate(
     prnu_c: f64,
     skip: Option<&[Vec<bool>]>,
 ) -> NoiseModel {
-    let quiet: Vec<Vec<bool>> = base.iter().map(|b| quiet_mask(b, QUIET_LAPLACIAN)).collect();
-    let raw = collect(pairs, masks, base, &quiet, skip);
+    estimate_with_rows(pairs, masks, base, quant, prnu_c, skip, None)
+}
+
+/// [`estimate`] with per-row offsets (row noise) taken out of the residual first.
+pub fn estimate_with_rows(
+    pairs: &[Pair],
+    masks: &[Masks],
+    base: &[Vec<Plane>],
+    quant: f64,
+    prnu_c: f64,
+    skip: Option<&[Vec<bool>]>,
+    rows: Option<&RowOffsets>,
+) -> NoiseModel {
+    let lap: Vec<Vec<f32>> = base.iter().map(|b| laplacian3(b)).collect();
+    let (quiet_raw, tex_raw) = collect(pairs, masks, base, &lap, skip, rows);
     let q12 = quant * quant / 12.0;
     let mut bins = Vec::new();
-    for (i, v) in raw.iter().enumerate() {
-        if v.len() < 100 {
+    for (i, (qv, tv)) in quiet_raw.iter().zip(&tex_raw).enumerate() {
+        // Quiet pixels where there are enough; textured ones fill the levels they do not cover.
+        let vv: Vec<f64> = if qv.len() >= 100 {
+            qv.iter().map(|&x| x as f64).collect()
+        } else if qv.len() + tv.len() >= 100 {
+            qv.iter().chain(tv).map(|&x| x as f64).collect()
+        } else {
             continue;
-        }
-        let vv: Vec<f64> = v.iter().map(|&x| x as f64).collect();
+        };
         let (var, n) = stats::clipped_variance(&vv, 5.0);
         if var.is_finite() {
             bins.push(NoiseBin { level: (i as f64 + 0.5) * BIN, var: (var / 1.25 - q12).max(0.0), n });
@@ -336,7 +379,7 @@ pub fn estimate(
     let sd_guess = bins.iter().take(3).map(|b| b.var).fold(f64::NAN, f64::min).max(0.25).sqrt();
     let sd_guess = if sd_guess.is_finite() { sd_guess } else { 2.0 };
     let low_level = (4.0 * sd_guess).clamp(3.0, 24.0);
-    let low = low_blocks(pairs, masks, base, &quiet, skip, low_level, quant);
+    let low = low_blocks(pairs, masks, base, &lap, skip, rows, low_level, quant);
     let mut model = NoiseModel::prior(quant);
     model.c = prnu_c;
     model.bins = bins;
