@@ -258,6 +258,7 @@ fn stochastic_tests(
     loc: &Located,
     model: &[Vec<Plane>],
     z_det: f64,
+    jpeg_present: bool,
 ) -> (Stochastic, Vec<Vec<bool>>) {
     // These statistics have a null distribution that does not depend on any model (covariances
     // between independent measurements, recurrence), so they need less margin than the
@@ -266,9 +267,19 @@ fn stochastic_tests(
     let quiet: Vec<Vec<bool>> = model.iter().map(|m| noise::quiet_mask(m, noise::QUIET_LAPLACIAN)).collect();
     let (mut hot_sig, hot, _) = fixed::hot_pixels(pairs, &loc.masks, &quiet, model, &loc.noise);
     hot_sig.detected = hot_sig.z > z && hot_sig.size > 0.0;
+    // JPEG blocks and ringing mimic fixed patterns and row structure: those tests are not
+    // trusted under compression.
+    let under_jpeg = |s: &mut Signature| {
+        if jpeg_present {
+            s.detected = false;
+            s.evidence.push_str(" (not tested under JPEG compression: block artefacts mimic it)");
+        }
+    };
+    under_jpeg(&mut hot_sig);
     let noise1 = noise::estimate(pairs, &loc.masks, model, loc.quant, 0.0, Some(&hot));
     let (mut prnu, prnu_c) = fixed::prnu(pairs, &loc.masks, &quiet, model, &noise1, &hot);
     prnu.detected = prnu.z > z;
+    under_jpeg(&mut prnu);
     let noise2 = if prnu.detected && prnu_c > 0.0 {
         noise::estimate(pairs, &loc.masks, model, loc.quant, prnu_c, Some(&hot))
     } else {
@@ -278,6 +289,7 @@ fn stochastic_tests(
         pairs.iter().zip(model).map(|(p, m)| p.real.iter().zip(m).map(|(r, q)| r.sub(q)).collect()).collect();
     let mut row = fixed::row_noise(pairs, &loc.masks, &quiet, &resid, model, &noise2);
     row.detected = row.z > z;
+    under_jpeg(&mut row);
     // Row offsets are part of the per-pixel variance: measure the camera noise without them.
     let noise2 = if row.detected {
         let offsets = fixed::row_offsets(pairs, &loc.masks, &resid, &hot);
@@ -286,10 +298,68 @@ fn stochastic_tests(
     } else {
         noise2
     };
-    let mut jp = jpeg::test(pairs);
-    jp.detected = jp.z > z.max(8.0) && jp.param("quality").unwrap_or(100.0) < 98.0;
     let (gaussian, shot) = locate::camera_noise(&noise2, z);
-    (Stochastic { noise: noise2, hot_sig, prnu, row, jpeg: jp, gaussian, shot }, hot)
+    (Stochastic { noise: noise2, hot_sig, prnu, row, jpeg: Signature::new("jpeg"), gaussian, shot }, hot)
+}
+
+/// Camera noise under JPEG: the compression removes part of the noise, so the variance measured
+/// on the real images is that of noise *after* JPEG. Read-noise sigma and conversion gain are
+/// found by moment matching through the library's forward models: the fitted deterministic model
+/// of a few pairs is pushed through shot_noise, gaussian_noise and jpeg with trial parameters,
+/// the same noise measurement is made on the result, and the parameters are scaled until it
+/// matches the real one. Returns (sigma_dn, gain_e_per_dn).
+fn noise_through_jpeg(
+    pairs: &[Pair],
+    loc: &Located,
+    model: &[Vec<Plane>],
+    measured: &NoiseModel,
+    jpeg: Params,
+    seed: u64,
+) -> Result<(f64, Option<f64>), DiagnoseError> {
+    let idx = choose_frames(pairs, 3);
+    let (a_t, b_t) = (measured.a.max(1e-3), measured.b);
+    let (mut a, mut b) = (a_t, b_t);
+    for it in 0..5 {
+        let mut ps = Vec::new();
+        if b > 1e-4
+            && let Some(r) = registry::find("shot_noise")
+        {
+            let mut p = Params::defaults(r.info);
+            let _ = p.set("gain_e_per_dn", (1.0 / b).clamp(0.01, 1e6));
+            ps.push(p);
+        }
+        if let Some(r) = registry::find("gaussian_noise") {
+            let mut p = Params::defaults(r.info);
+            let _ = p.set("sigma_dn", a.sqrt().clamp(0.0, 64.0));
+            ps.push(p);
+        }
+        ps.push(jpeg);
+        let cfg = FaultConfig::from_effects(seed ^ (it as u64 + 17), ps);
+        let mut sims = Vec::new();
+        let mut masks = Vec::new();
+        let mut bases = Vec::new();
+        for &k in &idx {
+            let p = &pairs[k];
+            let mut f = frame_from_planes(&model[k], &p.real_frame);
+            f.seq = k as u64;
+            let out = apply_config(&cfg, &f)?;
+            sims.push(Pair {
+                name: p.name.clone(),
+                sim_frame: p.sim_frame.clone(),
+                real: super::img::planes_of(&out),
+                real_frame: out,
+                sim: p.sim.clone(),
+            });
+            masks.push(loc.masks[k].clone());
+            bases.push(model[k].clone());
+        }
+        let m = noise::estimate(&sims, &masks, &bases, loc.quant, 0.0, None);
+        a *= (a_t / m.a.max(1e-3)).clamp(0.25, 4.0);
+        if b > 1e-4 && m.b > 1e-6 {
+            b *= (b_t / m.b).clamp(0.25, 4.0);
+        }
+    }
+    Ok((a.sqrt(), if b > 1e-4 { Some(1.0 / b) } else { None }))
 }
 
 /// Select, fit and measure.
@@ -309,7 +379,18 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     }
     let values: usize = fidx.iter().map(|&k| pairs[k].w() * pairs[k].h() * pairs[k].channels()).sum();
     let row_step = (values / 600_000).max(1);
-    let ctx = FitCtx {
+    // JPEG is found by its own test (the quantisation lattice does not depend on any model);
+    // when present it is part of every model, so that its softening and blocking are not taken
+    // for blur or anything else.
+    let mut jp = jpeg::test(pairs);
+    jp.detected = jp.z > (z - 1.0).max(8.0) && jp.param("quality").unwrap_or(100.0) < 98.0;
+    let mut start = Vec::new();
+    if jp.detected
+        && let Some(p) = params_from_signature(&jp)
+    {
+        start.push(select::Step::fixed("jpeg", p)?);
+    }
+    let mut ctx = FitCtx {
         inputs,
         seqs: fidx.iter().map(|&k| k as u64).collect(),
         loss: LossData {
@@ -321,7 +402,36 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         seed,
         evals: std::cell::Cell::new(0),
     };
-    let mut sel = select::select(&ctx, &cands, z)?;
+    let mut sel = select::select(&ctx, &cands, z, start)?;
+    // The noise model was measured on real - sim; with the fitted effects taken out it may
+    // differ (structure such as smear rows inflates it). If it changed, select again with it,
+    // starting from the model found.
+    let mut model_planes = Vec::with_capacity(pairs.len());
+    for (k, p) in pairs.iter().enumerate() {
+        model_planes.push(select::apply_steps(&mut sel.steps, &p.sim_frame, k as u64, seed)?);
+    }
+    let renoise = noise::estimate(pairs, &loc.masks, &model_planes, loc.quant, 0.0, Some(&loc.hot));
+    let change = [2.0, 30.0, 100.0, 200.0]
+        .iter()
+        .map(|&l| (renoise.var(l) / ctx.loss.noise.var(l) - 1.0).abs())
+        .fold(0.0f64, f64::max);
+    if change > 0.15 {
+        notes.push(format!(
+            "noise model re-measured on the residual of the fitted model (variance changed by up to {:.0} %): selection repeated with it",
+            100.0 * change
+        ));
+        ctx.loss.noise = renoise;
+        let start: Vec<select::Step> = sel.steps.iter().map(|s| s.boxed_clone()).collect();
+        let first_tests = std::mem::take(&mut sel.tests);
+        sel = select::select(&ctx, &cands, z, start)?;
+        let mut all = first_tests;
+        all.append(&mut sel.tests);
+        sel.tests = all;
+        model_planes.clear();
+        for (k, p) in pairs.iter().enumerate() {
+            model_planes.push(select::apply_steps(&mut sel.steps, &p.sim_frame, k as u64, seed)?);
+        }
+    }
     notes.push(format!(
         "forward-model selection: {} candidates, {} loss evaluations on {} of {} pairs{}",
         cands.len(),
@@ -331,17 +441,17 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         if row_step > 1 { format!(" (every {row_step}th row)") } else { String::new() }
     ));
     let dropped = sel.notes.clone();
-    // ---- deterministic model of every pair; stochastic tests on its residual -------------------
-    let mut model_planes = Vec::with_capacity(pairs.len());
-    for (k, p) in pairs.iter().enumerate() {
-        model_planes.push(select::apply_steps(&mut sel.steps, &p.sim_frame, k as u64, seed)?);
-    }
-    let (st, _hot) = stochastic_tests(pairs, loc, &model_planes, z);
+    // ---- stochastic tests on the residual of the deterministic model ----------------------------
+    let (mut st, _hot) = stochastic_tests(pairs, loc, &model_planes, z, jp.detected);
+    st.jpeg = jp;
     // ---- findings --------------------------------------------------------------------------------
     let mut results: Vec<FittedEffect> = Vec::new();
     let nv = sel.loss_final.n.max(1) as f64;
     let mut dark_params: Option<Params> = None;
     for (j, s) in sel.steps.iter().enumerate() {
+        if s.fixed {
+            continue;
+        }
         let ev = &sel.evidence[j];
         let sig = loc.signature(s.name);
         let mut params = s.params;
@@ -389,16 +499,41 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             r.evidence.push_str(&format!("; hot pixels: {}", st.hot_sig.evidence));
         }
     }
-    let dark_var = dark_params.map(|p| p.get("mean_dn") / p.get("gain_e_per_dn").max(0.01)).unwrap_or(0.0);
+    // The dark signal's shot noise is already in the slope of the noise curve (levels include the
+    // dark signal), so the read noise takes nothing off for it.
+    let dark_var = 0.0;
     let fmt_like = &pairs[0].real_frame;
+    let through_jpeg = match (st.jpeg.detected, params_from_signature(&st.jpeg)) {
+        (true, Some(jp)) if st.gaussian.detected || st.shot.detected => {
+            Some(noise_through_jpeg(pairs, loc, &model_planes, &st.noise, jp, seed)?)
+        }
+        _ => None,
+    };
     for sig in [&st.gaussian, &st.shot, &st.prnu, &st.row, &hot_sig, &st.jpeg] {
         if !sig.detected {
             continue;
         }
-        let (params, method, lb, la) = match super::moments::calibrate(sig, &st.noise, dark_var, fmt_like, seed) {
-            Some(x) => (Some(x.0), x.1, x.2, x.3),
-            None => (None, "signature estimate (effect not in the library)".to_string(), f64::NAN, f64::NAN),
-        };
+        let (mut params, mut method, lb, la) =
+            match super::moments::calibrate(sig, &st.noise, dark_var, fmt_like, seed) {
+                Some(x) => (Some(x.0), x.1, x.2, x.3),
+                None => (None, "signature estimate (effect not in the library)".to_string(), f64::NAN, f64::NAN),
+            };
+        if let (Some((sigma, gain)), Some(p)) = (through_jpeg, params.as_mut()) {
+            let note = "moment matching through shot_noise, gaussian_noise and the detected jpeg (the compression removes part of the noise)";
+            match sig.effect {
+                "gaussian_noise" => {
+                    let _ = p.set("sigma_dn", sigma.clamp(0.0, 64.0));
+                    method = note.into();
+                }
+                "shot_noise" => {
+                    if let Some(g) = gain {
+                        let _ = p.set("gain_e_per_dn", g.clamp(0.01, 1e6));
+                        method = note.into();
+                    }
+                }
+                _ => {}
+            }
+        }
         results.push(FittedEffect {
             name: sig.effect,
             canonical: params.as_ref().map(canonical_of).unwrap_or_default(),
@@ -421,7 +556,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     // ---- the fitted config and before/after metrics ---------------------------------------------
     // Deterministic steps first, in the fit's physical order, so that each keeps its generator
     // index (lens_flare's ghost pattern depends on it).
-    let det_names: Vec<&str> = sel.steps.iter().map(|s| s.name).collect();
+    let det_names: Vec<&str> = sel.steps.iter().filter(|s| !s.fixed).map(|s| s.name).collect();
     let mut cfg_params: Vec<Params> = det_names
         .iter()
         .filter_map(|n| results.iter().find(|r| r.name == *n).and_then(|r| r.params))

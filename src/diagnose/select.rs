@@ -64,9 +64,20 @@ pub struct Step {
     key: (Stage, u16),
     /// Indices (into the effect's parameter list) of the fitted parameters.
     pub fit: Vec<usize>,
+    /// Part of the model from the start (e.g. JPEG found by its own test): never tested or
+    /// dropped by the selection.
+    pub fixed: bool,
 }
 
 impl Step {
+    /// A step that is part of the model from the start and never tested (no fitted parameters).
+    pub fn fixed(name: &'static str, params: Params) -> Result<Step, DiagnoseError> {
+        let c = Candidate { name, label: name.to_string(), params, fit: Vec::new() };
+        let mut s = Step::new(&c)?;
+        s.fixed = true;
+        Ok(s)
+    }
+
     pub fn new(c: &Candidate) -> Result<Step, DiagnoseError> {
         let reg = registry::find(c.name).ok_or_else(|| {
             DiagnoseError::Fault(faults::FaultError::UnknownEffect { name: c.name.to_string(), known: String::new() })
@@ -81,10 +92,11 @@ impl Step {
             params: c.params,
             key: (reg.info.stage, reg.info.order),
             fit,
+            fixed: false,
         })
     }
 
-    fn boxed_clone(&self) -> Step {
+    pub fn boxed_clone(&self) -> Step {
         Step {
             name: self.name,
             label: self.label.clone(),
@@ -92,6 +104,7 @@ impl Step {
             params: self.params,
             key: self.key,
             fit: self.fit.clone(),
+            fixed: self.fixed,
         }
     }
 
@@ -109,7 +122,7 @@ impl Step {
             return Ok(());
         }
         let Some(e) = self.effect.as_mut() else { return Ok(()) };
-        if self.name == "channel_shift" {
+        if self.name == "channel_shift" || (self.name == "jpeg" && img.len() == 3) {
             if img.len() == 3 {
                 let mut rgb = assemble_rgb8(img)?;
                 rgb.seq = seq;
@@ -277,9 +290,23 @@ pub struct FitCtx<'a> {
     pub evals: std::cell::Cell<usize>,
 }
 
+/// Keep coupled parameters consistent: after blooming, saturated pixels read the full well, so
+/// smear must count pixels at the well (the library's documented `sat_level` rule).
+fn sync_coupled(steps: &mut [Step]) {
+    let well = steps.iter().find(|s| s.name == "blooming").map(|s| s.params.get("full_well_fraction"));
+    for s in steps.iter_mut().filter(|s| s.name == "smear") {
+        let lvl = match well {
+            Some(f) => (f - 0.75 / 255.0).clamp(0.5, 1.0),
+            None => 0.98,
+        };
+        let _ = s.params.set("sat_level", lvl);
+    }
+}
+
 impl FitCtx<'_> {
     /// Run `steps[from..]` on `start` (outputs of the steps before `from`).
     fn run_from(&self, steps: &mut [Step], from: usize, start: &[Vec<Frame>]) -> Result<Vec<Vec<Plane>>, DiagnoseError> {
+        sync_coupled(steps);
         let mut out = Vec::with_capacity(start.len());
         for (k, img) in start.iter().enumerate() {
             let mut img = img.clone();
@@ -292,6 +319,7 @@ impl FitCtx<'_> {
     }
     /// Frames after `steps[..upto]`.
     fn prefix(&self, steps: &mut [Step], upto: usize) -> Result<Vec<Vec<Frame>>, DiagnoseError> {
+        sync_coupled(steps);
         let mut out = Vec::with_capacity(self.inputs.len());
         for (k, img) in self.inputs.iter().enumerate() {
             let mut img = img.clone();
@@ -310,10 +338,17 @@ impl FitCtx<'_> {
     pub fn model_planes(&self, steps: &mut [Step]) -> Result<Vec<Vec<Plane>>, DiagnoseError> {
         self.run_from(steps, 0, &self.inputs)
     }
+    /// Model planes without the fixed steps (materiality is judged before JPEG, whose
+    /// quantisation turns tiny input changes into whole-DN output changes).
+    pub fn physical_planes(&self, steps: &[Step]) -> Result<Vec<Vec<Plane>>, DiagnoseError> {
+        let mut st: Vec<Step> = steps.iter().filter(|s| !s.fixed).map(Step::boxed_clone).collect();
+        self.run_from(&mut st, 0, &self.inputs)
+    }
 }
 
 /// Apply a model to any frame (for residual maps and the stochastic tests on every pair).
 pub fn apply_steps(steps: &mut [Step], frame: &Frame, seq: u64, seed: u64) -> Result<Vec<Plane>, DiagnoseError> {
+    sync_coupled(steps);
     let mut img = work_planes(frame, seq)?;
     for (j, s) in steps.iter_mut().enumerate() {
         s.apply(&mut img, seed, seq, j)?;
@@ -525,13 +560,6 @@ pub struct Evidence {
     pub params: Option<Params>,
 }
 
-impl Evidence {
-    /// Information-criterion score: evidence less the price of the parameters.
-    fn score(&self, n: usize) -> f64 {
-        self.delta / self.design - 0.5 * self.k as f64 * (n.max(2) as f64).ln()
-    }
-}
-
 /// Outcome of the selection.
 pub struct Selection {
     pub steps: Vec<Step>,
@@ -565,6 +593,29 @@ fn material(with: &[Vec<Plane>], without: &[Vec<Plane>]) -> f64 {
     let idx = d.len() - m;
     let (_, v, _) = d.select_nth_unstable_by(idx, |a, b| a.total_cmp(b));
     *v
+}
+
+/// Practical floor of an effect's parameters: below these values an effect is physically
+/// negligible (e.g. a blur narrower than the pixel's own aperture, σ ≈ 0.29 px) and a "fit" of
+/// it only absorbs the difference between two models of the same thing (a pillbox and a
+/// Gaussian PSF, bilinear and Lanczos interpolation). They sit far below the strengths that are
+/// invisible to the eye yet matter (e.g. 8 % vignetting, 1 px defocus, 3 DN dark current).
+pub fn above_floor(p: &Params) -> bool {
+    let g = |n: &str| p.get(n);
+    match p.info().name {
+        "defocus" => g("sigma_px") >= 0.3,
+        "motion_blur" => g("length_px") >= 1.0,
+        "channel_shift" => ["dx_r", "dy_r", "dx_b", "dy_b"].iter().any(|n| g(n).abs() >= 0.1),
+        "vignetting" => g("strength") >= 0.02,
+        "stray_light" => g("amplitude_dn") >= 1.0,
+        "dark_current" => g("mean_dn") >= 0.5,
+        "gain_offset" => (g("gain") - 1.0).abs() >= 0.005 || g("offset_dn").abs() >= 0.5,
+        "gamma" => (g("gamma") - 1.0).abs() >= 0.01,
+        "smear" => g("strength") >= 2e-4,
+        "blooming" => g("full_well_fraction") <= 0.99,
+        "lens_flare" => g("intensity") >= 0.003,
+        _ => true,
+    }
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -607,7 +658,7 @@ fn clone_steps(steps: &[Step]) -> Vec<Step> {
 }
 
 /// Add `cand` to a copy of `steps`, fit its parameters, and measure its evidence against the
-/// current model (loss `current`, planes `current_planes`).
+/// current model (loss `current`, physical planes `current_planes`).
 #[allow(clippy::too_many_arguments)]
 fn try_candidate(
     ctx: &FitCtx,
@@ -623,9 +674,10 @@ fn try_candidate(
     let pos = insert_sorted(&mut trial, Step::new(cand)?);
     let coords = coords_of(&trial, Some(pos));
     let with = optimise(ctx, &mut trial, &coords, widths)?;
-    let planes = ctx.model_planes(&mut trial)?;
+    let planes = ctx.physical_planes(&trial)?;
     let mut ev =
         evidence(cand.name, &cand.label, current, with, coords.len(), material(&planes, current_planes), z_thr, round);
+    ev.accepted &= above_floor(&trial[pos].params);
     ev.params = Some(trial[pos].params);
     Ok((ev, trial, pos))
 }
@@ -635,13 +687,35 @@ fn penalised(ev: LossEval, k: usize, design: f64) -> f64 {
     ev.total / design + 0.5 * k as f64 * (ev.n.max(2) as f64).ln()
 }
 
+/// Effects that can stand in for each other (the swap pass only exchanges within a family).
+fn family(name: &str) -> u8 {
+    match name {
+        "dark_current" | "gain_offset" | "gamma" | "stray_light" | "vignetting" => 1,
+        "defocus" | "motion_blur" => 2,
+        _ => 0,
+    }
+}
+
+/// Refinement after dropping an effect: shorter than [`refine`].
+fn refine_quick(ctx: &FitCtx, steps: &mut [Step]) -> Result<LossEval, DiagnoseError> {
+    let coords = coords_of(steps, None);
+    optimise(ctx, steps, &coords, &[(0.2, 8), (0.06, 6)])
+}
+
 /// Forward selection, swaps of selected effects for simpler or better ones, and a backward check.
-pub fn select(ctx: &FitCtx, candidates: &[Candidate], z_thr: f64) -> Result<Selection, DiagnoseError> {
-    let mut steps: Vec<Step> = Vec::new();
+/// `start` is the initial model (fixed steps, or the model of an earlier pass).
+pub fn select(
+    ctx: &FitCtx,
+    candidates: &[Candidate],
+    z_thr: f64,
+    start: Vec<Step>,
+) -> Result<Selection, DiagnoseError> {
+    let mut steps: Vec<Step> = start;
     let mut notes = Vec::new();
-    let loss_null = ctx.eval(&mut steps)?;
+    let mut fixed_only: Vec<Step> = steps.iter().filter(|s| s.fixed).map(Step::boxed_clone).collect();
+    let loss_null = ctx.eval(&mut fixed_only)?;
     let mut tests: Vec<Evidence> = Vec::new();
-    let mut first_z: Vec<f64> = vec![f64::NEG_INFINITY; candidates.len()];
+    let mut best_z: Vec<f64> = vec![f64::NEG_INFINITY; candidates.len()];
     let mut round = 0;
     let mut swapped: Vec<(String, String)> = Vec::new();
     'outer: loop {
@@ -649,8 +723,8 @@ pub fn select(ctx: &FitCtx, candidates: &[Candidate], z_thr: f64) -> Result<Sele
         loop {
             round += 1;
             let current = ctx.eval(&mut steps)?;
-            let current_planes = ctx.model_planes(&mut steps)?;
-            let mut best: Option<(Evidence, Vec<Step>)> = None;
+            let current_planes = ctx.physical_planes(&steps)?;
+            let mut accepted: Vec<(Evidence, Vec<Step>)> = Vec::new();
             for (ci, cand) in candidates.iter().enumerate() {
                 if steps.iter().any(|s| s.name == cand.name) {
                     continue;
@@ -665,13 +739,20 @@ pub fn select(ctx: &FitCtx, candidates: &[Candidate], z_thr: f64) -> Result<Sele
                     round,
                     &[(0.5, 12), (0.12, 8)],
                 )?;
-                first_z[ci] = first_z[ci].max(ev.z);
-                let n = current.n;
-                if ev.accepted && best.as_ref().is_none_or(|b| ev.score(n) > b.0.score(n)) {
-                    best = Some((ev.clone(), trial));
+                best_z[ci] = best_z[ci].max(ev.z);
+                tests.push(ev.clone());
+                if ev.accepted {
+                    accepted.push((ev, trial));
                 }
-                tests.push(ev);
             }
+            // Rank the significant candidates on a common scale: loss drop less the price of
+            // the parameters, both in units of the largest design effect among them (a model
+            // that fits worse must not win because its residual happens to be less correlated).
+            let d_ref = accepted.iter().map(|a| a.0.design).fold(1.0f64, f64::max);
+            let ln_n = (current.n.max(2) as f64).ln();
+            let best = accepted
+                .into_iter()
+                .max_by(|a, b| (a.0.delta - 0.5 * a.0.k as f64 * ln_n * d_ref).total_cmp(&(b.0.delta - 0.5 * b.0.k as f64 * ln_n * d_ref)));
             let Some((ev, trial)) = best else { break };
             for t in tests.iter_mut().filter(|t| t.round == round) {
                 t.accepted = t.label == ev.label;
@@ -683,32 +764,50 @@ pub fn select(ctx: &FitCtx, candidates: &[Candidate], z_thr: f64) -> Result<Sele
                 break;
             }
         }
-        // ---- swaps: replace a selected effect by another candidate when that is as good with
-        // fewer parameters (e.g. an offset taken by gain_offset that is really dark current).
-        if steps.is_empty() {
+        // ---- swaps within a family: replace a selected effect by another candidate when that
+        // is as good with fewer parameters, or better by a material amount (e.g. an offset taken
+        // by gain_offset that is really dark current).
+        if steps.iter().all(|s| s.fixed) {
             break;
         }
         let full = ctx.eval(&mut steps)?;
         let k_full = coords_of(&steps, None).len();
         let design = full.design.max(0.8);
         let p_full = penalised(full, k_full, design);
+        let full_planes = ctx.physical_planes(&steps)?;
         for j in 0..steps.len() {
+            if steps[j].fixed || swapped.len() >= 4 || family(steps[j].name) == 0 {
+                continue;
+            }
+            let k_j = coords_of(&steps, Some(j)).len();
             let rest: Vec<Step> = clone_steps(&steps).into_iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s).collect();
             for (ci, cand) in candidates.iter().enumerate() {
-                if cand.name == steps[j].name || rest.iter().any(|s| s.name == cand.name) || first_z[ci] < 3.0 {
+                if family(cand.name) != family(steps[j].name)
+                    || cand.name == steps[j].name
+                    || rest.iter().any(|s| s.name == cand.name)
+                    || best_z[ci] < 3.0
+                {
                     continue;
                 }
                 let key = (steps[j].label.clone(), cand.label.clone());
-                if swapped.contains(&key) {
+                if swapped.contains(&key) || swapped.iter().any(|s| s.1 == key.0 && s.0 == key.1) {
                     continue;
                 }
                 let mut rest_c = clone_steps(&rest);
                 let rest_eval = ctx.eval(&mut rest_c)?;
-                let rest_planes = ctx.model_planes(&mut rest_c)?;
+                let rest_planes = ctx.physical_planes(&rest_c)?;
                 let (_, mut trial, _) =
                     try_candidate(ctx, &rest, cand, rest_eval, &rest_planes, z_thr, round, &[(0.5, 10), (0.12, 6)])?;
-                let ev = refine(ctx, &mut trial)?;
-                if penalised(ev, coords_of(&trial, None).len(), design) < p_full {
+                // More parameters must buy a material change of the expected image (judged with
+                // the other effects as they were).
+                let k_c = coords_of(&trial, None).len() + k_j - k_full;
+                let material_ok =
+                    k_c <= k_j || material(&ctx.physical_planes(&trial)?, &full_planes) >= material_threshold(cand.name);
+                if !material_ok {
+                    continue;
+                }
+                let ev = refine_quick(ctx, &mut trial)?;
+                if penalised(ev, coords_of(&trial, None).len(), design) < p_full - 2.0 {
                     notes.push(format!("{} replaced by {} (as good a fit with fewer or better-placed parameters)", key.0, key.1));
                     swapped.push(key);
                     steps = trial;
@@ -718,22 +817,56 @@ pub fn select(ctx: &FitCtx, candidates: &[Candidate], z_thr: f64) -> Result<Sele
         }
         break;
     }
-    // ---- backward check: every selected effect must still be significant given the others.
+    // ---- backward check: every selected effect must still be significant, material and above
+    // its floor when it is dropped and the others are refitted.
     let mut evidence_final;
     let mut current;
     loop {
         current = ctx.eval(&mut steps)?;
-        let planes = ctx.model_planes(&mut steps)?;
+        let planes = ctx.physical_planes(&steps)?;
         evidence_final = Vec::new();
         let mut weakest: Option<(usize, f64)> = None;
         for j in 0..steps.len() {
+            if steps[j].fixed {
+                evidence_final.push(Evidence {
+                    effect: steps[j].name.to_string(),
+                    label: steps[j].label.clone(),
+                    loss_without: f64::NAN,
+                    loss_with: current.total / current.n.max(1) as f64,
+                    delta: f64::NAN,
+                    design: current.design,
+                    k: 0,
+                    z: f64::NAN,
+                    bic: true,
+                    material_dn: f64::NAN,
+                    accepted: true,
+                    round: 0,
+                    params: Some(steps[j].params),
+                });
+                continue;
+            }
             let mut without: Vec<Step> =
                 steps.iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s.boxed_clone()).collect();
-            let lw = ctx.eval(&mut without)?;
-            let pw = ctx.model_planes(&mut without)?;
+            let lw = if without.iter().any(|s| !s.fixed) { refine_quick(ctx, &mut without)? } else { ctx.eval(&mut without)? };
+            let pw = ctx.physical_planes(&without)?;
             let k = coords_of(&steps, Some(j)).len();
             let mut ev = evidence(steps[j].name, &steps[j].label, lw, current, k, material(&planes, &pw), z_thr, 0);
+            ev.accepted &= above_floor(&steps[j].params);
             ev.params = Some(steps[j].params);
+            if steps[j].name == "motion_blur" && ev.accepted {
+                // A motion blur must show its direction: the same streak turned by 90° has to fit
+                // significantly worse. Otherwise it only reshapes an isotropic blur (e.g. a
+                // pillbox PSF seen through a Gaussian one) along edges it cannot tell apart.
+                let mut turned = clone_steps(&steps);
+                let a = turned[j].params.get("angle_deg");
+                let _ = turned[j].params.set("angle_deg", (a + 90.0).rem_euclid(180.0));
+                let lt = ctx.eval(&mut turned)?;
+                let dir = evidence(steps[j].name, &steps[j].label, lt, current, 1, f64::INFINITY, z_thr, 0);
+                if !dir.accepted {
+                    ev.accepted = false;
+                    ev.z = ev.z.min(dir.z);
+                }
+            }
             if !ev.accepted && weakest.is_none_or(|(_, z)| ev.z < z) {
                 weakest = Some((j, ev.z));
             }
@@ -743,10 +876,10 @@ pub fn select(ctx: &FitCtx, candidates: &[Candidate], z_thr: f64) -> Result<Sele
             Some((j, z)) => {
                 let s = steps.remove(j);
                 notes.push(format!(
-                    "{}: dropped in the backward check (z = {z:.1} given the other effects, or too small to matter)",
+                    "{}: dropped in the backward check (z = {z:.1} given the other effects refitted, or too small to matter)",
                     s.label
                 ));
-                if !steps.is_empty() {
+                if steps.iter().any(|s| !s.fixed) {
                     refine(ctx, &mut steps)?;
                 }
             }
