@@ -302,28 +302,28 @@ fn stochastic_tests(
     (Stochastic { noise: noise2, hot_sig, prnu, row, jpeg: Signature::new("jpeg"), gaussian, shot }, hot)
 }
 
-/// Camera noise under JPEG: the compression removes part of the noise, so the variance measured
-/// on the real images is that of noise *after* JPEG. Read-noise sigma and conversion gain are
-/// found by moment matching through the library's forward models: the fitted deterministic model
-/// of a few pairs is pushed through shot_noise, gaussian_noise and jpeg with trial parameters,
-/// the same noise measurement is made on the result, and the parameters are scaled until it
-/// matches the real one. Returns (sigma_dn, gain_e_per_dn).
-fn noise_through_jpeg(
+/// Camera noise through the fitted model: the noise measured on the real images is the noise
+/// after every effect that follows it in the signal chain (a gain or tone curve scales it, JPEG
+/// removes part of it, dark current adds its own shot noise). Read-noise sigma and conversion gain
+/// are therefore found by moment matching through the library's forward models: a few sim frames
+/// go through the fitted chain with trial noise parameters, the same noise measurement is made
+/// on the result against the noise-free model, and the parameters are scaled until it matches the
+/// measurement on the real images. Returns (sigma_dn, gain_e_per_dn if the slope is identified).
+fn noise_through_model(
     pairs: &[Pair],
     loc: &Located,
     model: &[Vec<Plane>],
     measured: &NoiseModel,
-    jpeg: Params,
+    chain: &[Params],
     seed: u64,
 ) -> Result<(f64, Option<f64>), DiagnoseError> {
     let idx = choose_frames(pairs, 3);
     let (a_t, b_t) = (measured.a.max(1e-3), measured.b);
+    let use_b = measured.slope_identified && b_t > 1e-4;
     let (mut a, mut b) = (a_t, b_t);
     for it in 0..5 {
-        let mut ps = Vec::new();
-        if b > 1e-4
-            && let Some(r) = registry::find("shot_noise")
-        {
+        let mut ps: Vec<Params> = chain.to_vec();
+        if use_b && let Some(r) = registry::find("shot_noise") {
             let mut p = Params::defaults(r.info);
             let _ = p.set("gain_e_per_dn", (1.0 / b).clamp(0.01, 1e6));
             ps.push(p);
@@ -333,14 +333,13 @@ fn noise_through_jpeg(
             let _ = p.set("sigma_dn", a.sqrt().clamp(0.0, 64.0));
             ps.push(p);
         }
-        ps.push(jpeg);
         let cfg = FaultConfig::from_effects(seed ^ (it as u64 + 17), ps);
         let mut sims = Vec::new();
         let mut masks = Vec::new();
         let mut bases = Vec::new();
         for &k in &idx {
             let p = &pairs[k];
-            let mut f = frame_from_planes(&model[k], &p.real_frame);
+            let mut f = p.sim_frame.clone();
             f.seq = k as u64;
             let out = apply_config(&cfg, &f)?;
             sims.push(Pair {
@@ -355,11 +354,15 @@ fn noise_through_jpeg(
         }
         let m = noise::estimate(&sims, &masks, &bases, loc.quant, 0.0, None);
         a *= (a_t / m.a.max(1e-3)).clamp(0.25, 4.0);
-        if b > 1e-4 && m.b > 1e-6 {
+        if use_b && m.b > 1e-6 {
             b *= (b_t / m.b).clamp(0.25, 4.0);
         }
     }
-    Ok((a.sqrt(), if b > 1e-4 { Some(1.0 / b) } else { None }))
+    Ok((a.sqrt(), if use_b { Some(1.0 / b) } else { None }))
+}
+
+fn det_names_of(sel: &select::Selection) -> Vec<&'static str> {
+    sel.steps.iter().filter(|s| !s.fixed).map(|s| s.name).collect()
 }
 
 /// Select, fit and measure.
@@ -388,7 +391,9 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     if jp.detected
         && let Some(p) = params_from_signature(&jp)
     {
-        start.push(select::Step::fixed("jpeg", p)?);
+        let mut step = select::Step::fixed("jpeg", p)?;
+        step.dither = Some(loc.noise.clone());
+        start.push(step);
     }
     let mut ctx = FitCtx {
         inputs,
@@ -402,7 +407,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         seed,
         evals: std::cell::Cell::new(0),
     };
-    let mut sel = select::select(&ctx, &cands, z, start)?;
+    let mut sel = select::select(&ctx, &cands, z, start, None)?;
     // The noise model was measured on real - sim; with the fitted effects taken out it may
     // differ (structure such as smear rows inflates it). If it changed, select again with it,
     // starting from the model found.
@@ -421,9 +426,20 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             100.0 * change
         ));
         ctx.loss.noise = renoise;
-        let start: Vec<select::Step> = sel.steps.iter().map(|s| s.boxed_clone()).collect();
+        let start: Vec<select::Step> = sel
+            .steps
+            .iter()
+            .map(|s| {
+                let mut c = s.boxed_clone();
+                if c.dither.is_some() {
+                    c.dither = Some(ctx.loss.noise.clone());
+                }
+                c
+            })
+            .collect();
         let first_tests = std::mem::take(&mut sel.tests);
-        sel = select::select(&ctx, &cands, z, start)?;
+        let prior = sel.best_z.clone();
+        sel = select::select(&ctx, &cands, z, start, Some(&prior))?;
         let mut all = first_tests;
         all.append(&mut sel.tests);
         sel.tests = all;
@@ -503,11 +519,18 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     // dark signal), so the read noise takes nothing off for it.
     let dark_var = 0.0;
     let fmt_like = &pairs[0].real_frame;
-    let through_jpeg = match (st.jpeg.detected, params_from_signature(&st.jpeg)) {
-        (true, Some(jp)) if st.gaussian.detected || st.shot.detected => {
-            Some(noise_through_jpeg(pairs, loc, &model_planes, &st.noise, jp, seed)?)
-        }
-        _ => None,
+    // The deterministic chain (with the dark current's own noise and the JPEG) the camera noise
+    // goes through.
+    let mut chain: Vec<Params> = results.iter().filter(|r| det_names_of(&sel).contains(&r.name)).filter_map(|r| r.params).collect();
+    if st.jpeg.detected
+        && let Some(p) = params_from_signature(&st.jpeg)
+    {
+        chain.push(p);
+    }
+    let through_model = if st.gaussian.detected || st.shot.detected {
+        Some(noise_through_model(pairs, loc, &model_planes, &st.noise, &chain, seed)?)
+    } else {
+        None
     };
     for sig in [&st.gaussian, &st.shot, &st.prnu, &st.row, &hot_sig, &st.jpeg] {
         if !sig.detected {
@@ -518,8 +541,8 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
                 Some(x) => (Some(x.0), x.1, x.2, x.3),
                 None => (None, "signature estimate (effect not in the library)".to_string(), f64::NAN, f64::NAN),
             };
-        if let (Some((sigma, gain)), Some(p)) = (through_jpeg, params.as_mut()) {
-            let note = "moment matching through shot_noise, gaussian_noise and the detected jpeg (the compression removes part of the noise)";
+        if let (Some((sigma, gain)), Some(p)) = (through_model, params.as_mut()) {
+            let note = "moment matching through the library's forward models: sim through the fitted chain with trial noise, variance against level measured as on the real images";
             match sig.effect {
                 "gaussian_noise" => {
                     let _ = p.set("sigma_dn", sigma.clamp(0.0, 64.0));

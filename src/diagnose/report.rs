@@ -224,6 +224,30 @@ pub fn write(
     if n_plot == 0 {
         md.push_str("No profiles (nothing detected).\n\n");
     }
+    if !rep.selection.is_empty() {
+        md.push_str(
+            "## Forward-model selection\n\nEach candidate is added to the current model and fitted on the library's forward model; \
+             ΔL is the drop of the robust loss, D the design effect of the residual (1 = white), z the significance of \
+             2ΔL/D on k parameters, BIC whether it pays for its parameters, and 'change' the size of its change of the \
+             expected image (DN). The most important significant candidate joins the model each round.\n\n\
+             | round | candidate | ΔL | D | k | z | BIC | change (DN) | chosen |\n|---|---|---|---|---|---|---|---|---|\n",
+        );
+        for t in &rep.selection {
+            md.push_str(&format!(
+                "| {} | {} | {:.1} | {:.2} | {} | {:.1} | {} | {:.2} | {} |\n",
+                t.round,
+                t.label,
+                t.delta,
+                t.design,
+                t.k,
+                t.z,
+                if t.bic { "yes" } else { "no" },
+                t.material_dn,
+                if t.accepted { "yes" } else { "" }
+            ));
+        }
+        md.push('\n');
+    }
     md.push_str("## All signature tests\n\n| effect | z | detected | size | evidence |\n|---|---|---|---|---|\n");
     for t in &rep.tests {
         md.push_str(&format!(

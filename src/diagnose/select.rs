@@ -67,7 +67,14 @@ pub struct Step {
     /// Part of the model from the start (e.g. JPEG found by its own test): never tested or
     /// dropped by the selection.
     pub fixed: bool,
+    /// JPEG of a noisy image is not the JPEG of its expectation (the coefficient rounding is
+    /// dithered by the noise): with a noise model the step returns the mean of several JPEG round
+    /// trips of the image plus noise, which approximates the expected output.
+    pub dither: Option<NoiseModel>,
 }
+
+/// Noise draws averaged by a dithered JPEG step.
+const DITHER_DRAWS: u64 = 3;
 
 impl Step {
     /// A step that is part of the model from the start and never tested (no fitted parameters).
@@ -93,6 +100,7 @@ impl Step {
             key: (reg.info.stage, reg.info.order),
             fit,
             fixed: false,
+            dither: None,
         })
     }
 
@@ -105,6 +113,7 @@ impl Step {
             key: self.key,
             fit: self.fit.clone(),
             fixed: self.fixed,
+            dither: self.dither.clone(),
         }
     }
 
@@ -116,6 +125,42 @@ impl Step {
                 if let Some(d) = f.as_u16_mut() {
                     for v in d.iter_mut() {
                         *v = (*v as f64 + off).round().min(65535.0) as u16;
+                    }
+                }
+            }
+            return Ok(());
+        }
+        if self.name == "jpeg"
+            && let Some(nm) = self.dither.clone()
+        {
+            let orig: Vec<Frame> = img.to_vec();
+            let mut acc: Vec<Vec<f64>> = orig.iter().map(|f| vec![0.0; f.as_u16().map(|d| d.len()).unwrap_or(0)]).collect();
+            let mut plain = Step { dither: None, effect: faults::create("jpeg").ok(), ..self.boxed_clone() };
+            for k in 0..DITHER_DRAWS {
+                let mut noisy = orig.clone();
+                let mut rng = crate::rng::Rng::new(crate::rng::mix_seed(&[seed, seq, index as u64, k]));
+                for f in noisy.iter_mut() {
+                    if let Some(d) = f.as_u16_mut() {
+                        for v in d.iter_mut() {
+                            let m = *v as f64 / 257.0;
+                            let sd = (1.5 * nm.var(m)).sqrt();
+                            *v = ((m + sd * rng.normal()) * 257.0).round().clamp(0.0, 65535.0) as u16;
+                        }
+                    }
+                }
+                plain.apply(&mut noisy, seed, seq, index)?;
+                for (a, f) in acc.iter_mut().zip(&noisy) {
+                    if let Some(d) = f.as_u16() {
+                        for (x, &v) in a.iter_mut().zip(d) {
+                            *x += v as f64;
+                        }
+                    }
+                }
+            }
+            for (f, a) in img.iter_mut().zip(&acc) {
+                if let Some(d) = f.as_u16_mut() {
+                    for (v, &x) in d.iter_mut().zip(a) {
+                        *v = (x / DITHER_DRAWS as f64).round().clamp(0.0, 65535.0) as u16;
                     }
                 }
             }
@@ -570,6 +615,8 @@ pub struct Selection {
     pub loss_null: LossEval,
     pub loss_final: LossEval,
     pub notes: Vec<String>,
+    /// Best significance of each candidate over all rounds.
+    pub best_z: Vec<f64>,
 }
 
 fn insert_sorted(steps: &mut Vec<Step>, s: Step) -> usize {
@@ -709,6 +756,7 @@ pub fn select(
     candidates: &[Candidate],
     z_thr: f64,
     start: Vec<Step>,
+    prior_z: Option<&[f64]>,
 ) -> Result<Selection, DiagnoseError> {
     let mut steps: Vec<Step> = start;
     let mut notes = Vec::new();
@@ -729,16 +777,11 @@ pub fn select(
                 if steps.iter().any(|s| s.name == cand.name) {
                     continue;
                 }
-                let (ev, trial, _) = try_candidate(
-                    ctx,
-                    &steps,
-                    cand,
-                    current,
-                    &current_planes,
-                    z_thr,
-                    round,
-                    &[(0.5, 12), (0.12, 8)],
-                )?;
+                // Candidates without any evidence so far get a shorter search.
+                let quiet = best_z[ci] < 2.0 && (round > 1 || prior_z.is_some_and(|p| p[ci] < 2.0));
+                let widths: &[(f64, usize)] = if quiet { &[(0.5, 8)] } else { &[(0.5, 12), (0.12, 8)] };
+                let (ev, trial, _) =
+                    try_candidate(ctx, &steps, cand, current, &current_planes, z_thr, round, widths)?;
                 best_z[ci] = best_z[ci].max(ev.z);
                 tests.push(ev.clone());
                 if ev.accepted {
@@ -886,5 +929,5 @@ pub fn select(
             None => break,
         }
     }
-    Ok(Selection { steps, evidence: evidence_final, tests, loss_null, loss_final: current, notes })
+    Ok(Selection { steps, evidence: evidence_final, tests, loss_null, loss_final: current, notes, best_z })
 }

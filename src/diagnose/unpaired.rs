@@ -51,8 +51,9 @@ struct ImStats {
     far: (f64, f64),
     sat: usize,
     pixels: usize,
-    /// Level of the darkest region (censored fit).
+    /// Level of the darkest region (censored fit) and its noise variance.
     dark: Option<f64>,
+    dark_var: Option<f64>,
     /// Smear regressions: (beta DN per saturated pixel, se) for columns and rows.
     smear: [Option<(f64, f64)>; 2],
     /// Shifts of red and blue against green (dx_r, dy_r, dx_b, dy_b).
@@ -141,22 +142,20 @@ fn measure(planes: &[Plane], noise_sd: f64) -> ImStats {
             if at(1.0) > g0 || at(-1.0) > g0 {
                 continue; // not the maximum across the edge
             }
-            let prof: Vec<f32> = (-3..=3).map(|t| at(t as f32)).collect();
-            let base = prof[0].min(prof[6]);
-            let peak = g0 - base;
-            if peak < tg || prof[0] - base > 0.35 * peak || prof[6] - base > 0.35 * peak {
+            // Step height across the edge and the peak gradient: a step of height c blurred to
+            // a Gaussian edge of std s has a peak gradient c / (s sqrt(2π)).
+            let iv = |t: f32| grey.bilinear(x as f32 + t * nx, y as f32 + t * ny);
+            let prof: Vec<f32> = (-3..=3).map(|t| iv(t as f32)).collect();
+            let contrast = prof[6] - prof[0];
+            if contrast < 3.0 * tg {
                 continue;
             }
-            let (mut m0, mut m2) = (0.0f32, 0.0f32);
-            for (k, &v) in prof.iter().enumerate() {
-                let t = k as f32 - 3.0;
-                let a = (v - base).max(0.0);
-                m0 += a;
-                m2 += a * t * t;
+            // Monotone across the edge (a step, not a thin line or a corner).
+            if prof.windows(2).any(|p| p[1] < p[0] - 0.1 * contrast) {
+                continue;
             }
-            if m0 > 0.0 {
-                st.widths.push(m2 / m0);
-            }
+            let s = contrast / (g0 * (2.0 * std::f32::consts::PI).sqrt());
+            st.widths.push(s * s);
         }
     }
     // ---- halo around saturated regions ----
@@ -177,16 +176,28 @@ fn measure(planes: &[Plane], noise_sd: f64) -> ImStats {
             }
         }
     }
-    // ---- darkest region: censored fit of the pixels whose 5x5 mean is in the lowest 10 % ----
+    // ---- darkest region: censored fit of the pixels whose 15x15 mean is in the lowest 20 % (a
+    // wide mean, so that the selection does not pick the low tail of the noise) ----
     let sm = grey.box_mean(2);
-    let mut sv: Vec<f64> = sm.data.iter().map(|&v| v as f64).collect();
-    let p10 = stats::quantile_mut(&mut sv, 0.10);
-    let dark_px: Vec<usize> = (0..w * h).filter(|&i| (sm.data[i] as f64) <= p10 && dist[i] > 8.0).collect();
-    let dark_thr = p10 + 2.0 * noise_sd + 1.0;
-    if p10 < 40.0 && dark_px.len() >= 200 {
-        let obs: Vec<(f32, f32)> = dark_px.iter().map(|&i| (0.0, grey.data[i])).collect();
-        if let Some((mu, _, _, _)) = super::noise::censored_offset_fit(&obs, 1.0) {
-            st.dark = Some(mu);
+    let wide = grey.box_mean(7);
+    let mut sv: Vec<f64> = wide.data.iter().map(|&v| v as f64).collect();
+    let p20 = stats::quantile_mut(&mut sv, 0.20);
+    let sel = p20 + 2.0 * noise_sd / 15.0 + 0.5;
+    let dark_px: Vec<usize> = (0..w * h).filter(|&i| (wide.data[i] as f64) <= sel && dist[i] > 8.0).collect();
+    let dark_thr = sel + 2.0 * noise_sd + 1.0;
+    if p20 < 40.0 && dark_px.len() >= 200 {
+        // Per channel (the noise of one sample, like the high-pass bins), then averaged.
+        let fits: Vec<(f64, f64)> = planes
+            .iter()
+            .filter_map(|p| {
+                let obs: Vec<(f32, f32)> = dark_px.iter().map(|&i| (0.0, p.data[i])).collect();
+                super::noise::censored_offset_fit(&obs, 1.0).map(|(mu, sigma, _, _)| (mu, sigma * sigma))
+            })
+            .collect();
+        if !fits.is_empty() {
+            let n = fits.len() as f64;
+            st.dark = Some(fits.iter().map(|f| f.0).sum::<f64>() / n);
+            st.dark_var = Some(fits.iter().map(|f| f.1).sum::<f64>() / n);
         }
     }
     // ---- smear: dark-background level of each column / row against its saturated pixels ----
@@ -331,6 +342,8 @@ fn measure(planes: &[Plane], noise_sd: f64) -> ImStats {
 struct SetStats {
     /// (level, floor variance, blocks).
     noise: Vec<(f64, f64, usize)>,
+    /// Noise of the darkest region: (level, variance, images).
+    dark_noise: Option<(f64, f64, usize)>,
     width: Option<f64>,
     halo: Vec<f64>,
     sat_frac: f64,
@@ -363,13 +376,21 @@ fn combine(items: &[&ImStats]) -> SetStats {
             bins[((l as f64 / NBIN) as usize).min(nb - 1)].push(v as f64);
         }
     }
-    let f20 = chi2_quantile_factor(0.2, 50.0);
+    let f10 = chi2_quantile_factor(0.1, 50.0);
     for (b, v) in bins.iter_mut().enumerate() {
         if v.len() < 20 {
             continue;
         }
-        let q = stats::quantile_mut(v, 0.2);
-        s.noise.push(((b as f64 + 0.5) * NBIN, (q / f20 / 1.25 - 1.0 / 12.0).max(0.0), v.len()));
+        let q = stats::quantile_mut(v, 0.1);
+        s.noise.push(((b as f64 + 0.5) * NBIN, (q / f10 / 1.25 - 1.0 / 12.0).max(0.0), v.len()));
+    }
+    // The darkest region's censored fit replaces the lowest bin (clipping biases the high-pass).
+    let dv: Vec<(f64, f64)> = items.iter().filter_map(|it| it.dark.zip(it.dark_var)).collect();
+    if !dv.is_empty() {
+        let lvl = stats::median(&dv.iter().map(|d| d.0).collect::<Vec<_>>());
+        let var = stats::median(&dv.iter().map(|d| d.1).collect::<Vec<_>>());
+        s.noise.retain(|b| b.0 > NBIN);
+        s.dark_noise = Some((lvl.max(0.0), var, dv.len()));
     }
     let mut widths: Vec<f64> = items.iter().flat_map(|it| it.widths.iter().map(|&v| v as f64)).collect();
     if widths.len() >= 30 {
@@ -426,31 +447,36 @@ fn combine(items: &[&ImStats]) -> SetStats {
     s
 }
 
-/// Noise gap (real - sim) fitted as a + b L; returns (a, b, slope identified).
+/// Noise gap (real - sim) fitted as a + b L; returns (a, b, slope identified). Level bins count
+/// only where the sim has flat blocks at that level (its floor at most 30 % of the real's), so
+/// that scene texture, which differs between the sets, is not read as noise; the darkest
+/// regions count through their censored fits.
 fn noise_gap(r: &SetStats, s: &SetStats) -> Option<(f64, f64, bool)> {
-    if r.noise.is_empty() {
+    let mut pts: Vec<(f64, f64, f64)> = Vec::new();
+    if let (Some(rd), Some(sd)) = (r.dark_noise, s.dark_noise) {
+        pts.push((rd.0, rd.1 - sd.1, 2000.0 * rd.2 as f64 / (rd.1 * rd.1).max(0.01)));
+    }
+    for &(l, v, n) in &r.noise {
+        let Some(sv) = s.noise.iter().find(|b| (b.0 - l).abs() < 1e-9).map(|b| b.1) else { continue };
+        if sv > 0.3 * v + 0.1 {
+            continue;
+        }
+        pts.push((l, v - sv, n as f64 / (v * v).max(0.01)));
+    }
+    if pts.is_empty() {
         return None;
     }
-    let sim_default = if s.noise.is_empty() {
-        0.0
-    } else {
-        stats::median(&s.noise.iter().map(|b| b.1).collect::<Vec<_>>())
-    };
-    let mut w = stats::Wls::new(2);
-    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-    let mut pts = Vec::new();
-    for &(l, v, n) in &r.noise {
-        let sv = s.noise.iter().find(|b| (b.0 - l).abs() < 1e-9).map(|b| b.1).unwrap_or(sim_default);
-        let d = v - sv;
-        let wt = n as f64 / (v * v).max(0.01);
-        w.push(&[1.0, l], d, wt, pts.len() as u32);
-        pts.push((l, d, wt));
-        lo = lo.min(l);
-        hi = hi.max(l);
-    }
+    let lo = pts.iter().map(|p| p.0).fold(f64::INFINITY, f64::min);
+    let hi = pts.iter().map(|p| p.0).fold(f64::NEG_INFINITY, f64::max);
     let ident = hi - lo >= 48.0 && pts.len() >= 3;
-    if ident && let Some(f) = w.fit() {
-        if f.beta[1] >= 0.0 {
+    if ident {
+        let mut w = stats::Wls::new(2);
+        for (i, p) in pts.iter().enumerate() {
+            w.push(&[1.0, p.0], p.1, p.2, i as u32);
+        }
+        if let Some(f) = w.fit()
+            && f.beta[1] >= 0.0
+        {
             return Some((f.beta[0], f.beta[1], true));
         }
     }
@@ -527,11 +553,19 @@ fn gaps_with_se(real: &[ImStats], sim: &[ImStats], seed: u64) -> Vec<(&'static s
         let sb: Vec<&ImStats> = (0..sim.len()).map(|_| &sim[(rng.uniform() * sim.len() as f64) as usize % sim.len()]).collect();
         reps.push(gaps(&combine(&rb), &combine(&sb)));
     }
+    // Counting statistics: a Poisson floor on the standard error (few images, few counts).
+    let (rc, re) = real.iter().fold((0.0, 0.0), |a, it| (a.0 + it.hot.0, a.1 + it.hot.1));
+    let (sc, se_) = sim.iter().fold((0.0, 0.0), |a, it| (a.0 + it.hot.0, a.1 + it.hot.1));
+    let hot_floor = ((rc.max(1.0) / (re * re).max(1.0)) + (sc.max(1.0) / (se_ * se_).max(1.0))).sqrt();
     point
         .into_iter()
         .map(|(n, v)| {
             let vals: Vec<f64> = reps.iter().filter_map(|r| r.iter().find(|x| x.0 == n).map(|x| x.1)).collect();
-            (n, Gap { value: v, se: boot_se(&vals) })
+            let mut se = boot_se(&vals);
+            if n == "hot" {
+                se = se.max(hot_floor);
+            }
+            (n, Gap { value: v, se })
         })
         .collect()
 }
