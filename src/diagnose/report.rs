@@ -146,7 +146,7 @@ pub fn write(
     write_json(rep, out)?;
     let tp = out.join("fitted.toml");
     let mut toml = String::from(
-        "# Fault model fitted by `faultcam diagnose`: apply it to sim images with\n# `faultcam apply --config fitted.toml ...`\n",
+        "# Fault model fitted by `faultcam diagnose`: apply it to sim images with\n# `faultcam apply --faults fitted.toml --in SIM --out OUT`\n",
     );
     toml.push_str(&fitted.config.to_toml());
     std::fs::write(&tp, toml).map_err(|e| werr(&tp, e))?;
