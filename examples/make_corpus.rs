@@ -15,8 +15,7 @@ fn main() -> std::process::ExitCode {
     };
     let wanted: Vec<String> = args.collect();
     let out = std::path::PathBuf::from(out);
-    let cases: Vec<_> =
-        realcam::corpus()
+    let cases: Vec<_> = realcam::corpus()
         .into_iter()
         .chain(realcam::unpaired_corpus())
         .filter(|c| wanted.is_empty() || wanted.contains(&c.name))

@@ -51,8 +51,7 @@ fn main() -> std::process::ExitCode {
             tmp.path().to_path_buf()
         }
     };
-    let cases: Vec<_> =
-        realcam::corpus()
+    let cases: Vec<_> = realcam::corpus()
         .into_iter()
         .chain(realcam::unpaired_corpus())
         .filter(|c| wanted.is_empty() || wanted.contains(&c.name))

@@ -41,15 +41,7 @@ fn diagnose_writes_the_report_contract_and_an_applicable_model() {
         &cfg,
         "seed = 3\n[[effects]]\nname = \"vignetting\"\nstrength = 0.3\n\n[[effects]]\nname = \"gaussian_noise\"\nsigma_dn = 2.0\n",
     );
-    faultcam()
-        .args(["apply", "--in"])
-        .arg(&sim)
-        .arg("--out")
-        .arg(&real)
-        .arg("--faults")
-        .arg(&cfg)
-        .assert()
-        .success();
+    faultcam().args(["apply", "--in"]).arg(&sim).arg("--out").arg(&real).arg("--faults").arg(&cfg).assert().success();
     faultcam().args(["diagnose", "--sim"]).arg(&sim).arg("--real").arg(&real).arg("--out").arg(&out).assert().success();
     let rep: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report.json")).expect("json");
@@ -72,7 +64,8 @@ fn diagnose_writes_the_report_contract_and_an_applicable_model() {
     let s = v["params"]["strength"].as_f64().expect("strength");
     assert!((s - 0.3).abs() < 0.05, "vignetting strength {s}");
     // The deterministic model is closer to real than the sim was.
-    let (b, a) = (rep["fit"]["before"]["rmse"].as_f64().expect("rmse"), rep["fit"]["after"]["rmse"].as_f64().expect("rmse"));
+    let (b, a) =
+        (rep["fit"]["before"]["rmse"].as_f64().expect("rmse"), rep["fit"]["after"]["rmse"].as_f64().expect("rmse"));
     assert!(a < b, "rmse {b} -> {a}");
     // fitted.toml is accepted by apply as it is.
     faultcam()
@@ -84,7 +77,13 @@ fn diagnose_writes_the_report_contract_and_an_applicable_model() {
         .arg(out.join("fitted.toml"))
         .assert()
         .success();
-    assert_eq!(std::fs::read_dir(&applied).expect("applied").filter(|e| e.as_ref().is_ok_and(|e| e.path().extension().is_some_and(|x| x == "png"))).count(), 3);
+    assert_eq!(
+        std::fs::read_dir(&applied)
+            .expect("applied")
+            .filter(|e| e.as_ref().is_ok_and(|e| e.path().extension().is_some_and(|x| x == "png")))
+            .count(),
+        3
+    );
     let md = std::fs::read_to_string(out.join("report.md")).expect("report.md");
     assert!(md.contains("residual_before.png") && md.contains("residual_after.png"));
     assert!(out.join("residual_before.png").is_file() && out.join("residual_after.png").is_file());

@@ -521,13 +521,17 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     let fmt_like = &pairs[0].real_frame;
     // The deterministic chain (with the dark current's own noise and the JPEG) the camera noise
     // goes through.
-    let mut chain: Vec<Params> = results.iter().filter(|r| det_names_of(&sel).contains(&r.name)).filter_map(|r| r.params).collect();
+    let mut chain: Vec<Params> =
+        results.iter().filter(|r| det_names_of(&sel).contains(&r.name)).filter_map(|r| r.params).collect();
     if st.jpeg.detected
         && let Some(p) = params_from_signature(&st.jpeg)
     {
         chain.push(p);
     }
-    let through_model = if st.gaussian.detected || st.shot.detected {
+    // Only effects after the noise in the signal chain change what is measured (a gain or tone
+    // curve scales it, JPEG removes part of it); without them the direct estimate is the answer.
+    let after_noise = chain.iter().any(|p| matches!(p.info().name, "gain_offset" | "gamma" | "jpeg"));
+    let through_model = if after_noise && (st.gaussian.detected || st.shot.detected) {
         Some(noise_through_model(pairs, loc, &model_planes, &st.noise, &chain, seed)?)
     } else {
         None
@@ -536,11 +540,11 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         if !sig.detected {
             continue;
         }
-        let (mut params, mut method, lb, la) =
-            match super::moments::calibrate(sig, &st.noise, dark_var, fmt_like, seed) {
-                Some(x) => (Some(x.0), x.1, x.2, x.3),
-                None => (None, "signature estimate (effect not in the library)".to_string(), f64::NAN, f64::NAN),
-            };
+        let (mut params, mut method, lb, la) = match super::moments::calibrate(sig, &st.noise, dark_var, fmt_like, seed)
+        {
+            Some(x) => (Some(x.0), x.1, x.2, x.3),
+            None => (None, "signature estimate (effect not in the library)".to_string(), f64::NAN, f64::NAN),
+        };
         if let (Some((sigma, gain)), Some(p)) = (through_model, params.as_mut()) {
             let note = "moment matching through the library's forward models: sim through the fitted chain with trial noise, variance against level measured as on the real images";
             match sig.effect {
@@ -573,6 +577,10 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     }
     // Deterministic findings by evidence, then the stochastic ones by significance.
     results.sort_by(|a, b| b.importance.total_cmp(&a.importance));
+    // The signature table shows the final decision (taken by the forward-model selection).
+    for sig in loc.signatures.iter_mut() {
+        sig.detected = sel.steps.iter().any(|s| !s.fixed && s.name == sig.effect);
+    }
     for s in [&st.gaussian, &st.shot, &st.prnu, &st.row, &hot_sig, &st.jpeg] {
         loc.signatures.push(s.clone());
     }
@@ -580,10 +588,8 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     // Deterministic steps first, in the fit's physical order, so that each keeps its generator
     // index (lens_flare's ghost pattern depends on it).
     let det_names: Vec<&str> = sel.steps.iter().filter(|s| !s.fixed).map(|s| s.name).collect();
-    let mut cfg_params: Vec<Params> = det_names
-        .iter()
-        .filter_map(|n| results.iter().find(|r| r.name == *n).and_then(|r| r.params))
-        .collect();
+    let mut cfg_params: Vec<Params> =
+        det_names.iter().filter_map(|n| results.iter().find(|r| r.name == *n).and_then(|r| r.params)).collect();
     cfg_params.extend(results.iter().filter(|r| !det_names.contains(&r.name)).filter_map(|r| r.params));
     let mut config = FaultConfig::from_effects(seed, cfg_params);
     config.origin = "fitted by faultcam diagnose".into();

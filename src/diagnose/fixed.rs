@@ -231,9 +231,7 @@ pub fn row_offsets(pairs: &[Pair], masks: &[Masks], resid: &[Vec<Plane>], hot: &
                         .map(|y| {
                             let v: Vec<f64> = (0..w)
                                 .map(|x| y * w + x)
-                                .filter(|&i| {
-                                    real[i] > 0.0 && real[i] < FS && !hot[k][i] && masks[k].dist_sat[i] > 3.0
-                                })
+                                .filter(|&i| real[i] > 0.0 && real[i] < FS && !hot[k][i] && masks[k].dist_sat[i] > 3.0)
                                 .map(|i| rr[i] as f64)
                                 .collect();
                             if v.len() >= 8 { stats::median(&v) } else { f64::NAN }

@@ -179,7 +179,8 @@ pub fn fit(pairs: &[Pair], masks: &[Masks], noise: &NoiseModel) -> Photometric {
         for b in &noise.low {
             let p = &pairs[b.k];
             let (w, h) = (p.w(), p.h());
-            let (xc, yc) = (b.xc.round().clamp(0.0, w as f64 - 1.0) as usize, b.yc.round().clamp(0.0, h as f64 - 1.0) as usize);
+            let (xc, yc) =
+                (b.xc.round().clamp(0.0, w as f64 - 1.0) as usize, b.yc.round().clamp(0.0, h as f64 - 1.0) as usize);
             let (xn, yn, rho2) = coords(xc, yc, w, h);
             row(b.base, xn, yn, rho2, &mut rowbuf);
             let bw = w.div_ceil(32);

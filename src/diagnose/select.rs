@@ -134,7 +134,8 @@ impl Step {
             && let Some(nm) = self.dither.clone()
         {
             let orig: Vec<Frame> = img.to_vec();
-            let mut acc: Vec<Vec<f64>> = orig.iter().map(|f| vec![0.0; f.as_u16().map(|d| d.len()).unwrap_or(0)]).collect();
+            let mut acc: Vec<Vec<f64>> =
+                orig.iter().map(|f| vec![0.0; f.as_u16().map(|d| d.len()).unwrap_or(0)]).collect();
             let mut plain = Step { dither: None, effect: faults::create("jpeg").ok(), ..self.boxed_clone() };
             for k in 0..DITHER_DRAWS {
                 let mut noisy = orig.clone();
@@ -350,7 +351,12 @@ fn sync_coupled(steps: &mut [Step]) {
 
 impl FitCtx<'_> {
     /// Run `steps[from..]` on `start` (outputs of the steps before `from`).
-    fn run_from(&self, steps: &mut [Step], from: usize, start: &[Vec<Frame>]) -> Result<Vec<Vec<Plane>>, DiagnoseError> {
+    fn run_from(
+        &self,
+        steps: &mut [Step],
+        from: usize,
+        start: &[Vec<Frame>],
+    ) -> Result<Vec<Vec<Plane>>, DiagnoseError> {
         sync_coupled(steps);
         let mut out = Vec::with_capacity(start.len());
         for (k, img) in start.iter().enumerate() {
@@ -780,8 +786,7 @@ pub fn select(
                 // Candidates without any evidence so far get a shorter search.
                 let quiet = best_z[ci] < 2.0 && (round > 1 || prior_z.is_some_and(|p| p[ci] < 2.0));
                 let widths: &[(f64, usize)] = if quiet { &[(0.5, 8)] } else { &[(0.5, 12), (0.12, 8)] };
-                let (ev, trial, _) =
-                    try_candidate(ctx, &steps, cand, current, &current_planes, z_thr, round, widths)?;
+                let (ev, trial, _) = try_candidate(ctx, &steps, cand, current, &current_planes, z_thr, round, widths)?;
                 best_z[ci] = best_z[ci].max(ev.z);
                 tests.push(ev.clone());
                 if ev.accepted {
@@ -793,9 +798,10 @@ pub fn select(
             // that fits worse must not win because its residual happens to be less correlated).
             let d_ref = accepted.iter().map(|a| a.0.design).fold(1.0f64, f64::max);
             let ln_n = (current.n.max(2) as f64).ln();
-            let best = accepted
-                .into_iter()
-                .max_by(|a, b| (a.0.delta - 0.5 * a.0.k as f64 * ln_n * d_ref).total_cmp(&(b.0.delta - 0.5 * b.0.k as f64 * ln_n * d_ref)));
+            let best = accepted.into_iter().max_by(|a, b| {
+                (a.0.delta - 0.5 * a.0.k as f64 * ln_n * d_ref)
+                    .total_cmp(&(b.0.delta - 0.5 * b.0.k as f64 * ln_n * d_ref))
+            });
             let Some((ev, trial)) = best else { break };
             for t in tests.iter_mut().filter(|t| t.round == round) {
                 t.accepted = t.label == ev.label;
@@ -823,7 +829,8 @@ pub fn select(
                 continue;
             }
             let k_j = coords_of(&steps, Some(j)).len();
-            let rest: Vec<Step> = clone_steps(&steps).into_iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s).collect();
+            let rest: Vec<Step> =
+                clone_steps(&steps).into_iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s).collect();
             for (ci, cand) in candidates.iter().enumerate() {
                 if family(cand.name) != family(steps[j].name)
                     || cand.name == steps[j].name
@@ -844,14 +851,17 @@ pub fn select(
                 // More parameters must buy a material change of the expected image (judged with
                 // the other effects as they were).
                 let k_c = coords_of(&trial, None).len() + k_j - k_full;
-                let material_ok =
-                    k_c <= k_j || material(&ctx.physical_planes(&trial)?, &full_planes) >= material_threshold(cand.name);
+                let material_ok = k_c <= k_j
+                    || material(&ctx.physical_planes(&trial)?, &full_planes) >= material_threshold(cand.name);
                 if !material_ok {
                     continue;
                 }
                 let ev = refine_quick(ctx, &mut trial)?;
                 if penalised(ev, coords_of(&trial, None).len(), design) < p_full - 2.0 {
-                    notes.push(format!("{} replaced by {} (as good a fit with fewer or better-placed parameters)", key.0, key.1));
+                    notes.push(format!(
+                        "{} replaced by {} (as good a fit with fewer or better-placed parameters)",
+                        key.0, key.1
+                    ));
                     swapped.push(key);
                     steps = trial;
                     continue 'outer;
@@ -890,7 +900,11 @@ pub fn select(
             }
             let mut without: Vec<Step> =
                 steps.iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s.boxed_clone()).collect();
-            let lw = if without.iter().any(|s| !s.fixed) { refine_quick(ctx, &mut without)? } else { ctx.eval(&mut without)? };
+            let lw = if without.iter().any(|s| !s.fixed) {
+                refine_quick(ctx, &mut without)?
+            } else {
+                ctx.eval(&mut without)?
+            };
             let pw = ctx.physical_planes(&without)?;
             let k = coords_of(&steps, Some(j)).len();
             let mut ev = evidence(steps[j].name, &steps[j].label, lw, current, k, material(&planes, &pw), z_thr, 0);
@@ -930,4 +944,49 @@ pub fn select(
         }
     }
     Ok(Selection { steps, evidence: evidence_final, tests, loss_null, loss_final: current, notes, best_z })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn material_is_the_twentieth_largest_change() {
+        let a = vec![vec![Plane::filled(100, 10, 10.0)]];
+        let mut b = a.clone();
+        for i in 0..19 {
+            b[0][0].data[i] = 20.0; // 19 large changes: fewer than 20
+        }
+        b[0][0].data[50] = 10.4;
+        assert!((material(&b, &a) - 0.4).abs() < 1e-6);
+        b[0][0].data[19] = 13.0;
+        assert!((material(&b, &a) - 3.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn floors_reject_negligible_parameters_only() {
+        let mut p = Params::defaults(registry::find("defocus").unwrap().info);
+        p.set("sigma_px", 0.2).unwrap();
+        assert!(!above_floor(&p));
+        p.set("sigma_px", 1.0).unwrap();
+        assert!(above_floor(&p));
+        let mut g = Params::defaults(registry::find("gain_offset").unwrap().info);
+        g.set("gain", 1.002).unwrap();
+        g.set("offset_dn", 0.2).unwrap();
+        assert!(!above_floor(&g));
+        g.set("offset_dn", -2.0).unwrap();
+        assert!(above_floor(&g));
+    }
+
+    #[test]
+    fn huber_and_censored_losses_are_continuous_and_increasing() {
+        assert!((huber(3.0) - 4.5).abs() < 1e-12 && (huber(3.0 + 1e-9) - 4.5).abs() < 1e-6);
+        let mut last = 0.0;
+        for i in 0..60 {
+            let t = -3.0 + i as f64 * 0.2;
+            let v = censored(t, 1.0);
+            assert!(v >= last - 1e-12, "t {t}: {v} < {last}");
+            last = v;
+        }
+    }
 }

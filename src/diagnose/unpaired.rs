@@ -88,7 +88,8 @@ fn to_mono(f: &Frame) -> Frame {
 fn measure(planes: &[Plane], noise_sd: f64) -> ImStats {
     let (w, h) = (planes[0].w, planes[0].h);
     let grey = luma(planes);
-    let mut st = ImStats { pixels: w * h, halo_sum: vec![0.0; HALO + 1], halo_n: vec![0.0; HALO + 1], ..Default::default() };
+    let mut st =
+        ImStats { pixels: w * h, halo_sum: vec![0.0; HALO + 1], halo_n: vec![0.0; HALO + 1], ..Default::default() };
     let sat: Vec<bool> = (0..w * h).map(|i| planes.iter().any(|p| p.data[i] >= 254.5)).collect();
     st.sat = sat.iter().filter(|&&s| s).count();
     let dist = distance_transform(&sat, w, h);
@@ -288,10 +289,10 @@ fn measure(planes: &[Plane], noise_sd: f64) -> ImStats {
                     continue;
                 }
                 let mut nb = [0f32; 8];
-                let mut k = 0;
-                for (dx, dy) in [(-1isize, -1isize), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)] {
-                    nb[k] = p.at_clamped(x as isize + dx, y as isize + dy);
-                    k += 1;
+                for (slot, (dx, dy)) in
+                    nb.iter_mut().zip([(-1isize, -1isize), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)])
+                {
+                    *slot = p.at_clamped(x as isize + dx, y as isize + dy);
                 }
                 nb.sort_by(|a, b| a.total_cmp(b));
                 let med = 0.5 * (nb[3] + nb[4]);
@@ -403,8 +404,8 @@ fn combine(items: &[&ImStats]) -> SetStats {
         s.width = Some(stats::median_mut(&mut widths));
     }
     let (mut fs, mut fnn) = (0.0, 0.0);
-    let mut hs = vec![0.0; HALO + 1];
-    let mut hn = vec![0.0; HALO + 1];
+    let mut hs = [0.0; HALO + 1];
+    let mut hn = [0.0; HALO + 1];
     for it in items {
         fs += it.far.0;
         fnn += it.far.1;
@@ -558,8 +559,10 @@ fn gaps_with_se(real: &[ImStats], sim: &[ImStats], seed: u64) -> Vec<(&'static s
     let mut rng = Rng::new(seed ^ 0xb00f);
     let mut reps: Vec<Vec<(&'static str, f64)>> = Vec::new();
     for _ in 0..BOOT {
-        let rb: Vec<&ImStats> = (0..real.len()).map(|_| &real[(rng.uniform() * real.len() as f64) as usize % real.len()]).collect();
-        let sb: Vec<&ImStats> = (0..sim.len()).map(|_| &sim[(rng.uniform() * sim.len() as f64) as usize % sim.len()]).collect();
+        let rb: Vec<&ImStats> =
+            (0..real.len()).map(|_| &real[(rng.uniform() * real.len() as f64) as usize % real.len()]).collect();
+        let sb: Vec<&ImStats> =
+            (0..sim.len()).map(|_| &sim[(rng.uniform() * sim.len() as f64) as usize % sim.len()]).collect();
         reps.push(gaps(&combine(&rb), &combine(&sb)));
     }
     // Counting statistics: a Poisson floor on the standard error (few images, few counts).
@@ -664,7 +667,11 @@ fn set_metrics(model: &[Frame], real: &[Frame]) -> FitMetrics {
 }
 
 /// Unpaired diagnosis.
-pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) -> Result<UnpairedReport, DiagnoseError> {
+pub fn run(
+    sims: &[(String, Frame)],
+    reals: &[(String, Frame)],
+    opts: &Options,
+) -> Result<UnpairedReport, DiagnoseError> {
     // Bootstrap standard errors from a handful of images are rough: keep a margin.
     let z_thr = (opts.z_threshold - 1.0).max(3.0);
     let mut notes = vec![
@@ -675,7 +682,10 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
         let f = if f.format == PixelFormat::Mono16 {
             // Analysed in 8-bit DN like everything else.
             let p = planes_of(f);
-            super::img::frame_from_planes(&p, &Frame::new(f.width, f.height, PixelFormat::Mono8).unwrap_or_else(|_| f.clone()))
+            super::img::frame_from_planes(
+                &p,
+                &Frame::new(f.width, f.height, PixelFormat::Mono8).unwrap_or_else(|_| f.clone()),
+            )
         } else {
             f.clone()
         };
@@ -699,7 +709,9 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
                 for y in (1..h.saturating_sub(1)).step_by(2) {
                     for x in 1..w - 1 {
                         let i = y * w + x;
-                        d.push((g.data[i] - 0.25 * (g.data[i - 1] + g.data[i + 1] + g.data[i - w] + g.data[i + w])) as f64);
+                        d.push(
+                            (g.data[i] - 0.25 * (g.data[i - 1] + g.data[i + 1] + g.data[i - w] + g.data[i + w])) as f64,
+                        );
                     }
                 }
                 stats::mad_sigma(&d) / 1.118
@@ -726,10 +738,8 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
         nm.b = if ident { b.value.max(0.0) } else { 0.0 };
         nm.se_b = b.se;
         nm.bins = rset.noise.iter().map(|&(l, v, n, _)| NoiseBin { level: l, var: v, n }).collect();
-        nm.fit_range = (
-            rset.noise.first().map(|b| b.0).unwrap_or(0.0),
-            rset.noise.last().map(|b| b.0).unwrap_or(FS as f64),
-        );
+        nm.fit_range =
+            (rset.noise.first().map(|b| b.0).unwrap_or(0.0), rset.noise.last().map(|b| b.0).unwrap_or(FS as f64));
         nm.slope_identified = ident;
         let (mut gn, mut sn) = super::locate::camera_noise(&nm, z_thr);
         gn.where_ = "flat blocks of the real images (noise floor above the sim's)".into();
@@ -754,7 +764,12 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
             if s.detected
                 && let Some((p, method, _, _)) = super::moments::calibrate(&s, &nm, 0.0, like, opts.seed)
             {
-                found.push(UFinding { sig: s.clone(), params: p, stat: if s.effect == "gaussian_noise" { "noise_a" } else { "noise_b" }, method });
+                found.push(UFinding {
+                    sig: s.clone(),
+                    params: p,
+                    stat: if s.effect == "gaussian_noise" { "noise_a" } else { "noise_b" },
+                    method,
+                });
             }
             tests.push(s);
         }
@@ -769,7 +784,11 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
         def.z = gw.z();
         def.size = gw.value;
         def.size_unit = "px² edge spread (real - sim)";
-        def.where_ = format!("strong isolated edges ({} real, {} sim)", rr.iter().map(|s| s.widths.len()).sum::<usize>(), ss.iter().map(|s| s.widths.len()).sum::<usize>());
+        def.where_ = format!(
+            "strong isolated edges ({} real, {} sim)",
+            rr.iter().map(|s| s.widths.len()).sum::<usize>(),
+            ss.iter().map(|s| s.widths.len()).sum::<usize>()
+        );
         def.evidence = format!(
             "median second moment of the gradient profile across edges: real {:.3} px², sim {:.3} px² (gap {:.3} ± {:.3}, z = {:.1})",
             rset.width.unwrap_or(f64::NAN),
@@ -825,11 +844,7 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
             bl.where_ = "around saturated regions".into();
             bl.evidence = format!(
                 "mean level 1-4 px from saturated regions above the level at 28-44 px: real exceeds sim by {:.2} ± {:.2} DN (z = {:.1}); saturated fraction real {:.4} vs sim {:.4}",
-                gh.value,
-                gh.se,
-                bl.z,
-                rset.sat_frac,
-                sset.sat_frac
+                gh.value, gh.se, bl.z, rset.sat_frac, sset.sat_frac
             );
             bl.detected = bl.z > z_thr && gh.value > 1.0;
             if bl.detected {
@@ -841,7 +856,9 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
                 let base = noise_cfg(&found);
                 let eval2 = |g: f64, sp: f64| -> f64 {
                     let mut ps = base.clone();
-                    if let Some(p) = params_of("blooming", &[("full_well_fraction", 1.0), ("spread_px", sp), ("exposure_gain", g)]) {
+                    if let Some(p) =
+                        params_of("blooming", &[("full_well_fraction", 1.0), ("spread_px", sp), ("exposure_gain", g)])
+                    {
                         ps.push(p);
                     }
                     let cfg = FaultConfig::from_effects(opts.seed, ps);
@@ -874,7 +891,9 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
                 bl.set_param("full_well_fraction", 1.0);
                 bl.set_param("spread_px", sp);
                 bl.set_param("exposure_gain", g);
-                if let Some(p) = params_of("blooming", &[("full_well_fraction", 1.0), ("spread_px", sp), ("exposure_gain", g)]) {
+                if let Some(p) =
+                    params_of("blooming", &[("full_well_fraction", 1.0), ("spread_px", sp), ("exposure_gain", g)])
+                {
                     found.push(UFinding {
                         sig: bl.clone(),
                         params: p,
@@ -904,10 +923,21 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
         );
         dk.detected = dk.z > z_thr && gd.value >= 1.0;
         if dk.detected {
-            let gain = found.iter().find(|f| f.sig.effect == "shot_noise").map(|f| f.params.get("gain_e_per_dn")).unwrap_or(1e3);
+            let gain = found
+                .iter()
+                .find(|f| f.sig.effect == "shot_noise")
+                .map(|f| f.params.get("gain_e_per_dn"))
+                .unwrap_or(1e3);
             dk.set_param("mean_dn", gd.value);
-            if let Some(p) = params_of("dark_current", &[("mean_dn", gd.value), ("hot_pixel_rate", 0.0), ("gain_e_per_dn", gain)]) {
-                found.push(UFinding { sig: dk.clone(), params: p, stat: "dark", method: "level difference of the darkest regions (censored fits)".into() });
+            if let Some(p) =
+                params_of("dark_current", &[("mean_dn", gd.value), ("hot_pixel_rate", 0.0), ("gain_e_per_dn", gain)])
+            {
+                found.push(UFinding {
+                    sig: dk.clone(),
+                    params: p,
+                    stat: "dark",
+                    method: "level difference of the darkest regions (censored fits)".into(),
+                });
             }
         }
     } else {
@@ -926,15 +956,26 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
         sm.z = g.z();
         sm.size = g.value;
         sm.size_unit = "DN per saturated pixel";
-        sm.where_ = format!("dark background of {} through saturated pixels", if dir == "vertical" { "columns" } else { "rows" });
-        sm.evidence = format!("dark-background level rises by {:.3} ± {:.3} DN per saturated pixel of the line more in real than in sim (z = {:.1})", g.value, g.se, sm.z);
+        sm.where_ = format!(
+            "dark background of {} through saturated pixels",
+            if dir == "vertical" { "columns" } else { "rows" }
+        );
+        sm.evidence = format!(
+            "dark-background level rises by {:.3} ± {:.3} DN per saturated pixel of the line more in real than in sim (z = {:.1})",
+            g.value, g.se, sm.z
+        );
         sm.detected = sm.z > z_thr && g.value / FS as f64 >= 5e-4;
         if sm.detected {
             sm.set_param("strength", g.value / FS as f64);
             sm.choices.push(("direction".into(), dir.into()));
             if let Some(mut p) = params_of("smear", &[("strength", g.value / FS as f64)]) {
                 let _ = p.set_choice("direction", dir);
-                found.push(UFinding { sig: sm.clone(), params: p, stat: if dir == "vertical" { "smear_v" } else { "smear_h" }, method: "regression of line levels on saturated counts (real minus sim)".into() });
+                found.push(UFinding {
+                    sig: sm.clone(),
+                    params: p,
+                    stat: if dir == "vertical" { "smear_v" } else { "smear_h" },
+                    method: "regression of line levels on saturated counts (real minus sim)".into(),
+                });
             }
         }
     } else {
@@ -957,12 +998,18 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
         );
         cs.detected = cs.z > z_thr && cs.size >= 0.15;
         if cs.detected {
-            let vals: Vec<(&str, f64)> = ["dx_r", "dy_r", "dx_b", "dy_b"].iter().zip(&c).map(|(n, g)| (*n, g.value)).collect();
+            let vals: Vec<(&str, f64)> =
+                ["dx_r", "dy_r", "dx_b", "dy_b"].iter().zip(&c).map(|(n, g)| (*n, g.value)).collect();
             for (n, v) in &vals {
                 cs.set_param(n, *v);
             }
             if let Some(p) = params_of("channel_shift", &vals) {
-                found.push(UFinding { sig: cs.clone(), params: p, stat: "dx_r", method: "edge registration of the planes (real minus sim)".into() });
+                found.push(UFinding {
+                    sig: cs.clone(),
+                    params: p,
+                    stat: "dx_r",
+                    method: "edge registration of the planes (real minus sim)".into(),
+                });
             }
         }
     } else {
@@ -978,13 +1025,21 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
         hp.where_ = "isolated outliers above their 3x3 median".into();
         let ex: Vec<f64> = real_st.iter().flat_map(|s| s.hot_excess.iter().copied()).collect();
         let excess = if ex.is_empty() { 0.0 } else { stats::median(&ex) };
-        hp.evidence = format!("isolated outlier rate real {:.2e} vs sim {:.2e} (gap z = {:.1}; median excess {excess:.0} DN)", rset.hot_rate, sset.hot_rate, hp.z);
+        hp.evidence = format!(
+            "isolated outlier rate real {:.2e} vs sim {:.2e} (gap z = {:.1}; median excess {excess:.0} DN)",
+            rset.hot_rate, sset.hot_rate, hp.z
+        );
         hp.detected = hp.z > z_thr && g.value > 2e-5;
         if hp.detected {
             hp.set_param("rate", g.value);
             hp.set_param("offset_dn", excess);
             if let Some(p) = params_of("hot_pixels", &[("rate", g.value), ("offset_dn", excess)]) {
-                found.push(UFinding { sig: hp.clone(), params: p, stat: "hot", method: "outlier rate difference".into() });
+                found.push(UFinding {
+                    sig: hp.clone(),
+                    params: p,
+                    stat: "hot",
+                    method: "outlier rate difference".into(),
+                });
             }
         }
     }
@@ -996,12 +1051,20 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
         rn.size = g.value.max(0.0).sqrt();
         rn.size_unit = "DN row offset sigma";
         rn.where_ = "rows of the dark background".into();
-        rn.evidence = format!("row-offset variance shared by even and odd columns: real minus sim {:.4} ± {:.4} DN² (z = {:.1})", g.value, g.se, rn.z);
+        rn.evidence = format!(
+            "row-offset variance shared by even and odd columns: real minus sim {:.4} ± {:.4} DN² (z = {:.1})",
+            g.value, g.se, rn.z
+        );
         rn.detected = rn.z > z_thr && rn.size >= 0.2;
         if rn.detected {
             rn.set_param("sigma_dn", rn.size);
             if let Some(p) = params_of("row_noise", &[("sigma_dn", rn.size)]) {
-                found.push(UFinding { sig: rn.clone(), params: p, stat: "row", method: "split-half covariance of row means (real minus sim)".into() });
+                found.push(UFinding {
+                    sig: rn.clone(),
+                    params: p,
+                    stat: "row",
+                    method: "split-half covariance of row means (real minus sim)".into(),
+                });
             }
         }
     } else {
@@ -1018,7 +1081,12 @@ pub fn run(sims: &[(String, Frame)], reals: &[(String, Frame)], opts: &Options) 
     if jp.detected
         && let Some(p) = params_of("jpeg", &[("quality", jp.param("quality").unwrap_or(90.0).round())])
     {
-        found.push(UFinding { sig: jp.clone(), params: p, stat: "", method: "quality from the DCT quantisation lattice (libjpeg tables)".into() });
+        found.push(UFinding {
+            sig: jp.clone(),
+            params: p,
+            stat: "",
+            method: "quality from the DCT quantisation lattice (libjpeg tables)".into(),
+        });
     }
     tests.push(jp);
     // ---- the fitted model and the gaps after ----
@@ -1111,7 +1179,10 @@ fn profiles(
     // Noise floors.
     let levels: Vec<f64> = (0..16).map(|b| (b as f64 + 0.5) * NBIN).collect();
     let floor = |st: &SetStats| -> Vec<f64> {
-        levels.iter().map(|l| st.noise.iter().find(|b| (b.0 - l).abs() < 1e-9).map(|b| b.1).unwrap_or(f64::NAN)).collect()
+        levels
+            .iter()
+            .map(|l| st.noise.iter().find(|b| (b.0 - l).abs() < 1e-9).map(|b| b.1).unwrap_or(f64::NAN))
+            .collect()
     };
     out.push(Profile {
         title: "noise floor against level".into(),
@@ -1128,7 +1199,11 @@ fn profiles(
             x_label: "distance from the saturated region (px)".into(),
             y_label: "mean level minus the level at 28-44 px (DN)".into(),
             x,
-            series: vec![("real".into(), pad(&r.halo)), ("sim".into(), pad(&s.halo)), ("sim through the model".into(), pad(&m.halo))],
+            series: vec![
+                ("real".into(), pad(&r.halo)),
+                ("sim".into(), pad(&s.halo)),
+                ("sim through the model".into(), pad(&m.halo)),
+            ],
         });
     }
     let x: Vec<f64> = (0..256).map(|v| v as f64).collect();

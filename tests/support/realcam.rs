@@ -613,7 +613,9 @@ impl Hidden {
             Hidden::Gamma { .. } => "FS*(v/FS)^gamma after clip".into(),
             Hidden::Jpeg { .. } => "image crate JPEG encoder".into(),
             Hidden::MotionBlur { .. } => "box-filtered line streak, 64 samples".into(),
-            Hidden::Blooming { decay_px, .. } => format!("iterated exponential spill to neighbours, decay {decay_px:.2} px"),
+            Hidden::Blooming { decay_px, .. } => {
+                format!("iterated exponential spill to neighbours, decay {decay_px:.2} px")
+            }
             Hidden::HotPixels { .. } => "fixed constant offsets 60-150 DN".into(),
             Hidden::GainOffset { .. } => "v*gain + offset before rounding".into(),
         }
@@ -665,7 +667,9 @@ pub fn streak_kernel(len: f64, angle_deg: f64) -> (Vec<f64>, usize) {
         let (x, y) = (half as f64 + t * len * c, half as f64 - t * len * s);
         let (x0, y0) = (x.floor(), y.floor());
         let (fx, fy) = (x - x0, y - y0);
-        for (dx, dy, w) in [(0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy), (1, 1, fx * fy)] {
+        for (dx, dy, w) in
+            [(0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy), (1, 1, fx * fy)]
+        {
             let (xi, yi) = (x0 as usize + dx, y0 as usize + dy);
             if xi < n && yi < n {
                 k[yi * n + xi] += w;
@@ -943,7 +947,9 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
         }
     }
     // Blooming: charge above the well spills to the neighbours until none exceeds it.
-    let well = hidden.iter().find_map(|hd| if let Hidden::Blooming { full_well, decay_px } = *hd { Some((full_well * FS, decay_px)) } else { None });
+    let well = hidden.iter().find_map(|hd| {
+        if let Hidden::Blooming { full_well, decay_px } = *hd { Some((full_well * FS, decay_px)) } else { None }
+    });
     if let Some((wl, decay)) = well {
         let (k, half) = spill_kernel(decay);
         let n = 2 * half + 1;
@@ -970,7 +976,8 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
                         }
                         for j in 0..n {
                             for i in 0..n {
-                                let (xx, yy) = (x as isize + i as isize - half as isize, y as isize + j as isize - half as isize);
+                                let (xx, yy) =
+                                    (x as isize + i as isize - half as isize, y as isize + j as isize - half as isize);
                                 if xx >= 0 && yy >= 0 && (xx as usize) < w && (yy as usize) < h {
                                     irr.v[(yy as usize * w + xx as usize) * c + ch] += e * k[j * n + i];
                                 }
@@ -1236,7 +1243,9 @@ pub fn corpus() -> Vec<Case> {
         case("vignetting_lab_mono", Mono8, 221, false, 4.0, 2.0, vec![Vignetting { strength: 0.08 }]).in_lab(),
         case("defocus_mono", Mono8, 203, true, 6.0, 1.2, vec![Defocus { radius_px: 2.0 }]),
         case("defocus_rgb", Rgb8, 204, false, 6.0, 1.5, vec![Defocus { radius_px: 1.6 }]),
-        case("defocus_lab_mono_3f", Mono8, 222, false, 6.0, 1.5, vec![Defocus { radius_px: 2.0 }]).in_lab().sized(256, 192, 3),
+        case("defocus_lab_mono_3f", Mono8, 222, false, 6.0, 1.5, vec![Defocus { radius_px: 2.0 }])
+            .in_lab()
+            .sized(256, 192, 3),
         case("motion_blur_mono", Mono8, 223, true, 6.0, 1.5, vec![MotionBlur { length_px: 3.0, angle_deg: 30.0 }]),
         case("dark_current_mono", Mono8, 205, true, 6.0, 1.2, vec![DarkCurrent { mean_dn: 3.0, hot_rate: 0.0 }]),
         case("dark_hot_rgb", Rgb8, 206, false, 5.0, 1.5, vec![DarkCurrent { mean_dn: 3.0, hot_rate: 4e-4 }]),
@@ -1276,7 +1285,8 @@ pub fn corpus() -> Vec<Case> {
         ),
         case("row_noise_mono", Mono8, 214, true, 6.0, 1.2, vec![RowNoise { sigma_dn: 1.2 }]),
         case("gamma_mono", Mono8, 215, true, 6.0, 1.5, vec![Gamma { gamma: 0.92 }]),
-        case("gain_offset_lab_mono", Mono8, 227, false, 6.0, 1.5, vec![GainOffset { gain: 1.05, offset_dn: -2.0 }]).in_lab(),
+        case("gain_offset_lab_mono", Mono8, 227, false, 6.0, 1.5, vec![GainOffset { gain: 1.05, offset_dn: -2.0 }])
+            .in_lab(),
         case("jpeg_rgb", Rgb8, 228, true, 6.0, 1.5, vec![Jpeg { quality: 85 }]),
         // Two hidden effects.
         case(

@@ -265,13 +265,7 @@ pub fn run_case(case: &Case, root: &Path, faultcam: &Path) -> CaseScore {
     if case.is_unpaired() {
         cmd.arg("--unpaired");
     }
-    let res = run(cmd
-        .arg("--sim")
-        .arg(dir.join("sim"))
-        .arg("--real")
-        .arg(dir.join("real"))
-        .arg("--out")
-        .arg(&out));
+    let res = run(cmd.arg("--sim").arg(dir.join("sim")).arg("--real").arg(dir.join("real")).arg("--out").arg(&out));
     let secs = t0.elapsed().as_secs_f64();
     if let Err(e) = res {
         let mut s = fail(e);
@@ -414,6 +408,19 @@ fn fmt_param(p: &ParamScore) -> String {
     format!("{}.{} {:.4}→{}{}", p.effect, p.param, p.truth, got, if p.pass { "" } else { " ✗" })
 }
 
+/// Three significant digits.
+fn sig3(v: f64) -> String {
+    if !v.is_finite() {
+        "—".into()
+    } else if v == 0.0 {
+        "0".into()
+    } else if v.abs() >= 0.01 {
+        format!("{v:.3}")
+    } else {
+        format!("{v:.2e}")
+    }
+}
+
 /// Per effect: cases hiding it, detections, and the median absolute error of each canonical
 /// parameter of the detected ones (with the number within tolerance).
 pub fn per_effect(scores: &[CaseScore]) -> String {
@@ -425,7 +432,9 @@ pub fn per_effect(scores: &[CaseScore]) -> String {
             }
         }
     }
-    let mut t = String::from("| effect | cases | detected | parameter: median abs. error (within tolerance) |\n|---|---|---|---|\n");
+    let mut t = String::from(
+        "| effect | cases | detected | parameter: median abs. error (within tolerance) |\n|---|---|---|---|\n",
+    );
     for e in &effects {
         let cases = scores.iter().filter(|s| s.hidden.contains(e)).count();
         let det = scores.iter().filter(|s| s.detected.contains(e)).count();
@@ -445,7 +454,7 @@ pub fn per_effect(scores: &[CaseScore]) -> String {
                 ps.iter().filter_map(|p| p.reported.map(|r| param_error(e, n, r, p.truth))).collect();
             errs.sort_by(|a, b| a.total_cmp(b));
             let med = if errs.is_empty() { f64::NAN } else { errs[errs.len() / 2] };
-            cols.push(format!("{n}: {med:.3} ({}/{})", ps.iter().filter(|p| p.pass).count(), ps.len()));
+            cols.push(format!("{n}: {} ({}/{})", sig3(med), ps.iter().filter(|p| p.pass).count(), ps.len()));
         }
         t.push_str(&format!("| {e} | {cases} | {det} | {} |\n", cols.join("; ")));
     }
