@@ -15,8 +15,11 @@ fn main() -> std::process::ExitCode {
     };
     let wanted: Vec<String> = args.collect();
     let out = std::path::PathBuf::from(out);
-    let cases: Vec<_> =
-        realcam::corpus().into_iter().filter(|c| wanted.is_empty() || wanted.contains(&c.name)).collect();
+    let cases: Vec<_> = realcam::corpus()
+        .into_iter()
+        .chain(realcam::unpaired_corpus())
+        .filter(|c| wanted.is_empty() || wanted.contains(&c.name))
+        .collect();
     if cases.is_empty() {
         let names: Vec<String> = realcam::corpus().into_iter().map(|c| c.name).collect();
         eprintln!("no such case; known: {}", names.join(", "));

@@ -51,8 +51,11 @@ fn main() -> std::process::ExitCode {
             tmp.path().to_path_buf()
         }
     };
-    let cases: Vec<_> =
-        realcam::corpus().into_iter().filter(|c| wanted.is_empty() || wanted.contains(&c.name)).collect();
+    let cases: Vec<_> = realcam::corpus()
+        .into_iter()
+        .chain(realcam::unpaired_corpus())
+        .filter(|c| wanted.is_empty() || wanted.contains(&c.name))
+        .collect();
     let mut scores = Vec::new();
     for c in &cases {
         let s = realcam_score::run_case(c, &root, &faultcam);

@@ -6,9 +6,9 @@
 //! false discoveries, parameter error against the recorded truth, fit improvement, and whether
 //! `fitted.toml` is accepted by `faultcam apply`.
 //!
-//! `corpus_subset_is_diagnosed` runs always (three cases); `corpus_full_meets_thresholds` runs the
-//! whole corpus and is `#[ignore]`d because it takes minutes in a debug build:
-//! `cargo test --release --test diagnose_corpus -- --ignored --nocapture`
+//! `corpus_subset_is_diagnosed` and `unpaired_subset_is_diagnosed` run always (a few small cases);
+//! `corpus_full_meets_thresholds` runs the whole corpus (paired and unpaired) and is `#[ignore]`d
+//! because it takes minutes: `cargo test --release --test diagnose_corpus -- --ignored --nocapture`
 //! (set `REALCAM_SCORES=path.md` to also write the score table there).
 
 #[path = "support/realcam.rs"]
@@ -16,7 +16,7 @@ mod realcam;
 #[path = "support/realcam_score.rs"]
 mod realcam_score;
 
-use realcam::{Case, Hidden, corpus, subset_names};
+use realcam::{Case, Hidden, corpus, subset_names, unpaired_corpus};
 use realcam_score::{CaseScore, effect_visibility, markdown, run_case, summarise};
 use std::path::Path;
 
@@ -29,7 +29,19 @@ fn faultcam() -> &'static Path {
 /// Fixed patterns and per-frame noise (prnu, row noise) are stochastic: a fitted model draws
 /// another pattern, so for them the fit is only required not to get worse.
 fn deterministic(effect: &str) -> bool {
-    matches!(effect, "vignetting" | "defocus" | "channel_shift" | "stray_light" | "smear" | "dark_current" | "gamma")
+    matches!(
+        effect,
+        "vignetting"
+            | "defocus"
+            | "motion_blur"
+            | "channel_shift"
+            | "stray_light"
+            | "smear"
+            | "blooming"
+            | "dark_current"
+            | "gamma"
+            | "gain_offset"
+    )
 }
 
 fn run_all(cases: &[Case]) -> Vec<CaseScore> {
@@ -47,6 +59,11 @@ fn check_fit(s: &CaseScore) -> Result<(), String> {
     if !(s.rmse_before.is_finite() && s.rmse_after.is_finite()) {
         return Err(format!("{}: fit rmse missing: {} → {}", s.name, s.rmse_before, s.rmse_after));
     }
+    if s.unpaired {
+        // Unpaired: fit.rmse compares quantile functions of different scenes; it is reported,
+        // not required to improve.
+        return Ok(());
+    }
     if s.hidden.iter().any(|e| deterministic(e)) {
         if s.rmse_after >= s.rmse_before {
             return Err(format!("{}: rmse not improved: {:.3} → {:.3}", s.name, s.rmse_before, s.rmse_after));
@@ -62,8 +79,29 @@ fn corpus_subset_is_diagnosed() {
     let cases: Vec<Case> = corpus().into_iter().filter(|c| subset_names().contains(&c.name.as_str())).collect();
     assert_eq!(cases.len(), subset_names().len());
     let scores = run_all(&cases);
+    let problems = subset_problems(&scores);
+    assert!(problems.is_empty(), "diagnosis failed on the subset:\n{}", problems.join("\n"));
+}
+
+/// Unpaired mode on independent-forward-model data: the real frames show another spacecraft at
+/// other poses. A negative control (camera noise only) and a hidden defocus, at a reduced size
+/// so that the test stays fast in a debug build.
+#[test]
+fn unpaired_subset_is_diagnosed() {
+    let cases: Vec<Case> = unpaired_corpus()
+        .into_iter()
+        .filter(|c| matches!(c.name.as_str(), "unpaired_neg_mono" | "unpaired_defocus_mono"))
+        .map(|c| c.sized(224, 168, 4))
+        .collect();
+    assert_eq!(cases.len(), 2);
+    let scores = run_all(&cases);
+    let problems = subset_problems(&scores);
+    assert!(problems.is_empty(), "unpaired diagnosis failed:\n{}", problems.join("\n"));
+}
+
+fn subset_problems(scores: &[CaseScore]) -> Vec<String> {
     let mut problems = Vec::new();
-    for s in &scores {
+    for s in scores {
         if let Some(e) = &s.error {
             problems.push(format!("{}: {e}", s.name));
             continue;
@@ -91,7 +129,7 @@ fn corpus_subset_is_diagnosed() {
             ));
         }
     }
-    assert!(problems.is_empty(), "diagnosis failed on the subset:\n{}", problems.join("\n"));
+    problems
 }
 
 /// Thresholds over the full corpus (justified in README "Diagnosis corpus results"):
@@ -106,7 +144,7 @@ fn corpus_subset_is_diagnosed() {
 #[test]
 #[ignore = "full corpus: minutes in a debug build; run with --ignored (see module docs)"]
 fn corpus_full_meets_thresholds() {
-    let cases = corpus();
+    let cases: Vec<Case> = corpus().into_iter().chain(unpaired_corpus()).collect();
     let scores = run_all(&cases);
     let m = summarise(&scores);
     let mut problems = Vec::new();
@@ -181,22 +219,40 @@ fn corpus_case_writes_pairs_and_truth() {
 
 /// Every hidden effect is concealed. Photometric effects: the noise-free RMS of real − sim is at
 /// most twice the RMS camera noise and at least 5 % of it (comparable to the noise, as the issue
-/// asks). Geometric effects (defocus, channel shift) change sharp edges by tens of DN whatever
-/// their size, so for them the size itself is bounded: ≤ 1.2 px shift, ≤ 1.2 px blur sigma.
+/// asks). Geometric effects (defocus, motion blur, channel shift) change sharp edges by tens of
+/// DN whatever their size, and sparse ones (hot pixels, smear and blooming near saturated
+/// pixels, JPEG) are local, so for them the size itself is bounded instead: ≤ 1.2 px shift,
+/// ≤ 1.2 px blur sigma, ≤ 4 px streak, ≤ 5e-4 hot-pixel rate, ≤ 1 % smear, full well ≥ 0.9,
+/// JPEG quality ≥ 80.
 #[test]
 fn hidden_effects_are_comparable_to_the_noise() {
-    for c in corpus().iter().filter(|c| !c.is_negative_control()) {
-        let geometric = c.hidden.iter().any(|h| matches!(h, Hidden::Defocus { .. } | Hidden::ChannelShift { .. }));
+    for c in corpus().iter().chain(unpaired_corpus().iter()).filter(|c| !c.is_negative_control()) {
+        let mut bounded = false;
         for h in &c.hidden {
             for (p, v) in h.canonical() {
                 match h {
                     Hidden::Defocus { .. } => assert!((0.5..=1.2).contains(&v), "{}: {p} {v}", c.name),
                     Hidden::ChannelShift { .. } => assert!(v.abs() <= 1.2, "{}: {p} {v}", c.name),
+                    Hidden::MotionBlur { .. } if p == "length_px" => assert!(v <= 4.0, "{}: {p} {v}", c.name),
+                    Hidden::HotPixels { .. } => assert!(v <= 5e-4, "{}: {p} {v}", c.name),
+                    Hidden::Smear { .. } if p == "strength" => assert!(v <= 0.01, "{}: {p} {v}", c.name),
+                    Hidden::Blooming { .. } if p == "full_well_fraction" => assert!(v >= 0.9, "{}: {p} {v}", c.name),
+                    Hidden::Jpeg { .. } => assert!(v >= 80.0, "{}: {p} {v}", c.name),
                     _ => {}
                 }
             }
+            bounded |= matches!(
+                h,
+                Hidden::Defocus { .. }
+                    | Hidden::ChannelShift { .. }
+                    | Hidden::MotionBlur { .. }
+                    | Hidden::HotPixels { .. }
+                    | Hidden::Smear { .. }
+                    | Hidden::Blooming { .. }
+                    | Hidden::Jpeg { .. }
+            );
         }
-        if !geometric {
+        if !bounded {
             let (rms, _max, noise) = effect_visibility(c);
             let ratio = rms / noise;
             assert!((0.05..=2.0).contains(&ratio), "{}: effect rms {rms:.2} DN vs noise {noise:.2} DN", c.name);

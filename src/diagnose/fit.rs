@@ -1,47 +1,27 @@
-//! Model: fit the candidate effects jointly on the library's forward models, test each one by
-//! dropping it, and measure the fit before and after.
+//! Model: select and fit the deterministic effects on the library's forward models
+//! ([`super::select`]), then test and fit the stochastic ones on the residual of that model, and
+//! measure the fit before and after.
 //!
-//! * **Deterministic effects** (optics, blooming, smear, gain_offset, gamma, and the mean of the
-//!   dark current) are fitted by coordinate-wise golden-section search in normalised parameter
-//!   space (log space for parameters declared `.log()`), initialised from the signature
-//!   estimates, minimising a robust loss of the noise-normalised residual on the pixels of up to
-//!   `fit_frames` pairs: Huber (δ = 3) where real is inside (0, FS), the censored normal
-//!   likelihood where real is clipped. The sim frames are pushed through the library effects in
-//!   physical chain order with a fixed seed; the frames before the effect being optimised are
-//!   cached.
-//! * **Stochastic effects** (camera noise, prnu, row noise, hot pixels, JPEG) are fitted by
-//!   moment matching: the library effect is applied to a probe frame and the statistic the
-//!   signature measured is read back, which calibrates the parameter to the library's exact
-//!   convention (e.g. rounding, units).
-//! * **Drop-one test**: each deterministic finding must raise the loss when removed, consistently
-//!   across 64x64 blocks (paired z over blocks); otherwise it is dropped as explained by the
-//!   others.
+//! * **Deterministic effects** (optics, blooming, smear, gain_offset, gamma, the mean of the dark
+//!   current): forward selection with a robust likelihood, an information criterion and a
+//!   significance test; parameters fitted jointly (coordinate-wise golden sections in normalised
+//!   parameter space, log space for parameters declared `.log()`), initialised from the
+//!   signature estimates.
+//! * **Stochastic effects** are tested on `real - model` of every pair with statistics whose
+//!   null distribution does not depend on the noise model: prnu by the covariance of the
+//!   residual between frames, row noise by the covariance of row offsets between even and odd
+//!   columns, hot pixels by recurrence at the same place, JPEG by the DCT quantisation lattice.
+//!   Camera noise (variance against signal) is re-measured on the same residual. They are fitted
+//!   by moment matching through the library's own effects ([`super::moments`]).
 
-use super::img::{FS, Pair, Plane, frame_from_planes, planes_of};
-use super::locate::Located;
-use super::{DiagnoseError, Options, Signature, stats};
+use super::img::{Pair, Plane, frame_from_planes};
+use super::locate::{self, Located};
+use super::noise::{self, NoiseModel};
+use super::select::{self, Candidate, Evidence, FitCtx, LossData};
+use super::{DiagnoseError, Options, Signature, fixed, jpeg};
 use crate::config::FaultConfig;
-use crate::faults::{self, Effect, EffectCtx, ParamKind, Params, Scale, registry};
+use crate::faults::{ParamKind, Params, registry};
 use crate::frame::Frame;
-
-/// Effects fitted by pixel loss.
-pub const DETERMINISTIC: &[&str] = &[
-    "defocus",
-    "motion_blur",
-    "vignetting",
-    "stray_light",
-    "lens_flare",
-    "channel_shift",
-    "blooming",
-    "smear",
-    "dark_current",
-    "gain_offset",
-    "gamma",
-];
-
-/// Float extras worth fitting with the canonical parameters (shape of the field).
-const FIT_EXTRAS: &[(&str, &str)] =
-    &[("stray_light", "angle_deg"), ("stray_light", "distance"), ("stray_light", "width"), ("vignetting", "field_deg")];
 
 /// One reported effect.
 #[derive(Debug, Clone)]
@@ -83,36 +63,10 @@ pub struct Fitted {
     pub model_planes: Vec<Vec<Plane>>,
     pub notes: Vec<String>,
     pub dropped: Vec<String>,
-}
-
-/// A step of the deterministic forward model.
-struct Step {
-    name: &'static str,
-    effect: Option<Box<dyn Effect>>,
-    params: Params,
-    /// dark_current is represented by its mean only (an offset) in the pixel fit.
-    offset_only: bool,
-    key: (faults::Stage, u16),
-    index: usize,
-}
-
-impl Step {
-    fn apply(&mut self, f: &mut Frame, seed: u64) -> Result<(), DiagnoseError> {
-        if self.offset_only {
-            let off = self.params.get("mean_dn") as f32;
-            let mut planes = planes_of(f);
-            for p in &mut planes {
-                p.data.iter_mut().for_each(|v| *v += off);
-            }
-            *f = frame_from_planes(&planes, f);
-            return Ok(());
-        }
-        if let Some(e) = &mut self.effect {
-            let mut ctx = EffectCtx::new(seed, f.seq, self.index);
-            e.apply(f, &self.params, &mut ctx)?;
-        }
-        Ok(())
-    }
+    /// Every forward-model test (all candidates, all rounds).
+    pub selection_tests: Vec<Evidence>,
+    /// Noise model measured on the residual of the fitted model.
+    pub noise: NoiseModel,
 }
 
 /// Parameters of a registered effect initialised from a signature.
@@ -125,7 +79,9 @@ pub fn params_from_signature(sig: &Signature) -> Option<Params> {
                 ParamKind::Int => v.round(),
                 _ => *v,
             };
-            let _ = p.set(n, v.clamp(spec.min, spec.max));
+            if v.is_finite() {
+                let _ = p.set(n, v.clamp(spec.min, spec.max));
+            }
         }
     }
     for (n, w) in &sig.choices {
@@ -134,244 +90,97 @@ pub fn params_from_signature(sig: &Signature) -> Option<Params> {
     Some(p)
 }
 
-/// Loss of a model output against the real planes.
-struct LossCtx<'a> {
-    pairs: Vec<&'a Pair>,
-    hot: Vec<&'a [bool]>,
-    loc: &'a Located,
+fn cand(name: &'static str, label: &str, params: Params, fit: &[&'static str]) -> Candidate {
+    Candidate { name, label: label.to_string(), params, fit: fit.to_vec() }
 }
 
-const BLOCK: usize = 64;
-
-impl LossCtx<'_> {
-    /// Total loss and per-block losses.
-    fn loss(&self, outs: &[Frame]) -> (f64, Vec<f64>) {
-        let mut total = 0.0;
-        let mut blocks = Vec::new();
-        for (k, out) in outs.iter().enumerate() {
-            let p = self.pairs[k];
-            let planes = planes_of(out);
-            let (w, h) = (p.w(), p.h());
-            let bw = w.div_ceil(BLOCK);
-            let nb = bw * h.div_ceil(BLOCK);
-            let base = blocks.len();
-            blocks.resize(base + nb, 0.0);
-            for (c, mp) in planes.iter().enumerate() {
-                let r = &p.real[c].data;
-                for y in 0..h {
-                    for x in 0..w {
-                        let i = y * w + x;
-                        if self.hot[k][i] {
-                            continue;
-                        }
-                        let m = mp.data[i] as f64;
-                        let rv = r[i] as f64;
-                        let sd = self.loc.noise.sd(m);
-                        let l = if rv <= 0.0 {
-                            -stats::norm_cdf((0.5 * self.loc.quant - m) / sd).max(1e-300).ln()
-                        } else if rv >= FS as f64 {
-                            -stats::norm_cdf((m - (FS as f64 - 0.5 * self.loc.quant)) / sd).max(1e-300).ln()
-                        } else {
-                            let z = ((rv - m) / sd).abs();
-                            if z <= 3.0 { 0.5 * z * z } else { 3.0 * z - 4.5 }
-                        };
-                        total += l;
-                        blocks[base + (y / BLOCK) * bw + x / BLOCK] += l;
-                    }
-                }
-            }
+/// Every applicable deterministic candidate, initialised from the signatures.
+pub fn candidates(pairs: &[Pair], loc: &Located) -> Vec<Candidate> {
+    let mut out = Vec::new();
+    let init = |name: &str| -> Option<Params> {
+        match loc.signature(name) {
+            Some(s) => params_from_signature(s),
+            None => registry::find(name).map(|r| Params::defaults(r.info)),
         }
-        (total, blocks)
-    }
-}
-
-/// Apply steps[from..] to copies of `inputs`.
-fn run_steps(steps: &mut [Step], from: usize, inputs: &[Frame], seed: u64) -> Result<Vec<Frame>, DiagnoseError> {
-    let mut outs = inputs.to_vec();
-    for f in outs.iter_mut() {
-        for s in steps[from..].iter_mut() {
-            s.apply(f, seed)?;
-        }
-    }
-    Ok(outs)
-}
-
-/// A fitted coordinate: (step, parameter index, min, max, log scale).
-struct Coord {
-    step: usize,
-    pidx: usize,
-    lo: f64,
-    hi: f64,
-    log: bool,
-}
-
-impl Coord {
-    fn to_u(&self, v: f64) -> f64 {
-        if self.log {
-            let (a, b) = (self.lo.max(1e-6).ln(), self.hi.ln());
-            (v.max(1e-6).ln() - a) / (b - a)
-        } else {
-            (v - self.lo) / (self.hi - self.lo)
-        }
-    }
-    fn value_at(&self, u: f64) -> f64 {
-        let u = u.clamp(0.0, 1.0);
-        if self.log {
-            let (a, b) = (self.lo.max(1e-6).ln(), self.hi.ln());
-            (a + u * (b - a)).exp()
-        } else {
-            self.lo + u * (self.hi - self.lo)
-        }
-    }
-}
-
-/// Practical search range of a parameter: narrower than the declared range where the declared
-/// range is huge compared with plausible values (keeps golden sections efficient).
-fn search_range(effect: &str, name: &str, lo: f64, hi: f64, init: f64) -> (f64, f64) {
-    let r = match (effect, name) {
-        ("defocus", "sigma_px") => (0.0, (init * 3.0).clamp(2.0, 20.0)),
-        ("motion_blur", "length_px") => (0.0, (init * 2.5).clamp(3.0, 100.0)),
-        ("motion_blur", "angle_deg") => ((init - 25.0).max(0.0), (init + 25.0).min(180.0)),
-        ("channel_shift", _) => (init - 1.5, init + 1.5),
-        ("gain_offset", "gain") => (init - 0.1, init + 0.1),
-        ("gain_offset", "offset_dn") => (init - 10.0, init + 10.0),
-        ("dark_current", "mean_dn") => (0.0, (init * 2.0).max(3.0)),
-        ("gamma", "gamma") => (init * 0.85, init * 1.15),
-        ("vignetting", "strength") => (0.0, (init * 2.0).clamp(0.1, 1.0)),
-        ("stray_light", "amplitude_dn") => (0.0, (init * 2.5).max(5.0)),
-        ("smear", "strength") => (0.0, (init * 3.0).max(1e-4)),
-        ("blooming", "full_well_fraction") => ((init - 0.15).max(lo), (init + 0.08).min(hi)),
-        ("blooming", "spread_px") => (lo.max(0.1), (init * 3.0).clamp(3.0, hi)),
-        ("lens_flare", "intensity") => (0.0, (init * 3.0).max(0.02)),
-        _ => (lo, hi),
     };
-    (r.0.max(lo), r.1.min(hi))
-}
-
-/// The deterministic candidates, as steps in physical order.
-fn build_steps(loc: &Located, notes: &mut Vec<String>) -> Vec<Step> {
-    let mut steps = Vec::new();
-    for sig in loc.detected() {
-        if !DETERMINISTIC.contains(&sig.effect) {
-            continue;
+    let channels = pairs[0].channels();
+    let any_sat = loc.masks.iter().any(|m| m.sat.iter().any(|&s| s));
+    let set = |p: &mut Params, n: &str, v: f64| {
+        if let Some((_, spec)) = p.info().param(n) {
+            let _ = p.set(n, v.clamp(spec.min, spec.max));
         }
-        let offset_only = sig.effect == "dark_current";
-        let Some(reg) = registry::find(sig.effect) else {
-            if offset_only {
-                // No library dark current yet: still fit its mean as an offset.
-                notes.push("dark_current is not in the effect library: fitted as an additive mean only".into());
-            } else {
-                notes.push(format!(
-                    "{} is not in the effect library yet: reported with its signature estimate, not fitted",
-                    sig.effect
-                ));
-            }
-            if !offset_only {
-                continue;
-            }
-            // Represent with gain_offset params storage is impossible; skip.
-            continue;
-        };
-        let Some(params) = params_from_signature(sig) else { continue };
-        steps.push(Step {
-            name: sig.effect,
-            effect: if offset_only { None } else { Some((reg.create)()) },
-            params,
-            offset_only,
-            key: (reg.info.stage, reg.info.order),
-            index: steps.len(),
-        });
+    };
+    if let Some(mut p) = init("vignetting") {
+        let s = p.get("strength");
+        set(&mut p, "strength", if s > 0.01 { s } else { 0.05 });
+        out.push(cand("vignetting", "vignetting", p, &["strength", "field_deg"]));
     }
-    steps.sort_by_key(|s| s.key);
-    steps
-}
-
-fn coords_of(steps: &[Step]) -> Vec<Coord> {
-    let mut cs = Vec::new();
-    for (si, s) in steps.iter().enumerate() {
-        for (pi, (spec, v)) in s.params.iter().enumerate() {
-            if spec.kind != ParamKind::Float {
-                continue;
-            }
-            let extra_ok = FIT_EXTRAS.iter().any(|(e, n)| *e == s.name && *n == spec.name);
-            if !spec.canonical && !extra_ok {
-                continue;
-            }
-            if s.offset_only && spec.name != "mean_dn" {
-                continue;
-            }
-            let (lo, hi) = search_range(s.name, spec.name, spec.min, spec.max, v);
-            if hi <= lo {
-                continue;
-            }
-            cs.push(Coord { step: si, pidx: pi, lo, hi, log: spec.scale == Scale::Log && lo > 0.0 });
-        }
+    if let Some(mut p) = init("dark_current") {
+        let m = p.get("mean_dn");
+        set(&mut p, "mean_dn", if m > 0.2 { m } else { 1.0 });
+        set(&mut p, "hot_pixel_rate", 0.0);
+        out.push(cand("dark_current", "dark_current", p, &["mean_dn"]));
     }
-    cs
-}
-
-fn set_param(steps: &mut [Step], c: &Coord, v: f64) {
-    let name = steps[c.step].params.info().params[c.pidx].name;
-    let _ = steps[c.step].params.set(name, v);
-}
-
-fn get_param(steps: &[Step], c: &Coord) -> f64 {
-    steps[c.step].params.at(c.pidx)
-}
-
-/// Coordinate-wise golden-section descent with prefix caching.
-fn optimise(
-    steps: &mut [Step],
-    inputs: &[Frame],
-    lc: &LossCtx,
-    seed: u64,
-    sweeps: usize,
-) -> Result<f64, DiagnoseError> {
-    let coords = coords_of(steps);
-    let mut best = lc.loss(&run_steps(steps, 0, inputs, seed)?).0;
-    for sweep in 0..sweeps {
-        let width = if sweep == 0 { 0.5 } else { 0.15 };
-        for c in &coords {
-            // Frames after the steps before this one (cached for the search of this coordinate).
-            let prefix = {
-                let mut outs = inputs.to_vec();
-                for f in outs.iter_mut() {
-                    for s in steps[..c.step].iter_mut() {
-                        s.apply(f, seed)?;
-                    }
-                }
-                outs
-            };
-            let cur = get_param(steps, c);
-            let u0 = c.to_u(cur);
-            let (a, b) = ((u0 - width).max(0.0), (u0 + width).min(1.0));
-            let mut err = None;
-            let mut eval = |u: f64| -> f64 {
-                set_param(steps, c, c.value_at(u));
-                match run_steps(steps, c.step, &prefix, seed) {
-                    Ok(o) => lc.loss(&o).0,
-                    Err(e) => {
-                        err = Some(e);
-                        f64::INFINITY
-                    }
-                }
-            };
-            let (u, v) = stats::golden(&mut eval, a, b, if sweep == 0 { 12 } else { 8 });
-            if let Some(e) = err {
-                return Err(e);
-            }
-            if v < best {
-                best = v;
-                set_param(steps, c, c.value_at(u));
-            } else {
-                set_param(steps, c, cur);
+    if let Some(p) = init("gain_offset") {
+        out.push(cand("gain_offset", "gain_offset", p, &["gain", "offset_dn"]));
+    }
+    if let Some(mut p) = init("gamma") {
+        let g = p.get("gamma");
+        set(&mut p, "gamma", g.clamp(0.75, 1.3));
+        out.push(cand("gamma", "gamma", p, &["gamma"]));
+    }
+    if let Some(mut p) = init("stray_light") {
+        let photo = &loc.photo;
+        let (lo, hi, at) = photo.additive_range();
+        set(&mut p, "amplitude_dn", (hi - lo).clamp(1.0, 60.0));
+        // Direction of the brightest point from the centre (angle counter-clockwise, y up).
+        let ang = (-at.1).atan2(at.0).to_degrees().rem_euclid(360.0);
+        set(&mut p, "angle_deg", ang);
+        set(&mut p, "distance", 1.3);
+        set(&mut p, "width", 0.8);
+        out.push(cand("stray_light", "stray_light", p, &["amplitude_dn", "angle_deg", "distance", "width"]));
+    }
+    if let Some(mut p) = init("defocus") {
+        let s = p.get("sigma_px");
+        set(&mut p, "sigma_px", s.clamp(0.3, 6.0));
+        out.push(cand("defocus", "defocus", p, &["sigma_px"]));
+    }
+    if let Some(mut p) = init("motion_blur") {
+        let l = p.get("length_px");
+        set(&mut p, "length_px", l.clamp(1.0, 30.0));
+        out.push(cand("motion_blur", "motion_blur", p, &["length_px", "angle_deg"]));
+    }
+    if channels == 3
+        && let Some(p) = init("channel_shift")
+    {
+        out.push(cand("channel_shift", "channel_shift", p, &["dx_r", "dy_r", "dx_b", "dy_b"]));
+    }
+    if any_sat {
+        if let Some(mut p) = init("smear") {
+            let s = p.get("strength");
+            set(&mut p, "strength", if s > 1e-4 { s } else { 0.002 });
+            for dir in ["vertical", "horizontal"] {
+                let mut q = p;
+                let _ = q.set_choice("direction", dir);
+                out.push(cand("smear", &format!("smear ({dir})"), q, &["strength"]));
             }
         }
+        if let Some(mut p) = init("blooming") {
+            let f = p.get("full_well_fraction");
+            set(&mut p, "full_well_fraction", f.clamp(0.5, 0.995));
+            out.push(cand("blooming", "blooming", p, &["full_well_fraction", "spread_px"]));
+        }
+        if let Some(mut p) = init("lens_flare") {
+            let i = p.get("intensity");
+            set(&mut p, "intensity", i.clamp(0.005, 0.2));
+            let _ = p.set_choice("tint", "white");
+            out.push(cand("lens_flare", "lens_flare", p, &["intensity", "size"]));
+        }
     }
-    Ok(best)
+    out
 }
 
-/// Pick up to `n` pairs evenly, preferring pairs with saturated pixels and edges.
+/// Pick up to `n` pairs evenly.
 fn choose_frames(pairs: &[Pair], n: usize) -> Vec<usize> {
     if pairs.len() <= n {
         return (0..pairs.len()).collect();
@@ -389,7 +198,7 @@ fn apply_config(cfg: &FaultConfig, f: &Frame) -> Result<Frame, DiagnoseError> {
     Ok(out)
 }
 
-fn metrics_of(a: &Frame, b: &Frame) -> FitMetrics {
+pub fn metrics_of(a: &Frame, b: &Frame) -> FitMetrics {
     let ga = crate::metrics::Grey::from_frame(a);
     let gb = crate::metrics::Grey::from_frame(b);
     FitMetrics {
@@ -399,7 +208,7 @@ fn metrics_of(a: &Frame, b: &Frame) -> FitMetrics {
     }
 }
 
-fn mean_metrics(v: &[FitMetrics]) -> FitMetrics {
+pub fn mean_metrics(v: &[FitMetrics]) -> FitMetrics {
     let n = v.len().max(1) as f64;
     let fq: Vec<f64> = v.iter().filter_map(|m| m.fqi).collect();
     FitMetrics {
@@ -409,7 +218,7 @@ fn mean_metrics(v: &[FitMetrics]) -> FitMetrics {
     }
 }
 
-fn canonical_of(p: &Params) -> Vec<(String, serde_json::Value)> {
+pub fn canonical_of(p: &Params) -> Vec<(String, serde_json::Value)> {
     p.iter()
         .filter(|(s, _)| s.canonical)
         .map(|(s, v)| {
@@ -433,139 +242,328 @@ pub fn round_sig(v: f64, n: i32) -> f64 {
     (v * m).round() / m
 }
 
-fn canonical_from_sig(sig: &Signature) -> Vec<(String, serde_json::Value)> {
-    let mut v: Vec<(String, serde_json::Value)> =
-        sig.params.iter().map(|(n, x)| (n.clone(), serde_json::Value::from(round_sig(*x, 5)))).collect();
-    for (n, w) in &sig.choices {
-        v.push((n.clone(), serde_json::Value::from(w.clone())));
-    }
-    v
+/// The stochastic tests on the residual of the deterministic model.
+struct Stochastic {
+    noise: NoiseModel,
+    hot_sig: Signature,
+    prnu: Signature,
+    row: Signature,
+    jpeg: Signature,
+    gaussian: Signature,
+    shot: Signature,
 }
 
-/// Fit everything and measure before/after.
-pub fn fit(pairs: &[Pair], loc: &Located, opts: &Options) -> Result<Fitted, DiagnoseError> {
-    let mut notes = Vec::new();
-    let mut dropped = Vec::new();
-    let fidx = choose_frames(pairs, opts.fit_frames.max(1));
-    let inputs: Vec<Frame> = fidx
-        .iter()
-        .map(|&k| {
-            let mut f = pairs[k].sim_frame.clone();
-            f.seq = k as u64;
-            f
-        })
-        .collect();
-    let lc = LossCtx {
-        pairs: fidx.iter().map(|&k| &pairs[k]).collect(),
-        hot: fidx.iter().map(|&k| loc.hot[k].as_slice()).collect(),
-        loc,
+fn stochastic_tests(
+    pairs: &[Pair],
+    loc: &Located,
+    model: &[Vec<Plane>],
+    z_det: f64,
+    jpeg_present: bool,
+) -> (Stochastic, Vec<Vec<bool>>) {
+    // These statistics have a null distribution that does not depend on any model (covariances
+    // between independent measurements, recurrence), so they need less margin than the
+    // forward-model tests.
+    let z = (z_det - 1.0).max(3.0);
+    let quiet: Vec<Vec<bool>> = model.iter().map(|m| noise::quiet_mask(m, noise::QUIET_LAPLACIAN)).collect();
+    let (mut hot_sig, hot, _) = fixed::hot_pixels(pairs, &loc.masks, &quiet, model, &loc.noise);
+    hot_sig.detected = hot_sig.z > z && hot_sig.size > 0.0;
+    // JPEG blocks and ringing mimic fixed patterns and row structure: those tests are not
+    // trusted under compression.
+    let under_jpeg = |s: &mut Signature| {
+        if jpeg_present {
+            s.detected = false;
+            s.evidence.push_str(" (not tested under JPEG compression: block artefacts mimic it)");
+        }
     };
+    under_jpeg(&mut hot_sig);
+    let noise1 = noise::estimate(pairs, &loc.masks, model, loc.quant, 0.0, Some(&hot));
+    let (mut prnu, prnu_c) = fixed::prnu(pairs, &loc.masks, &quiet, model, &noise1, &hot);
+    prnu.detected = prnu.z > z;
+    under_jpeg(&mut prnu);
+    let noise2 = if prnu.detected && prnu_c > 0.0 {
+        noise::estimate(pairs, &loc.masks, model, loc.quant, prnu_c, Some(&hot))
+    } else {
+        noise1
+    };
+    let resid: Vec<Vec<Plane>> =
+        pairs.iter().zip(model).map(|(p, m)| p.real.iter().zip(m).map(|(r, q)| r.sub(q)).collect()).collect();
+    let mut row = fixed::row_noise(pairs, &loc.masks, &quiet, &resid, model, &noise2);
+    row.detected = row.z > z;
+    under_jpeg(&mut row);
+    // Row offsets are part of the per-pixel variance: measure the camera noise without them.
+    let noise2 = if row.detected {
+        let offsets = fixed::row_offsets(pairs, &loc.masks, &resid, &hot);
+        let c = if prnu.detected { prnu_c } else { 0.0 };
+        noise::estimate_with_rows(pairs, &loc.masks, model, loc.quant, c, Some(&hot), Some(&offsets))
+    } else {
+        noise2
+    };
+    let (gaussian, shot) = locate::camera_noise(&noise2, z);
+    (Stochastic { noise: noise2, hot_sig, prnu, row, jpeg: Signature::new("jpeg"), gaussian, shot }, hot)
+}
+
+/// Camera noise through the fitted model: the noise measured on the real images is the noise
+/// after every effect that follows it in the signal chain (a gain or tone curve scales it, JPEG
+/// removes part of it, dark current adds its own shot noise). Read-noise sigma and conversion gain
+/// are therefore found by moment matching through the library's forward models: a few sim frames
+/// go through the fitted chain with trial noise parameters, the same noise measurement is made
+/// on the result against the noise-free model, and the parameters are scaled until it matches the
+/// measurement on the real images. Returns (sigma_dn, gain_e_per_dn if the slope is identified).
+fn noise_through_model(
+    pairs: &[Pair],
+    loc: &Located,
+    model: &[Vec<Plane>],
+    measured: &NoiseModel,
+    chain: &[Params],
+    seed: u64,
+) -> Result<(f64, Option<f64>), DiagnoseError> {
+    let idx = choose_frames(pairs, 3);
+    let (a_t, b_t) = (measured.a.max(1e-3), measured.b);
+    let use_b = measured.slope_identified && b_t > 1e-4;
+    let (mut a, mut b) = (a_t, b_t);
+    for it in 0..5 {
+        let mut ps: Vec<Params> = chain.to_vec();
+        if use_b && let Some(r) = registry::find("shot_noise") {
+            let mut p = Params::defaults(r.info);
+            let _ = p.set("gain_e_per_dn", (1.0 / b).clamp(0.01, 1e6));
+            ps.push(p);
+        }
+        if let Some(r) = registry::find("gaussian_noise") {
+            let mut p = Params::defaults(r.info);
+            let _ = p.set("sigma_dn", a.sqrt().clamp(0.0, 64.0));
+            ps.push(p);
+        }
+        let cfg = FaultConfig::from_effects(seed ^ (it as u64 + 17), ps);
+        let mut sims = Vec::new();
+        let mut masks = Vec::new();
+        let mut bases = Vec::new();
+        for &k in &idx {
+            let p = &pairs[k];
+            let mut f = p.sim_frame.clone();
+            f.seq = k as u64;
+            let out = apply_config(&cfg, &f)?;
+            sims.push(Pair {
+                name: p.name.clone(),
+                sim_frame: p.sim_frame.clone(),
+                real: super::img::planes_of(&out),
+                real_frame: out,
+                sim: p.sim.clone(),
+            });
+            masks.push(loc.masks[k].clone());
+            bases.push(model[k].clone());
+        }
+        let m = noise::estimate(&sims, &masks, &bases, loc.quant, 0.0, None);
+        a *= (a_t / m.a.max(1e-3)).clamp(0.25, 4.0);
+        if use_b && m.b > 1e-6 {
+            b *= (b_t / m.b).clamp(0.25, 4.0);
+        }
+    }
+    Ok((a.sqrt(), if use_b { Some(1.0 / b) } else { None }))
+}
+
+fn det_names_of(sel: &select::Selection) -> Vec<&'static str> {
+    sel.steps.iter().filter(|s| !s.fixed).map(|s| s.name).collect()
+}
+
+/// Select, fit and measure.
+pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, DiagnoseError> {
+    let mut notes = Vec::new();
     let seed = opts.seed;
-    // ---- deterministic joint fit ----------------------------------------------------------------
-    let mut steps = build_steps(loc, &mut notes);
-    let (loss0, blocks0) = lc.loss(&inputs);
-    let mut loss_full = loss0;
-    if !steps.is_empty() {
-        loss_full = optimise(&mut steps, &inputs, &lc, seed, 2)?;
+    let z = opts.z_threshold;
+    // ---- deterministic: forward-model selection on the fit frames -------------------------------
+    let cands = candidates(pairs, loc);
+    // Enough pairs for about 300k values per loss evaluation (at least 2, at most fit_frames).
+    let per_pair = pairs[0].w() * pairs[0].h() * pairs[0].channels();
+    let n_fit = (300_000 / per_pair.max(1)).clamp(2, opts.fit_frames.max(2)).min(opts.fit_frames.max(1));
+    let fidx = choose_frames(pairs, n_fit);
+    let mut inputs = Vec::new();
+    for &k in &fidx {
+        inputs.push(select::work_planes(&pairs[k].sim_frame, k as u64)?);
     }
-    // Drop-one tests (iterate: removing one may change the others' need).
+    let values: usize = fidx.iter().map(|&k| pairs[k].w() * pairs[k].h() * pairs[k].channels()).sum();
+    let row_step = (values / 600_000).max(1);
+    // JPEG is found by its own test (the quantisation lattice does not depend on any model);
+    // when present it is part of every model, so that its softening and blocking are not taken
+    // for blur or anything else.
+    let mut jp = jpeg::test(pairs);
+    jp.detected = jp.z > (z - 1.0).max(8.0) && jp.param("quality").unwrap_or(100.0) < 98.0;
+    let mut start = Vec::new();
+    if jp.detected
+        && let Some(p) = params_from_signature(&jp)
+    {
+        let mut step = select::Step::fixed("jpeg", p)?;
+        step.dither = Some(loc.noise.clone());
+        start.push(step);
+    }
+    let mut ctx = FitCtx {
+        inputs,
+        seqs: fidx.iter().map(|&k| k as u64).collect(),
+        loss: LossData {
+            pairs: fidx.iter().map(|&k| &pairs[k]).collect(),
+            skip: fidx.iter().map(|&k| loc.hot[k].as_slice()).collect(),
+            noise: loc.noise.clone(),
+            row_step,
+        },
+        seed,
+        evals: std::cell::Cell::new(0),
+    };
+    let mut sel = select::select(&ctx, &cands, z, start, None)?;
+    // The noise model was measured on real - sim; with the fitted effects taken out it may
+    // differ (structure such as smear rows inflates it). If it changed, select again with it,
+    // starting from the model found.
+    let mut model_planes = Vec::with_capacity(pairs.len());
+    for (k, p) in pairs.iter().enumerate() {
+        model_planes.push(select::apply_steps(&mut sel.steps, &p.sim_frame, k as u64, seed)?);
+    }
+    let renoise = noise::estimate(pairs, &loc.masks, &model_planes, loc.quant, 0.0, Some(&loc.hot));
+    let change = [2.0, 30.0, 100.0, 200.0]
+        .iter()
+        .map(|&l| (renoise.var(l) / ctx.loss.noise.var(l) - 1.0).abs())
+        .fold(0.0f64, f64::max);
+    if change > 0.15 {
+        notes.push(format!(
+            "noise model re-measured on the residual of the fitted model (variance changed by up to {:.0} %): selection repeated with it",
+            100.0 * change
+        ));
+        ctx.loss.noise = renoise;
+        let start: Vec<select::Step> = sel
+            .steps
+            .iter()
+            .map(|s| {
+                let mut c = s.boxed_clone();
+                if c.dither.is_some() {
+                    c.dither = Some(ctx.loss.noise.clone());
+                }
+                c
+            })
+            .collect();
+        let first_tests = std::mem::take(&mut sel.tests);
+        let prior = sel.best_z.clone();
+        sel = select::select(&ctx, &cands, z, start, Some(&prior))?;
+        let mut all = first_tests;
+        all.append(&mut sel.tests);
+        sel.tests = all;
+        model_planes.clear();
+        for (k, p) in pairs.iter().enumerate() {
+            model_planes.push(select::apply_steps(&mut sel.steps, &p.sim_frame, k as u64, seed)?);
+        }
+    }
+    notes.push(format!(
+        "forward-model selection: {} candidates, {} loss evaluations on {} of {} pairs{}",
+        cands.len(),
+        ctx.evals.get(),
+        fidx.len(),
+        pairs.len(),
+        if row_step > 1 { format!(" (every {row_step}th row)") } else { String::new() }
+    ));
+    let dropped = sel.notes.clone();
+    // ---- stochastic tests on the residual of the deterministic model ----------------------------
+    let (mut st, _hot) = stochastic_tests(pairs, loc, &model_planes, z, jp.detected);
+    st.jpeg = jp;
+    // ---- findings --------------------------------------------------------------------------------
     let mut results: Vec<FittedEffect> = Vec::new();
-    loop {
-        if steps.is_empty() {
-            break;
+    let nv = sel.loss_final.n.max(1) as f64;
+    let mut dark_params: Option<Params> = None;
+    for (j, s) in sel.steps.iter().enumerate() {
+        if s.fixed {
+            continue;
         }
-        let (full, blocks_full) = lc.loss(&run_steps(&mut steps, 0, &inputs, seed)?);
-        loss_full = full;
-        let mut worst: Option<(usize, f64)> = None;
-        let mut drops = Vec::new();
-        for j in 0..steps.len() {
-            let saved = steps.remove(j);
-            let (l, blocks) = lc.loss(&run_steps(&mut steps, 0, &inputs, seed)?);
-            steps.insert(j, saved);
-            let d: Vec<f64> = blocks.iter().zip(&blocks_full).map(|(a, b)| a - b).collect();
-            let (m, se) = stats::mean_se(&d);
-            let zb = if se > 0.0 {
-                m / se
-            } else if m > 0.0 {
-                100.0
-            } else {
-                0.0
-            };
-            drops.push((l, zb));
-            let k_params = coords_of(std::slice::from_ref(&steps[j])).len().max(1) as f64;
-            let n_pix = lc.pairs.iter().map(|p| p.w() * p.h() * p.channels()).sum::<usize>() as f64;
-            let bic_gain = (l - full) - 0.5 * k_params * n_pix.ln();
-            let keep = zb > 3.0 && bic_gain > 0.0;
-            if !keep && worst.is_none_or(|(_, zw)| zb < zw) {
-                worst = Some((j, zb));
+        let ev = &sel.evidence[j];
+        let sig = loc.signature(s.name);
+        let mut params = s.params;
+        if s.name == "dark_current" {
+            // The library model adds the dark signal's shot noise at the camera's gain.
+            let gain = if st.shot.detected { st.shot.param("gain_e_per_dn").unwrap_or(1.0) } else { 1e3 };
+            let _ = params.set("gain_e_per_dn", gain.clamp(0.01, 1000.0));
+            if st.hot_sig.detected {
+                let _ = params.set("hot_pixel_rate", st.hot_sig.size.clamp(0.0, 0.05));
+                let excess = st.hot_sig.param("offset_dn").unwrap_or(60.0);
+                let m = params.get("mean_dn").max(0.1);
+                let _ = params.set("hot_factor", ((excess + m) / m).clamp(1.0, 1000.0));
             }
+            dark_params = Some(params);
         }
-        if let Some((j, zb)) = worst {
-            let s = steps.remove(j);
-            dropped.push(format!(
-                "{}: signature significant but the fitted forward model does not improve the pixel loss consistently (block z = {zb:.1}); explained by the other effects",
-                s.name
-            ));
-            // Refit the remaining effects briefly.
-            loss_full = optimise(&mut steps, &inputs, &lc, seed, 1)?;
-            continue;
-        }
-        for (j, s) in steps.iter().enumerate() {
-            let sig = loc.signature(s.name);
-            let (lb, zb) = drops[j];
-            results.push(FittedEffect {
-                name: s.name,
-                params: Some(s.params),
-                canonical: canonical_of(&s.params),
-                stderr: sig.map(|g| g.stderr.clone()).unwrap_or_default(),
-                loss_before: lb / n_values(&lc),
-                loss_after: full / n_values(&lc),
-                z: sig.map(|g| g.z).unwrap_or(zb).min(1e6),
-                where_: sig.map(|g| g.where_.clone()).unwrap_or_default(),
-                evidence: format!(
-                    "{}; forward-model fit: removing it raises the loss by {:.4} per sample (block z = {:.1})",
-                    sig.map(|g| g.evidence.as_str()).unwrap_or(""),
-                    (lb - full) / n_values(&lc),
-                    zb
-                ),
-                method: "joint forward-model fit (Huber loss on noise-normalised residuals)".into(),
-                importance: (lb - full) / n_values(&lc),
-            });
-        }
-        break;
+        let stderr = sig.map(|g| g.stderr.clone()).unwrap_or_default();
+        results.push(FittedEffect {
+            name: s.name,
+            params: Some(params),
+            canonical: canonical_of(&params),
+            stderr,
+            loss_before: ev.loss_without,
+            loss_after: ev.loss_with,
+            z: ev.z,
+            where_: sig.map(|g| g.where_.clone()).unwrap_or_default(),
+            evidence: format!(
+                "{}; forward model: removing it raises the loss by {:.4} per value (ΔL = {:.1}, design effect {:.2}, z = {:.1} on {} parameter(s))",
+                sig.map(|g| g.evidence.as_str()).unwrap_or(""),
+                ev.delta / nv,
+                ev.delta,
+                ev.design,
+                ev.z,
+                ev.k
+            ),
+            method: "joint forward-model fit on the library effect (Huber loss on noise-standardised residuals)".into(),
+            importance: ev.delta / ev.design,
+        });
     }
-    let _ = (blocks0, loss_full);
-    // Deterministic signatures of effects without a library model.
-    for sig in loc.detected() {
-        if DETERMINISTIC.contains(&sig.effect) && registry::find(sig.effect).is_none() {
-            results.push(FittedEffect {
-                name: sig.effect,
-                params: None,
-                canonical: canonical_from_sig(sig),
-                stderr: sig.stderr.clone(),
-                loss_before: f64::NAN,
-                loss_after: f64::NAN,
-                z: sig.z,
-                where_: sig.where_.clone(),
-                evidence: sig.evidence.clone(),
-                method: "signature estimate (effect not in the library: not fitted)".into(),
-                importance: sig.z / 100.0,
-            });
+    // Hot pixels are part of the dark current when there is one.
+    let mut hot_sig = st.hot_sig.clone();
+    if hot_sig.detected && dark_params.is_some() {
+        hot_sig.detected = false;
+        hot_sig.evidence.push_str(" (reported as dark_current.hot_pixel_rate)");
+        if let Some(r) = results.iter_mut().find(|r| r.name == "dark_current") {
+            r.evidence.push_str(&format!("; hot pixels: {}", st.hot_sig.evidence));
         }
     }
-    // ---- stochastic effects by moment matching ---------------------------------------------------
+    // The dark signal's shot noise is already in the slope of the noise curve (levels include the
+    // dark signal), so the read noise takes nothing off for it.
+    let dark_var = 0.0;
     let fmt_like = &pairs[0].real_frame;
-    for sig in loc.detected() {
-        if DETERMINISTIC.contains(&sig.effect) {
+    // The deterministic chain (with the dark current's own noise and the JPEG) the camera noise
+    // goes through.
+    let mut chain: Vec<Params> =
+        results.iter().filter(|r| det_names_of(&sel).contains(&r.name)).filter_map(|r| r.params).collect();
+    if st.jpeg.detected
+        && let Some(p) = params_from_signature(&st.jpeg)
+    {
+        chain.push(p);
+    }
+    // Only effects after the noise in the signal chain change what is measured (a gain or tone
+    // curve scales it, JPEG removes part of it); without them the direct estimate is the answer.
+    let after_noise = chain.iter().any(|p| matches!(p.info().name, "gain_offset" | "gamma" | "jpeg"));
+    let through_model = if after_noise && (st.gaussian.detected || st.shot.detected) {
+        Some(noise_through_model(pairs, loc, &model_planes, &st.noise, &chain, seed)?)
+    } else {
+        None
+    };
+    for sig in [&st.gaussian, &st.shot, &st.prnu, &st.row, &hot_sig, &st.jpeg] {
+        if !sig.detected {
             continue;
         }
-        let (params, method, lb, la) = match super::moments::calibrate(sig, loc, fmt_like, seed) {
+        let (mut params, mut method, lb, la) = match super::moments::calibrate(sig, &st.noise, dark_var, fmt_like, seed)
+        {
             Some(x) => (Some(x.0), x.1, x.2, x.3),
             None => (None, "signature estimate (effect not in the library)".to_string(), f64::NAN, f64::NAN),
         };
+        if let (Some((sigma, gain)), Some(p)) = (through_model, params.as_mut()) {
+            let note = "moment matching through the library's forward models: sim through the fitted chain with trial noise, variance against level measured as on the real images";
+            match sig.effect {
+                "gaussian_noise" => {
+                    let _ = p.set("sigma_dn", sigma.clamp(0.0, 64.0));
+                    method = note.into();
+                }
+                "shot_noise" => {
+                    if let Some(g) = gain {
+                        let _ = p.set("gain_e_per_dn", g.clamp(0.01, 1e6));
+                        method = note.into();
+                    }
+                }
+                _ => {}
+            }
+        }
         results.push(FittedEffect {
             name: sig.effect,
-            canonical: params.as_ref().map(canonical_of).unwrap_or_else(|| canonical_from_sig(sig)),
+            canonical: params.as_ref().map(canonical_of).unwrap_or_default(),
             params,
             stderr: sig.stderr.clone(),
             loss_before: lb,
@@ -574,33 +572,43 @@ pub fn fit(pairs: &[Pair], loc: &Located, opts: &Options) -> Result<Fitted, Diag
             where_: sig.where_.clone(),
             evidence: sig.evidence.clone(),
             method,
-            importance: (lb - la).max(0.0) / 10.0 + 1e-6 * sig.z.min(1e4),
+            importance: 1e-6 * sig.z.min(1e4),
         });
     }
-    // Most important first: deterministic by loss reduction, then stochastic.
+    // Deterministic findings by evidence, then the stochastic ones by significance.
     results.sort_by(|a, b| b.importance.total_cmp(&a.importance));
+    // The signature table shows the final decision (taken by the forward-model selection).
+    for sig in loc.signatures.iter_mut() {
+        sig.detected = sel.steps.iter().any(|s| !s.fixed && s.name == sig.effect);
+    }
+    for s in [&st.gaussian, &st.shot, &st.prnu, &st.row, &hot_sig, &st.jpeg] {
+        loc.signatures.push(s.clone());
+    }
     // ---- the fitted config and before/after metrics ---------------------------------------------
-    let cfg_params: Vec<Params> = results.iter().filter_map(|r| r.params).collect();
+    // Deterministic steps first, in the fit's physical order, so that each keeps its generator
+    // index (lens_flare's ghost pattern depends on it).
+    let det_names: Vec<&str> = sel.steps.iter().filter(|s| !s.fixed).map(|s| s.name).collect();
+    let mut cfg_params: Vec<Params> =
+        det_names.iter().filter_map(|n| results.iter().find(|r| r.name == *n).and_then(|r| r.params)).collect();
+    cfg_params.extend(results.iter().filter(|r| !det_names.contains(&r.name)).filter_map(|r| r.params));
     let mut config = FaultConfig::from_effects(seed, cfg_params);
     config.origin = "fitted by faultcam diagnose".into();
     let mut before = Vec::new();
     let mut after = Vec::new();
     let mut rmse_noise = Vec::new();
-    let mut model_planes = Vec::new();
-    let mut det_steps: Vec<Step> = steps;
     for (k, p) in pairs.iter().enumerate() {
         before.push(metrics_of(&p.sim_frame, &p.real_frame));
         let mut sim = p.sim_frame.clone();
         sim.seq = k as u64;
-        let det = run_steps(&mut det_steps, 0, std::slice::from_ref(&sim), seed)?.remove(0);
+        let det = frame_from_planes(&model_planes[k], &p.real_frame);
         let full = apply_config(&config, &sim)?;
         let mut m = metrics_of(&full, &p.real_frame);
         let md = metrics_of(&det, &p.real_frame);
         rmse_noise.push(m.rmse);
         m.rmse = md.rmse;
         after.push(m);
-        model_planes.push(planes_of(&det));
     }
+    notes.extend(sel.notes.iter().filter(|n| !n.contains("backward check")).cloned());
     Ok(Fitted {
         effects: results,
         config,
@@ -610,9 +618,7 @@ pub fn fit(pairs: &[Pair], loc: &Located, opts: &Options) -> Result<Fitted, Diag
         model_planes,
         notes,
         dropped,
+        selection_tests: sel.tests,
+        noise: st.noise,
     })
-}
-
-fn n_values(lc: &LossCtx) -> f64 {
-    lc.pairs.iter().map(|p| p.w() * p.h() * p.channels()).sum::<usize>().max(1) as f64
 }

@@ -9,24 +9,56 @@
 
 use super::img::{FS, Pair, Plane};
 use super::locate::Masks;
-use super::noise::NoiseModel;
+use super::noise::{NoiseModel, RowOffsets};
 use super::stats::{self, Wls};
 use super::{Profile, Signature};
 
-/// Horizontal second difference of the residual at pixel i (requires x in 1..w-1).
-#[inline]
-fn hp(real: &[f32], sim: &[f32], i: usize) -> f32 {
-    (real[i] - sim[i]) - 0.5 * ((real[i - 1] - sim[i - 1]) + (real[i + 1] - sim[i + 1]))
-}
-
 /// PRNU by cross-frame covariance. Returns the signature and the variance coefficient c =
 /// sigma² (0 when not detected) for the noise model.
-pub fn prnu(pairs: &[Pair], masks: &[Masks], noise: &NoiseModel, hot: &[Vec<bool>]) -> (Signature, f64) {
+pub fn prnu(
+    pairs: &[Pair],
+    masks: &[Masks],
+    quiet: &[Vec<bool>],
+    base: &[Vec<Plane>],
+    noise: &NoiseModel,
+    hot: &[Vec<bool>],
+) -> (Signature, f64) {
     let mut sig = Signature::new("prnu");
     if pairs.len() < 2 {
         sig.evidence = "a single frame: a fixed pattern cannot be told from noise".into();
         return (sig, 0.0);
     }
+    // Per frame: the relative high-passed residual u = hp(real - base) / base where usable.
+    let us: Vec<Vec<Vec<f32>>> = pairs
+        .iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let (w, h) = (p.w(), p.h());
+            (0..p.channels())
+                .map(|c| {
+                    let (s, r) = (&base[k][c].data, &p.real[c].data);
+                    let mut u = vec![f32::NAN; w * h];
+                    for y in 1..h.saturating_sub(1) {
+                        for x in 1..w - 1 {
+                            let i = y * w + x;
+                            let cross = [i, i - 1, i + 1, i - w, i + w];
+                            if !quiet[k][i]
+                                || masks[k].dist_sat[i] <= 3.0
+                                || s[i] < 30.0
+                                || cross.iter().any(|&j| hot[k][j] || r[j] <= 0.0 || r[j] >= FS)
+                            {
+                                continue;
+                            }
+                            let d = |j: usize| r[j] - s[j];
+                            let hp5 = d(i) - 0.25 * (d(i - 1) + d(i + 1) + d(i - w) + d(i + w));
+                            u[i] = hp5 / s[i];
+                        }
+                    }
+                    u
+                })
+                .collect()
+        })
+        .collect();
     let mut wls = Wls::new(2);
     let mut npairs = 0;
     let mut nprod = 0usize;
@@ -41,44 +73,25 @@ pub fn prnu(pairs: &[Pair], masks: &[Masks], noise: &NoiseModel, hot: &[Vec<bool
                 continue;
             }
             npairs += 1;
-            let (w, h) = (pa.w(), pa.h());
-            let (ma, mb) = (&masks[a], &masks[b]);
+            let w = pa.w();
             for c in 0..pa.channels() {
-                let (sa, ra) = (&pa.sim[c].data, &pa.real[c].data);
-                let (sb, rb) = (&pb.sim[c].data, &pb.real[c].data);
-                for y in 0..h {
-                    for x in (3..w - 1).step_by(3) {
-                        let i = y * w + x;
-                        let ok = |m: &Masks, s: &[f32], r: &[f32], hotm: &[bool]| {
-                            m.linear[i - 1]
-                                && m.linear[i]
-                                && m.linear[i + 1]
-                                && !m.sat_near[i]
-                                && s[i] >= 20.0
-                                && !hotm[i - 1]
-                                && !hotm[i]
-                                && !hotm[i + 1]
-                                && r[i - 1] > 0.0
-                                && r[i] < FS
-                                && r[i - 1] < FS
-                                && r[i + 1] < FS
-                        };
-                        if !ok(ma, sa, ra, &hot[a]) || !ok(mb, sb, rb, &hot[b]) {
-                            continue;
-                        }
-                        let (s1, s2) = (sa[i] as f64, sb[i] as f64);
-                        let u1 = hp(ra, sa, i) as f64 / s1;
-                        let u2 = hp(rb, sb, i) as f64 / s2;
-                        let v1 = 1.5 * noise.var(s1) / (s1 * s1);
-                        let v2 = 1.5 * noise.var(s2) / (s2 * s2);
-                        if u1.abs() > 8.0 * v1.sqrt() + 0.5 || u2.abs() > 8.0 * v2.sqrt() + 0.5 {
-                            continue;
-                        }
-                        // E[u1 u2] = 1.5 sigma_p² + 1.5 d² / (s1 s2) (d: additive fixed pattern)
-                        let cl = (npairs as u32) * 10_000 + (y / 16) as u32;
-                        wls.push(&[1.5, 1.5 / (s1 * s2)], u1 * u2, 1.0 / (v1 * v2), cl);
-                        nprod += 1;
+                let (sa, sb) = (&base[a][c].data, &base[b][c].data);
+                let (ua, ub) = (&us[a][c], &us[b][c]);
+                for i in 0..ua.len() {
+                    let (u1, u2) = (ua[i] as f64, ub[i] as f64);
+                    if !(u1.is_finite() && u2.is_finite()) {
+                        continue;
                     }
+                    let (s1, s2) = (sa[i] as f64, sb[i] as f64);
+                    let v1 = 1.25 * noise.var(s1) / (s1 * s1);
+                    let v2 = 1.25 * noise.var(s2) / (s2 * s2);
+                    if u1.abs() > 8.0 * v1.sqrt() + 0.3 || u2.abs() > 8.0 * v2.sqrt() + 0.3 {
+                        continue;
+                    }
+                    // E[u1 u2] = 1.25 sigma_p² + 1.25 d² / (s1 s2) (d: additive fixed pattern)
+                    let cl = (npairs as u32) * 100_000 + (c * 10_000 + (i / w) / 16) as u32;
+                    wls.push(&[1.25, 1.25 / (s1 * s2)], u1 * u2, 1.0 / (v1 * v2), cl);
+                    nprod += 1;
                 }
             }
         }
@@ -110,6 +123,7 @@ pub fn prnu(pairs: &[Pair], masks: &[Masks], noise: &NoiseModel, hot: &[Vec<bool
 pub fn hot_pixels(
     pairs: &[Pair],
     masks: &[Masks],
+    quiet: &[Vec<bool>],
     q: &[Vec<Plane>],
     noise: &NoiseModel,
 ) -> (Signature, Vec<Vec<bool>>, f64) {
@@ -129,7 +143,7 @@ pub fn hot_pixels(
         for y in 1..h - 1 {
             for x in 1..w - 1 {
                 let i = y * w + x;
-                if !m.linear[i] || m.dist_sat[i] <= 3.0 || m.dist_edge[i] <= 2.0 {
+                if !quiet[k][i] || m.dist_sat[i] <= 3.0 || m.dist_edge[i] <= 2.0 {
                     continue;
                 }
                 el[i] = true;
@@ -201,17 +215,60 @@ pub fn hot_pixels(
     (sig, cand, mean_excess)
 }
 
+/// Row-to-row fluctuation of the residual (median of each row, less a running median over nine
+/// rows), per frame and channel.
+pub fn row_offsets(pairs: &[Pair], masks: &[Masks], resid: &[Vec<Plane>], hot: &[Vec<bool>]) -> RowOffsets {
+    pairs
+        .iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let (w, h) = (p.w(), p.h());
+            (0..p.channels())
+                .map(|c| {
+                    let rr = &resid[k][c].data;
+                    let real = &p.real[c].data;
+                    let med: Vec<f64> = (0..h)
+                        .map(|y| {
+                            let v: Vec<f64> = (0..w)
+                                .map(|x| y * w + x)
+                                .filter(|&i| real[i] > 0.0 && real[i] < FS && !hot[k][i] && masks[k].dist_sat[i] > 3.0)
+                                .map(|i| rr[i] as f64)
+                                .collect();
+                            if v.len() >= 8 { stats::median(&v) } else { f64::NAN }
+                        })
+                        .collect();
+                    (0..h)
+                        .map(|y| {
+                            if !med[y].is_finite() {
+                                return 0.0;
+                            }
+                            let win: Vec<f64> = (y.saturating_sub(4)..(y + 5).min(h))
+                                .map(|j| med[j])
+                                .filter(|v| v.is_finite())
+                                .collect();
+                            (med[y] - stats::median(&win)) as f32
+                        })
+                        .collect()
+                })
+                .collect()
+        })
+        .collect()
+}
+
 /// Row noise by split-half covariance of detrended row means.
 pub fn row_noise(
     pairs: &[Pair],
     masks: &[Masks],
+    quiet: &[Vec<bool>],
     r1: &[Vec<Plane>],
     q: &[Vec<Plane>],
     noise: &NoiseModel,
 ) -> Signature {
     let mut sig = Signature::new("row_noise");
-    let lo = 3.0 * noise.sd(0.0);
-    let mut prods = Vec::new();
+    // (product, cluster): clusters of 8 consecutive rows, since neighbouring second differences
+    // share rows.
+    let mut prods: Vec<(f64, usize)> = Vec::new();
+    let mut n_cluster = 0usize;
     let mut prof = Vec::new();
     for (k, p) in pairs.iter().enumerate() {
         let m = &masks[k];
@@ -225,11 +282,13 @@ pub fn row_noise(
                 let (mut se, mut ne, mut so, mut no) = (0.0, 0usize, 0.0, 0usize);
                 for x in 0..w {
                     let i = y * w + x;
-                    if !m.flat[i] || m.dist_sat[i] <= 6.0 || m.dist_edge[i] <= 3.0 {
+                    if !quiet[k][i] || m.dist_sat[i] <= 6.0 {
                         continue;
                     }
                     let qv = qq[i] as f64;
-                    if qv < lo || p.real[c].data[i] >= FS {
+                    // Dark pixels count too: clipping at 0 shrinks the offsets but cannot create
+                    // a covariance between even and odd columns.
+                    if p.real[c].data[i] >= FS {
                         continue;
                     }
                     let v = rr[i] as f64;
@@ -249,28 +308,36 @@ pub fn row_noise(
                     mo[y] = so / no as f64;
                 }
             }
-            for y in (1..h.saturating_sub(1)).step_by(3) {
+            for y in 1..h.saturating_sub(1) {
                 let d2 = |m: &[f64]| m[y + 1] - 2.0 * m[y] + m[y - 1];
                 let (a, b) = (d2(&me), d2(&mo));
                 if a.is_finite() && b.is_finite() {
-                    prods.push(a * b);
+                    prods.push((a * b, n_cluster + y / 8));
                     if k == 0 && c == 0 {
                         prof.push((y as f64, 0.5 * (me[y] + mo[y]), me[y], mo[y]));
                     }
                 }
             }
+            n_cluster += h / 8 + 1;
         }
     }
     if prods.len() < 30 {
-        sig.evidence = format!("too few rows with flat unclipped pixels ({})", prods.len());
+        sig.evidence = format!("too few rows with quiet unclipped pixels ({})", prods.len());
         return sig;
     }
     // Winsorise the products at the 1 % tails (rows crossing structures).
-    let mut sorted = prods.clone();
+    let mut sorted: Vec<f64> = prods.iter().map(|p| p.0).collect();
     let lo_q = stats::quantile_mut(&mut sorted, 0.01);
     let hi_q = stats::quantile_mut(&mut sorted, 0.99);
-    let wins: Vec<f64> = prods.iter().map(|v| v.clamp(lo_q, hi_q)).collect();
-    let (m, se) = stats::mean_se(&wins);
+    let n = prods.len() as f64;
+    let m = prods.iter().map(|p| p.0.clamp(lo_q, hi_q)).sum::<f64>() / n;
+    // Cluster-robust standard error of the mean.
+    let mut cs: std::collections::HashMap<usize, f64> = std::collections::HashMap::new();
+    for &(v, cl) in &prods {
+        *cs.entry(cl).or_insert(0.0) += v.clamp(lo_q, hi_q) - m;
+    }
+    let g = cs.len() as f64;
+    let se = (cs.values().map(|s| s * s).sum::<f64>() * g / (g - 1.0).max(1.0)).sqrt() / n;
     let s2 = m / 6.0;
     let se2 = se / 6.0;
     let sd = s2.max(0.0).sqrt();

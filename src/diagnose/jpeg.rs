@@ -8,7 +8,7 @@
 //! a grid shifted by (4, 4) is the control: the lattice exists only on the true grid. The quality
 //! is the libjpeg quality whose scaled standard luminance table maximises the aligned score.
 
-use super::img::Pair;
+use super::img::{Pair, Plane};
 use super::{Profile, Signature};
 
 /// The standard JPEG luminance quantisation table (ITU T.81 Annex K), natural order.
@@ -71,14 +71,13 @@ struct CoefHist {
 
 const RES: f64 = 16.0;
 
-fn coefficient_hist(pairs: &[Pair], real: bool, off: (usize, usize)) -> CoefHist {
+fn coefficient_hist(images: &[&[Plane]], off: (usize, usize)) -> CoefHist {
     let cos = cos_table();
     let mut bins: Vec<std::collections::HashMap<i32, u32>> = vec![Default::default(); 64];
     let mut block = [0.0; 64];
     let mut out = [0.0; 64];
-    for p in pairs {
-        let planes = if real { &p.real } else { &p.sim };
-        let (w, h) = (p.w(), p.h());
+    for planes in images {
+        let (w, h) = (planes[0].w, planes[0].h);
         let y_plane: Vec<f32> = if planes.len() == 3 {
             (0..w * h)
                 .map(|i| 0.299 * planes[0].data[i] + 0.587 * planes[1].data[i] + 0.114 * planes[2].data[i])
@@ -150,14 +149,23 @@ fn table_score(
 }
 
 pub fn test(pairs: &[Pair]) -> Signature {
-    let mut sig = Signature::new("jpeg");
     if pairs.iter().any(|p| p.real_frame.format == crate::frame::PixelFormat::Mono16) {
+        let mut sig = Signature::new("jpeg");
         sig.evidence = "16-bit data: JPEG (8-bit) not applicable".into();
         return sig;
     }
-    let aligned = coefficient_hist(pairs, true, (0, 0));
-    let shifted = coefficient_hist(pairs, true, (4, 4));
-    let sim_al = coefficient_hist(pairs, false, (0, 0));
+    let reals: Vec<&[Plane]> = pairs.iter().map(|p| p.real.as_slice()).collect();
+    let sims: Vec<&[Plane]> = pairs.iter().map(|p| p.sim.as_slice()).collect();
+    test_planes(&reals, &sims)
+}
+
+/// The lattice test on sets of images (real: tested; sim: a lattice already there is not
+/// evidence about the real camera).
+pub fn test_planes(reals: &[&[Plane]], sims: &[&[Plane]]) -> Signature {
+    let mut sig = Signature::new("jpeg");
+    let aligned = coefficient_hist(reals, (0, 0));
+    let shifted = coefficient_hist(reals, (4, 4));
+    let sim_al = coefficient_hist(sims, (0, 0));
     let (mut ca, mut cs, mut csim) = (Default::default(), Default::default(), Default::default());
     let mut best = (0u32, f64::NEG_INFINITY, 0.0, 0.0, 0.0);
     let mut curve_a = Vec::new();

@@ -34,6 +34,7 @@ pub mod photometric;
 pub mod plot;
 pub mod report;
 pub mod saturation;
+pub mod select;
 pub mod stats;
 pub mod unpaired;
 
@@ -157,8 +158,8 @@ pub fn diagnose_dirs(sim: &Path, real: &Path, out: &Path, opts: &Options) -> Res
         return Ok(rep.report);
     }
     let (pairs, notes) = img::load_pairs(sim, real)?;
-    let located = locate::locate(&pairs, opts);
-    let fitted = fit::fit(&pairs, &located, opts)?;
+    let mut located = locate::locate(&pairs, opts);
+    let fitted = fit::fit(&pairs, &mut located, opts)?;
     let rep = report::build(&pairs, &located, &fitted, notes, opts);
     report::write(&rep, &pairs, &located, &fitted, out, opts)?;
     Ok(rep)

@@ -12,7 +12,7 @@
 
 use super::Signature;
 use super::img::{FS, planes_of};
-use super::locate::Located;
+use super::noise::NoiseModel;
 use crate::faults::{self, EffectCtx, Params, registry};
 use crate::frame::{Frame, PixelFormat};
 
@@ -55,16 +55,23 @@ fn var_of(f: &Frame) -> (f64, f64) {
     (m, v)
 }
 
-/// Calibrated parameters, method text, loss before and after.
-pub fn calibrate(sig: &Signature, loc: &Located, like: &Frame, seed: u64) -> Option<(Params, String, f64, f64)> {
+/// Calibrated parameters, method text, loss before and after. `dark_var` is the variance
+/// (DN²) the fitted dark current's own shot noise adds, which the read noise must not repeat.
+pub fn calibrate(
+    sig: &Signature,
+    noise: &NoiseModel,
+    dark_var: f64,
+    like: &Frame,
+    seed: u64,
+) -> Option<(Params, String, f64, f64)> {
     let reg = registry::find(sig.effect)?;
     let mut p = super::fit::params_from_signature(sig)?;
-    let noise = &loc.noise;
     let bins_loss = |a: f64, b: f64| -> f64 {
         // mean squared standardised mismatch of the binned variance curve
         let mut s = 0.0;
         let mut n = 0.0;
-        for &(l, v, cnt) in &noise.bins {
+        for bin in &noise.bins {
+            let (l, v, cnt) = (bin.level, bin.var, bin.n);
             if l < noise.fit_range.0 || l > noise.fit_range.1 {
                 continue;
             }
@@ -75,10 +82,11 @@ pub fn calibrate(sig: &Signature, loc: &Located, like: &Frame, seed: u64) -> Opt
         }
         if n > 0.0 { s / n } else { f64::NAN }
     };
-    let q12 = loc.quant * loc.quant / 12.0;
+    let q12 = noise.quant * noise.quant / 12.0;
     match sig.effect {
         "gaussian_noise" => {
-            let target = noise.a; // includes quantisation
+            // Observed variance at zero signal, quantisation included, less the dark shot noise.
+            let target = (noise.a - dark_var).max(0.0) + q12;
             let mut s = p.get("sigma_dn");
             for _ in 0..3 {
                 let _ = p.set("sigma_dn", s.clamp(0.0, 64.0));
@@ -87,7 +95,7 @@ pub fn calibrate(sig: &Signature, loc: &Located, like: &Frame, seed: u64) -> Opt
                 s = (s * s + (target - v)).max(0.0).sqrt();
             }
             let _ = p.set("sigma_dn", s.clamp(0.0, 64.0));
-            let before = bins_loss(q12, noise.b);
+            let before = bins_loss(0.0, noise.b);
             let after = bins_loss(noise.a, noise.b);
             Some((p, "moment matching: variance at zero signal, through the library model".into(), before, after))
         }

@@ -1,65 +1,96 @@
-//! Camera noise: variance against signal (`shot_noise`, `gaussian_noise`) and the dark level.
+//! Camera noise: variance against signal (`shot_noise`, `gaussian_noise`) and the level of dark
+//! regions.
 //!
-//! The residual `r = real - sim` is high-passed along x with the second difference
-//! `h = r(x) - (r(x-1) + r(x+1)) / 2`, only where the sim is locally linear (so every smooth or
-//! deterministic difference — vignetting, stray light, gain, blur of a linear ramp — cancels) and
-//! nothing is clipped. For white noise `var(h) = 1.5 var(n)`. Binned by sim level `s`, the
-//! variance follows `var(s) = a + b s + c s^2`: `a` is read noise (plus quantisation `q^2/12`),
-//! `b = 1 / gain_e_per_dn` is photon noise and `c = prnu sigma^2` (fixed pattern, measured
-//! separately across frames and then held fixed here).
+//! Everything is measured on the residual `r = real - base`, where `base` is the current model of
+//! the real image without noise (the sim itself at first, the fitted deterministic model later).
 //!
-//! The dark level (sim = 0) is measured by an interval-censored normal fit, which removes the
-//! bias of clipping at 0 (the plain mean of clipped N(0, s^2) is 0.4 s, not 0).
+//! * **High-pass bins.** `h = r(x, y) - (r(x±1, y) + r(x, y±1)) / 4` removes every smooth
+//!   difference (gain, vignetting, stray light, offsets) whatever the scene is; it is taken only
+//!   where the base is "quiet" (small Laplacian in the 3x3 neighbourhood, so blur and edges do not
+//!   leak into it) and nothing is clipped. For white noise `var(h) = 1.25 (σ² + q²/12)` (q: the
+//!   quantisation step of the real data), so each level bin (4 DN) gives σ² at that level. A
+//!   variance estimator that rejects values beyond 5 robust sigmas keeps hot pixels out.
+//! * **Low blocks.** Where the base is dark, clipping at 0 biases both the mean and the variance
+//!   of the observed values. Each 32x32 block with enough dark, quiet pixels gets an
+//!   interval-censored normal fit of `real = round(clip(base + μ + n))`, n ~ N(0, σ²): μ is the
+//!   additive level there (dark current, offsets, stray light) and σ² the noise variance at level
+//!   `base + μ`.
+//!
+//! Both kinds of points are fitted with `σ²(L) = a + b L + c L²`: `a` is the read noise variance
+//! (plus dark-current shot noise), `b = 1 / gain_e_per_dn` the photon noise and `c` a fixed
+//! pattern (prnu σ², measured separately across frames and then held fixed here). Variances are
+//! those of the continuous noise; [`NoiseModel::var`] adds the quantisation of the data.
 
-use super::img::{FS, Pair};
+use super::img::{FS, Pair, Plane};
 use super::locate::Masks;
 use super::stats::{self, Wls};
+
+/// One level bin of the high-pass measurement.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct NoiseBin {
+    /// Level (8-bit DN) of the bin centre.
+    pub level: f64,
+    /// Variance of the continuous noise (DN²), quantisation removed.
+    pub var: f64,
+    pub n: usize,
+}
+
+/// Censored fit of one dark block.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct LowBlock {
+    /// Pair index and channel.
+    pub k: usize,
+    pub c: usize,
+    /// Block centre (px).
+    pub xc: f64,
+    pub yc: f64,
+    /// Mean base level of the fitted pixels (DN).
+    pub base: f64,
+    /// Additive level real - base (DN), its standard error, and the noise sigma.
+    pub mu: f64,
+    pub se_mu: f64,
+    pub sigma: f64,
+    pub n: usize,
+    /// Fraction of the block's values clipped at 0.
+    pub clipped: f64,
+}
 
 /// Noise model in 8-bit DN.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct NoiseModel {
-    /// Variance intercept (DN^2), including quantisation.
+    /// Variance intercept (DN²) of the continuous noise.
     pub a: f64,
     pub se_a: f64,
     /// Variance per DN of signal (1 / gain_e_per_dn).
     pub b: f64,
     pub se_b: f64,
-    /// Variance per DN^2 of signal (prnu sigma^2).
+    /// Variance per DN² of signal (prnu sigma²), held fixed.
     pub c: f64,
     /// Quantisation step of the real data (1 for 8-bit files, 1/257 for 16-bit).
     pub quant: f64,
-    /// Binned measurements: (level, variance, count).
-    pub bins: Vec<(f64, f64, usize)>,
-    /// Censored-normal fit of real where sim is black, far from anything bright.
-    pub dark: Option<DarkLevel>,
-    /// Levels used by the fit.
+    pub bins: Vec<NoiseBin>,
+    pub low: Vec<LowBlock>,
+    /// Levels covered by the fit.
     pub fit_range: (f64, f64),
-}
-
-/// Dark level where the sim is black.
-#[derive(Debug, Clone, Copy, serde::Serialize)]
-pub struct DarkLevel {
-    pub mu: f64,
-    pub sigma: f64,
-    pub se_mu: f64,
-    pub n: usize,
+    /// Whether the slope could be measured (two or more separated levels).
+    pub slope_identified: bool,
 }
 
 impl NoiseModel {
-    /// Predicted noise variance (DN^2) at signal `s` (DN).
+    /// Variance (DN²) of an observed value whose noise-free level is `s` (quantisation included).
     #[inline]
     pub fn var(&self, s: f64) -> f64 {
         let s = s.clamp(0.0, FS as f64);
-        (self.a + self.b * s + self.c * s * s).max(self.quant * self.quant / 12.0 + 0.02)
+        (self.a + self.b * s + self.c * s * s).max(0.02) + self.quant * self.quant / 12.0
     }
     pub fn sd(&self, s: f64) -> f64 {
         self.var(s).sqrt()
     }
-    /// Read noise standard deviation without quantisation (DN).
+    /// Standard deviation of the signal-independent noise (DN).
     pub fn read_sigma(&self) -> f64 {
-        (self.a - self.quant * self.quant / 12.0).max(0.0).sqrt()
+        self.a.max(0.0).sqrt()
     }
-    /// A flat prior model for the start of the analysis.
+    /// A flat prior for the start of the analysis.
     pub fn prior(quant: f64) -> NoiseModel {
         NoiseModel {
             a: 4.0,
@@ -69,180 +100,419 @@ impl NoiseModel {
             c: 0.0,
             quant,
             bins: Vec::new(),
-            dark: None,
+            low: Vec::new(),
             fit_range: (0.0, FS as f64),
+            slope_identified: false,
         }
+    }
+    /// Additive level of the dark regions: inverse-variance mean of the low blocks' μ with its
+    /// standard error across blocks (None without low blocks).
+    pub fn dark_level(&self) -> Option<(f64, f64, usize)> {
+        if self.low.len() < 2 {
+            return None;
+        }
+        let mus: Vec<f64> = self.low.iter().map(|b| b.mu).collect();
+        let (m, se) = stats::mean_se(&mus);
+        let se_model = (1.0 / self.low.iter().map(|b| 1.0 / (b.se_mu * b.se_mu).max(1e-9)).sum::<f64>()).sqrt();
+        Some((m, se.max(se_model), self.low.len()))
     }
 }
 
 const BIN: f64 = 4.0;
 const NBINS: usize = 64;
+/// Largest Laplacian (DN) of the base in a 3x3 neighbourhood for a high-pass sample.
+pub const QUIET_LAPLACIAN: f32 = 2.0;
 
-/// Collect the high-pass samples per level bin. `skip` marks pixels to leave out (hot pixels).
-fn collect(pairs: &[Pair], masks: &[Masks], skip: Option<&[Vec<bool>]>) -> Vec<Vec<f32>> {
-    let mut bins: Vec<Vec<f32>> = vec![Vec::new(); NBINS];
+/// Largest |Laplacian| (DN) of the base over the 3x3 neighbourhood, in any channel.
+pub fn laplacian3(base: &[Plane]) -> Vec<f32> {
+    let (w, h) = (base[0].w, base[0].h);
+    let mut lap = Plane::new(w, h);
+    for p in base {
+        for y in 0..h {
+            for x in 0..w {
+                let (xi, yi) = (x as isize, y as isize);
+                let v = (p.at_clamped(xi - 1, yi)
+                    + p.at_clamped(xi + 1, yi)
+                    + p.at_clamped(xi, yi - 1)
+                    + p.at_clamped(xi, yi + 1)
+                    - 4.0 * p.at(x, y))
+                .abs();
+                let i = y * w + x;
+                lap.data[i] = lap.data[i].max(v);
+            }
+        }
+    }
+    lap.extreme_filter(1, true).data
+}
+
+/// Per-pixel "quiet" mask of a set of base planes: the 4-neighbour Laplacian stays within
+/// `limit` DN over the 3x3 neighbourhood, in every channel.
+pub fn quiet_mask(base: &[Plane], limit: f32) -> Vec<bool> {
+    laplacian3(base).iter().map(|&v| v <= limit).collect()
+}
+
+/// Laplacian limit for level bins that quiet pixels do not populate (textured scenes): the
+/// residual of a fitted model is noise there too, at the price of a little leakage of misfit.
+pub const TEXTURED_LAPLACIAN: f32 = 8.0;
+
+/// Per-row offsets (frame, channel, row) removed from the residual (row noise).
+pub type RowOffsets = Vec<Vec<Vec<f32>>>;
+
+/// High-pass samples per level bin: (quiet samples, textured samples).
+fn collect(
+    pairs: &[Pair],
+    masks: &[Masks],
+    base: &[Vec<Plane>],
+    lap: &[Vec<f32>],
+    skip: Option<&[Vec<bool>]>,
+    rows: Option<&RowOffsets>,
+) -> (Vec<Vec<f32>>, Vec<Vec<f32>>) {
+    let mut quiet_bins: Vec<Vec<f32>> = vec![Vec::new(); NBINS];
+    let mut tex_bins: Vec<Vec<f32>> = vec![Vec::new(); NBINS];
     for (k, p) in pairs.iter().enumerate() {
         let m = &masks[k];
         let (w, h) = (p.w(), p.h());
-        // Subsample large frames: at most ~600k samples per frame and channel.
-        let step = ((w * h) / 600_000).max(1);
+        // Subsample large frames: at most ~400k candidate pixels per frame and channel.
+        let step = ((w * h) / 400_000).max(1);
         for c in 0..p.channels() {
-            let s = &p.sim[c].data;
+            let s = &base[k][c].data;
             let r = &p.real[c].data;
-            for y in 0..h {
+            let off = |y: usize| rows.map(|ro| ro[k][c][y]).unwrap_or(0.0);
+            for y in 1..h.saturating_sub(1) {
                 if y % step != 0 {
                     continue;
                 }
+                let (o0, om, op) = (off(y), off(y - 1), off(y + 1));
                 for x in 1..w - 1 {
                     let i = y * w + x;
-                    if !(m.linear[i - 1] && m.linear[i] && m.linear[i + 1]) || m.sat_near[i] {
+                    let l = lap[k][i];
+                    if l > TEXTURED_LAPLACIAN || m.dist_sat[i] <= 3.0 {
                         continue;
                     }
+                    let nb = [i - 1, i + 1, i - w, i + w];
                     if let Some(sk) = skip
-                        && (sk[k][i - 1] || sk[k][i] || sk[k][i + 1])
+                        && (sk[k][i] || nb.iter().any(|&j| sk[k][j]))
                     {
                         continue;
                     }
-                    let (r0, r1, r2) = (r[i - 1], r[i], r[i + 1]);
-                    if r0 <= 0.0 || r1 <= 0.0 || r2 <= 0.0 || r0 >= FS || r1 >= FS || r2 >= FS {
+                    if r[i] <= 0.0 || r[i] >= FS || nb.iter().any(|&j| r[j] <= 0.0 || r[j] >= FS) {
                         continue;
                     }
-                    let hp = (r1 - s[i]) - 0.5 * ((r0 - s[i - 1]) + (r2 - s[i + 1]));
-                    let b = ((s[i] as f64 / BIN) as usize).min(NBINS - 1);
-                    bins[b].push(hp);
+                    let d = |j: usize| r[j] - s[j];
+                    let hp = (d(i) - o0) - 0.25 * (d(i - 1) + d(i + 1) - 2.0 * o0 + d(i - w) - om + d(i + w) - op);
+                    let b = ((s[i].max(0.0) as f64 / BIN) as usize).min(NBINS - 1);
+                    if l <= QUIET_LAPLACIAN {
+                        quiet_bins[b].push(hp);
+                    } else {
+                        tex_bins[b].push(hp);
+                    }
                 }
             }
         }
     }
-    bins
+    (quiet_bins, tex_bins)
 }
 
-/// Estimate the noise model. `prnu_c` is the fixed-pattern variance coefficient (sigma^2)
-/// measured across frames (0 if none); `skip` excludes hot pixels.
-pub fn estimate(pairs: &[Pair], masks: &[Masks], quant: f64, prnu_c: f64, skip: Option<&[Vec<bool>]>) -> NoiseModel {
-    let raw = collect(pairs, masks, skip);
-    let mut bins = Vec::new();
-    for (i, v) in raw.iter().enumerate() {
-        if v.len() < 200 {
-            continue;
+/// Interval-censored normal fit of `real = round(clip(base + mu + n))`, n ~ N(0, sigma²), from
+/// (base, real) pairs. Returns (mu, sigma, se_mu, clipped fraction).
+pub fn censored_offset_fit(obs: &[(f32, f32)], q: f64) -> Option<(f64, f64, f64, f64)> {
+    if obs.len() < 30 {
+        return None;
+    }
+    // Group identical (base, real) cells (base to 1/16 DN, real to its grid).
+    let step = if q > 0.0 { q } else { 1.0 / 64.0 };
+    let mut cells: std::collections::HashMap<(i64, i64), f64> = std::collections::HashMap::new();
+    for &(b, r) in obs {
+        *cells.entry(((b as f64 * 16.0).round() as i64, (r as f64 / step).round() as i64)).or_insert(0.0) += 1.0;
+    }
+    let cells: Vec<(f64, f64, f64)> =
+        cells.into_iter().map(|((b, r), n)| (b as f64 / 16.0, r as f64 * step, n)).collect();
+    let half = if q > 0.0 { 0.5 * q } else { 0.0 };
+    let fs = FS as f64;
+    let nll = |mu: f64, sigma: f64| -> f64 {
+        let mut s = 0.0;
+        for &(b, r, n) in &cells {
+            let c = b + mu;
+            let p = if r <= half * 0.5 {
+                stats::norm_cdf((half - c) / sigma)
+            } else if r >= fs - half * 0.5 {
+                1.0 - stats::norm_cdf((fs - half - c) / sigma)
+            } else if q > 0.0 {
+                stats::norm_cdf((r + half - c) / sigma) - stats::norm_cdf((r - half - c) / sigma)
+            } else {
+                stats::norm_pdf((r - c) / sigma) / sigma * step
+            };
+            s -= n * p.max(1e-300).ln();
         }
-        let vv: Vec<f64> = v.iter().map(|&x| x as f64).collect();
-        let lvl = {
-            // mean level of the bin is its centre (sim values are spread within it)
-            (i as f64 + 0.5) * BIN
+        s
+    };
+    let n = obs.len() as f64;
+    let d: Vec<f64> = obs.iter().map(|&(b, r)| (r - b) as f64).collect();
+    let m0 = stats::median(&d);
+    let s0 = stats::mad_sigma(&d).max(0.5);
+    let clipped = obs.iter().filter(|o| o.1 <= 0.0).count() as f64 / n;
+    let f = |p: &[f64]| nll(p[0], p[1].exp());
+    let best = stats::nelder_mead(&f, &[m0, s0.ln()], &[s0.max(0.3), 0.3], 240, 1e-10);
+    let (mu, sigma) = (best[0], best[1].exp());
+    let h = (sigma * 0.02).max(1e-4);
+    let curv = (nll(mu + h, sigma) - 2.0 * nll(mu, sigma) + nll(mu - h, sigma)) / (h * h);
+    let se = if curv > 0.0 { 1.0 / curv.sqrt() } else { sigma / n.sqrt() };
+    Some((mu, sigma, se, clipped))
+}
+
+/// Censored fits of the dark blocks.
+#[allow(clippy::too_many_arguments)]
+fn low_blocks(
+    pairs: &[Pair],
+    masks: &[Masks],
+    base: &[Vec<Plane>],
+    lap: &[Vec<f32>],
+    skip: Option<&[Vec<bool>]>,
+    rows: Option<&RowOffsets>,
+    low_level: f64,
+    quant: f64,
+) -> Vec<LowBlock> {
+    const B: usize = 32;
+    let mut out = Vec::new();
+    for (k, p) in pairs.iter().enumerate() {
+        let m = &masks[k];
+        let (w, h) = (p.w(), p.h());
+        // Large frames: every other block row and column is plenty.
+        let bstep = if w * h > 1_000_000 { 2 } else { 1 };
+        for c in 0..p.channels() {
+            let s = &base[k][c].data;
+            let r = &p.real[c].data;
+            for by in (0..h.div_ceil(B)).step_by(bstep) {
+                for bx in (0..w.div_ceil(B)).step_by(bstep) {
+                    let mut obs: Vec<(f32, f32)> = Vec::new();
+                    let (mut sx, mut sy) = (0.0, 0.0);
+                    for y in by * B..((by + 1) * B).min(h) {
+                        for x in bx * B..((bx + 1) * B).min(w) {
+                            let i = y * w + x;
+                            if s[i] as f64 > low_level
+                                || lap[k][i] > QUIET_LAPLACIAN
+                                || m.dist_sat[i] <= 12.0
+                                || m.dist_edge[i] <= 3.0
+                                || skip.is_some_and(|sk| sk[k][i])
+                            {
+                                continue;
+                            }
+                            // With row offsets removed, the base carries them (the censoring
+                            // happens on the observed value).
+                            let o = rows.map(|ro| ro[k][c][y]).unwrap_or(0.0);
+                            obs.push((s[i] + o, r[i]));
+                            sx += x as f64;
+                            sy += y as f64;
+                        }
+                    }
+                    if obs.len() < 120 {
+                        continue;
+                    }
+                    // Trim gross outliers (hot pixels, cosmic rays) around the median difference.
+                    let d: Vec<f64> = obs.iter().map(|&(b, r)| (r - b) as f64).collect();
+                    let med = stats::median(&d);
+                    let sc = stats::mad_sigma(&d).max(1.0);
+                    let n0 = obs.len() as f64;
+                    let kept: Vec<(f32, f32)> =
+                        obs.iter().copied().filter(|&(b, r)| ((r - b) as f64 - med).abs() <= 6.0 * sc).collect();
+                    if let Some((mu, sigma, se, clipped)) = censored_offset_fit(&kept, quant) {
+                        let base_mean = kept.iter().map(|o| o.0 as f64).sum::<f64>() / kept.len() as f64;
+                        out.push(LowBlock {
+                            k,
+                            c,
+                            xc: sx / n0,
+                            yc: sy / n0,
+                            base: base_mean,
+                            mu,
+                            se_mu: se,
+                            sigma,
+                            n: kept.len(),
+                            clipped,
+                        });
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Estimate the noise model on `real - base`. `prnu_c` is the fixed-pattern variance coefficient
+/// (sigma², 0 if none); `skip` excludes hot pixels.
+pub fn estimate(
+    pairs: &[Pair],
+    masks: &[Masks],
+    base: &[Vec<Plane>],
+    quant: f64,
+    prnu_c: f64,
+    skip: Option<&[Vec<bool>]>,
+) -> NoiseModel {
+    estimate_with_rows(pairs, masks, base, quant, prnu_c, skip, None)
+}
+
+/// [`estimate`] with per-row offsets (row noise) taken out of the residual first.
+pub fn estimate_with_rows(
+    pairs: &[Pair],
+    masks: &[Masks],
+    base: &[Vec<Plane>],
+    quant: f64,
+    prnu_c: f64,
+    skip: Option<&[Vec<bool>]>,
+    rows: Option<&RowOffsets>,
+) -> NoiseModel {
+    let lap: Vec<Vec<f32>> = base.iter().map(|b| laplacian3(b)).collect();
+    let (quiet_raw, tex_raw) = collect(pairs, masks, base, &lap, skip, rows);
+    let q12 = quant * quant / 12.0;
+    let mut bins = Vec::new();
+    for (i, (qv, tv)) in quiet_raw.iter().zip(&tex_raw).enumerate() {
+        // Quiet pixels where there are enough; textured ones fill the levels they do not cover.
+        let vv: Vec<f64> = if qv.len() >= 100 {
+            qv.iter().map(|&x| x as f64).collect()
+        } else if qv.len() + tv.len() >= 100 {
+            qv.iter().chain(tv).map(|&x| x as f64).collect()
+        } else {
+            continue;
         };
         let (var, n) = stats::clipped_variance(&vv, 5.0);
         if var.is_finite() {
-            bins.push((lvl, var / 1.5, n));
+            bins.push(NoiseBin { level: (i as f64 + 0.5) * BIN, var: (var / 1.25 - q12).max(0.0), n });
         }
     }
-    let dark = dark_level(pairs, masks, quant);
+    // A first scale from the lowest populated bins, to decide what "dark" means.
+    let sd_guess = bins.iter().take(3).map(|b| b.var).fold(f64::NAN, f64::min).max(0.25).sqrt();
+    let sd_guess = if sd_guess.is_finite() { sd_guess } else { 2.0 };
+    let low_level = (4.0 * sd_guess).clamp(3.0, 24.0);
+    let low = low_blocks(pairs, masks, base, &lap, skip, rows, low_level, quant);
     let mut model = NoiseModel::prior(quant);
     model.c = prnu_c;
-    model.bins = bins.clone();
-    model.dark = dark;
-    // Iterate: the usable range depends on the noise level (clipping within 3 sigma of 0/FS).
-    let mut lo = 6.0;
-    for _ in 0..3 {
-        let hi_sd = model.sd(FS as f64);
-        let hi = FS as f64 - 3.0 * hi_sd - BIN;
-        let use_bins: Vec<&(f64, f64, usize)> = bins.iter().filter(|b| b.0 >= lo && b.0 <= hi).collect();
-        let fitted = if use_bins.len() >= 2 {
-            let mut w = Wls::new(2);
-            for (i, &&(l, v, n)) in use_bins.iter().enumerate() {
-                let y = v - prnu_c * l * l;
-                let guess = model.var(l).max(0.05);
-                // var of a variance estimate ~ 2 v^2 / n
-                w.push(&[1.0, l], y, n as f64 / (2.0 * guess * guess), i as u32);
-            }
-            w.fit().map(|f| (f.beta[0], f.se(0), f.beta[1], f.se(1)))
-        } else {
-            None
-        };
-        match fitted {
-            Some((a, se_a, b, se_b)) => {
-                // A negative slope is not physical: refit the intercept alone.
-                if b < 0.0 {
-                    let (m, se) = weighted_mean(&use_bins, prnu_c);
-                    model.a = m;
-                    model.se_a = se;
-                    model.b = 0.0;
-                    model.se_b = se_b;
-                } else {
-                    model.a = a;
-                    model.se_a = se_a;
-                    model.b = b;
-                    model.se_b = se_b;
-                }
-            }
-            None => {
-                if !use_bins.is_empty() {
-                    let (m, se) = weighted_mean(&use_bins, prnu_c);
-                    let l = use_bins[0].0;
-                    // One level only: split between read and photon noise is unknown; take it as read
-                    // noise unless the dark fit says the intercept is smaller.
-                    match dark {
-                        Some(d) if d.sigma * d.sigma < m && l > 0.0 => {
-                            model.a = d.sigma * d.sigma;
-                            model.b = ((m - model.a) / l).max(0.0);
-                        }
-                        _ => {
-                            model.a = m;
-                            model.b = 0.0;
-                        }
-                    }
-                    model.se_a = se;
-                    model.se_b = f64::INFINITY;
-                } else if let Some(d) = dark {
-                    model.a = d.sigma * d.sigma + quant * quant / 12.0;
-                    model.se_a = model.a * (2.0 / d.n as f64).sqrt();
-                    model.b = 0.0;
-                    model.se_b = f64::INFINITY;
-                }
-            }
-        }
-        model.fit_range = (lo, hi);
-        lo = (3.0 * model.read_sigma()).max(4.0);
-    }
-    model.a = model.a.max(quant * quant / 12.0);
+    model.bins = bins;
+    model.low = low;
+    fit_curve(&mut model);
     model
 }
 
-fn weighted_mean(bins: &[&(f64, f64, usize)], prnu_c: f64) -> (f64, f64) {
-    let mut sw = 0.0;
-    let mut s = 0.0;
-    for &&(l, v, n) in bins {
-        let w = n as f64 / (2.0 * v.max(0.05).powi(2));
-        s += w * (v - prnu_c * l * l);
-        sw += w;
+/// Fit `a + b L` (c held) to the bins and low blocks (robust weighted least squares).
+fn fit_curve(model: &mut NoiseModel) {
+    // Points: (level, variance, weight).
+    let mut pts: Vec<(f64, f64, f64)> = Vec::new();
+    let c = model.c;
+    // Bins whose neighbourhoods are rarely clipped: level at least 3 sigma from 0 and FS.
+    let mut lo = 6.0;
+    for _ in 0..2 {
+        pts.clear();
+        let hi = FS as f64 - 3.0 * model.sd(FS as f64) - BIN;
+        for b in &model.bins {
+            if b.level < lo || b.level > hi {
+                continue;
+            }
+            let v = b.var - c * b.level * b.level;
+            let guess = model.var(b.level).max(0.05);
+            pts.push((b.level, v, b.n as f64 / (2.0 * guess * guess)));
+        }
+        for l in &model.low {
+            let lvl = (l.base + l.mu).max(0.0);
+            let v = l.sigma * l.sigma - c * lvl * lvl;
+            let guess = model.var(lvl).max(0.05);
+            let n_eff = l.n as f64 * (1.0 - l.clipped).max(0.2);
+            pts.push((lvl, v, n_eff / (2.0 * guess * guess)));
+        }
+        if pts.is_empty() {
+            return;
+        }
+        let lmin = pts.iter().map(|p| p.0).fold(f64::INFINITY, f64::min);
+        let lmax = pts.iter().map(|p| p.0).fold(f64::NEG_INFINITY, f64::max);
+        model.fit_range = (lmin, lmax);
+        model.slope_identified = lmax - lmin >= 16.0;
+        let mut wts: Vec<f64> = pts.iter().map(|p| p.2).collect();
+        let mut fitted: Option<(f64, f64, f64, f64)> = None;
+        for _ in 0..3 {
+            let mut w = Wls::new(2);
+            for (i, &(l, v, _)) in pts.iter().enumerate() {
+                w.push(&[1.0, l], v, wts[i], i as u32);
+            }
+            let f = if model.slope_identified { w.fit() } else { None };
+            let (a, se_a, b, se_b) = match f {
+                Some(f) if f.beta[1] >= 0.0 => (f.beta[0], f.se(0), f.beta[1], f.se(1)),
+                _ => {
+                    let (m, se) = weighted_mean(&pts, &wts);
+                    (m, se, 0.0, f64::INFINITY)
+                }
+            };
+            // Huber-type down-weighting of points far from the curve (structure leaking in).
+            for (i, &(l, v, w0)) in pts.iter().enumerate() {
+                let r = (v - (a + b * l)) * w0.sqrt();
+                wts[i] = if r.abs() <= 3.0 { w0 } else { w0 * 3.0 / r.abs() };
+            }
+            fitted = Some((a, se_a, b, se_b));
+        }
+        if let Some((a, se_a, b, se_b)) = fitted {
+            model.a = a.max(0.0);
+            model.se_a = se_a;
+            model.b = b.max(0.0);
+            model.se_b = se_b;
+        }
+        lo = (3.0 * model.sd(0.0)).max(4.0);
     }
-    (s / sw, (1.0 / sw).sqrt())
 }
 
-/// Censored-normal fit of the real values where the sim is black and far from edges and
-/// saturation.
-pub fn dark_level(pairs: &[Pair], masks: &[Masks], quant: f64) -> Option<DarkLevel> {
-    let mut vals = Vec::new();
-    for (k, p) in pairs.iter().enumerate() {
-        let m = &masks[k];
-        for c in 0..p.channels() {
-            let s = &p.sim[c].data;
-            let r = &p.real[c].data;
-            for i in 0..s.len() {
-                if s[i] <= 0.25 && m.flat[i] && m.dist_sat[i] > 15.0 && m.dist_edge[i] > 6.0 {
-                    vals.push(r[i] as f64);
+fn weighted_mean(pts: &[(f64, f64, f64)], w: &[f64]) -> (f64, f64) {
+    let sw: f64 = w.iter().sum();
+    let m = pts.iter().zip(w).map(|(p, w)| p.1 * w).sum::<f64>() / sw.max(1e-300);
+    (m, (1.0 / sw.max(1e-300)).sqrt())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    /// A smooth ramp (0..250 DN) with Poisson-like noise var = 2.25 + s/6 (Gaussian
+    /// approximation), rounded and clipped: the fit recovers a and b within a few standard errors.
+    #[test]
+    fn estimate_recovers_read_and_shot_noise_on_a_ramp() {
+        use crate::diagnose::img::{Pair, Plane};
+        use crate::diagnose::locate::Masks;
+        let (w, h) = (200usize, 120usize);
+        let mut r = Rng::new(5);
+        let mut pairs = Vec::new();
+        for k in 0..2 {
+            let mut sim = Plane::new(w, h);
+            let mut real = Plane::new(w, h);
+            for y in 0..h {
+                for x in 0..w {
+                    // Dark band on the left (the censored blocks), then a gentle ramp.
+                    let s = if x < 60 { 2.0 } else { ((x - 60) as f32 * 1.7).min(240.0) };
+                    let s = s.round();
+                    sim.data[y * w + x] = s;
+                    let sd = (2.25 + s as f64 / 6.0).sqrt();
+                    real.data[y * w + x] = (s as f64 + sd * r.normal()).round().clamp(0.0, 255.0) as f32;
                 }
             }
+            let f = crate::diagnose::img::frame_from_planes(
+                std::slice::from_ref(&sim),
+                &crate::frame::Frame::new(w as u32, h as u32, crate::frame::PixelFormat::Mono8).unwrap(),
+            );
+            let g = crate::diagnose::img::frame_from_planes(std::slice::from_ref(&real), &f);
+            pairs.push(Pair { name: format!("{k}"), sim_frame: f, real_frame: g, sim: vec![sim], real: vec![real] });
         }
+        let masks: Vec<Masks> = pairs.iter().map(|p| Masks::compute(&p.sim)).collect();
+        let base: Vec<Vec<Plane>> = pairs.iter().map(|p| p.sim.clone()).collect();
+        let m = estimate(&pairs, &masks, &base, 1.0, 0.0, None);
+        assert!(m.slope_identified);
+        assert!((m.a - 2.25).abs() < 0.35 + 4.0 * m.se_a, "a {} ± {}", m.a, m.se_a);
+        assert!((m.b - 1.0 / 6.0).abs() < 0.03 + 4.0 * m.se_b, "b {} ± {}", m.b, m.se_b);
+        assert!(!m.low.is_empty(), "the dark band gives censored blocks");
     }
-    if vals.len() < 500 {
-        return None;
+
+    #[test]
+    fn censored_offset_fit_recovers_a_clipped_dark_level() {
+        // base 2 DN, dark level +1.5 DN, sigma 1.4 DN, rounded and clipped at 0.
+        let mut r = Rng::new(11);
+        let obs: Vec<(f32, f32)> =
+            (0..20000).map(|_| (2.0f32, (3.5 + 1.4 * r.normal()).round().clamp(0.0, 255.0) as f32)).collect();
+        let (mu, sigma, se, clipped) = censored_offset_fit(&obs, 1.0).unwrap();
+        assert!(clipped > 0.005);
+        assert!((mu - 1.5).abs() < 4.0 * se + 0.01, "mu {mu} se {se}");
+        assert!((sigma - 1.4).abs() < 0.05, "sigma {sigma}");
     }
-    // Cap the sample (deterministic thinning) to keep the fit fast.
-    if vals.len() > 400_000 {
-        let step = vals.len() / 400_000 + 1;
-        vals = vals.into_iter().step_by(step).collect();
-    }
-    let n = vals.len();
-    stats::censored_normal_mle(&vals, quant, 0.0, FS as f64).map(|(mu, sigma, se_mu)| DarkLevel { mu, sigma, se_mu, n })
 }

@@ -122,7 +122,8 @@ impl Photometric {
     }
 }
 
-/// Fit the photometric model.
+/// Fit the photometric model on smooth pixels (rows of the regression) and on the censored fits
+/// of the dark blocks of the noise model (rows with the block's mean base level).
 pub fn fit(pairs: &[Pair], masks: &[Masks], noise: &NoiseModel) -> Photometric {
     let lo = (3.0 * noise.sd(0.0)).max(3.0);
     let hi = FS as f64 - 3.0 * noise.sd(FS as f64) - 1.0;
@@ -150,7 +151,7 @@ pub fn fit(pairs: &[Pair], masks: &[Masks], noise: &NoiseModel) -> Photometric {
                         }
                         let i = y * w + x;
                         let sv = s[i] as f64;
-                        if !m.flat[i] || m.dist_sat[i] <= 12.0 || sv < lo || sv > hi {
+                        if !m.smooth[i] || m.dist_sat[i] <= 8.0 || sv < lo || sv > hi {
                             continue;
                         }
                         let rv = r[i] as f64;
@@ -162,8 +163,8 @@ pub fn fit(pairs: &[Pair], masks: &[Masks], noise: &NoiseModel) -> Photometric {
                         let var = noise.var(sv);
                         if let Some(b) = &pass_beta {
                             let pred = sv + rowbuf.iter().zip(b).map(|(a, b)| a * b).sum::<f64>();
-                            if (rv - pred).abs() > 6.0 * var.sqrt() + 1.0 {
-                                continue; // hot pixel or local artefact
+                            if (rv - pred).abs() > 5.0 * var.sqrt() + 1.0 {
+                                continue; // hot pixel, edge or local artefact
                             }
                         }
                         let cl = (k * 4 + c) * 1_000_000 + (y / 32) * bw + x / 32;
@@ -173,41 +174,19 @@ pub fn fit(pairs: &[Pair], masks: &[Masks], noise: &NoiseModel) -> Photometric {
                 }
             }
         }
-        // Black blocks: the additive level by censored fits (no multiplicative information).
+        // Dark blocks: the additive level by censored fits (little multiplicative information).
         let mut n_dark = 0;
-        for (k, p) in pairs.iter().enumerate() {
-            let m = &masks[k];
+        for b in &noise.low {
+            let p = &pairs[b.k];
             let (w, h) = (p.w(), p.h());
+            let (xc, yc) =
+                (b.xc.round().clamp(0.0, w as f64 - 1.0) as usize, b.yc.round().clamp(0.0, h as f64 - 1.0) as usize);
+            let (xn, yn, rho2) = coords(xc, yc, w, h);
+            row(b.base, xn, yn, rho2, &mut rowbuf);
             let bw = w.div_ceil(32);
-            for c in 0..p.channels() {
-                let s = &p.sim[c].data;
-                let r = &p.real[c].data;
-                for by in 0..h.div_ceil(32) {
-                    for bx in 0..bw {
-                        let mut vals = Vec::new();
-                        for y in by * 32..((by + 1) * 32).min(h) {
-                            for x in bx * 32..((bx + 1) * 32).min(w) {
-                                let i = y * w + x;
-                                if s[i] <= 0.25 && m.flat[i] && m.dist_sat[i] > 12.0 && m.dist_edge[i] > 4.0 {
-                                    vals.push(r[i] as f64);
-                                }
-                            }
-                        }
-                        if vals.len() < 150 {
-                            continue;
-                        }
-                        if let Some((mu, _sig, se)) = stats::censored_normal_mle(&vals, noise.quant, 0.0, FS as f64) {
-                            let xc = ((bx * 32) as f64 + 16.0).min(w as f64 - 1.0) as usize;
-                            let yc = ((by * 32) as f64 + 16.0).min(h as f64 - 1.0) as usize;
-                            let (xn, yn, rho2) = coords(xc, yc, w, h);
-                            row(0.0, xn, yn, rho2, &mut rowbuf);
-                            let cl = (k * 4 + c) * 1_000_000 + by * bw + bx;
-                            wls.push(&rowbuf, mu, 1.0 / (se * se).max(1e-6), cl as u32);
-                            n_dark += 1;
-                        }
-                    }
-                }
-            }
+            let cl = (b.k * 4 + b.c) * 1_000_000 + (yc / 32) * bw + xc / 32;
+            wls.push(&rowbuf, b.mu, 1.0 / (b.se_mu * b.se_mu).max(1e-6), cl as u32);
+            n_dark += 1;
         }
         let Some(f) = fit_reduced(&wls) else {
             return result;
@@ -360,7 +339,7 @@ fn radial_profile(ph: &Photometric, pairs: &[Pair], masks: &[Masks]) -> Profile 
             for y in (0..h).step_by(2) {
                 for x in (0..w).step_by(2) {
                     let i = y * w + x;
-                    if !m.flat[i] || m.dist_sat[i] <= 12.0 || s[i] < 20.0 || r[i] >= FS {
+                    if !m.smooth[i] || m.dist_sat[i] <= 12.0 || s[i] < 20.0 || r[i] >= FS {
                         continue;
                     }
                     let (xn, yn, rho2) = coords(x, y, w, h);

@@ -40,6 +40,8 @@ pub struct TestRow {
     pub detected: bool,
     pub size: f64,
     pub size_unit: String,
+    #[serde(rename = "where")]
+    pub where_: String,
     pub evidence: String,
 }
 
@@ -55,6 +57,8 @@ pub struct Report {
     /// deterministic part, since no model can predict the real noise pixel by pixel.
     pub rmse_after_with_noise: f64,
     pub tests: Vec<TestRow>,
+    /// Every forward-model test of the selection (paired mode).
+    pub selection: Vec<super::select::Evidence>,
     pub dropped: Vec<String>,
     pub notes: Vec<String>,
 }
@@ -97,9 +101,11 @@ pub fn build(pairs: &[Pair], loc: &Located, fitted: &Fitted, mut notes: Vec<Stri
                 detected: s.detected,
                 size: round_sig(s.size, 5),
                 size_unit: s.size_unit.to_string(),
+                where_: s.where_.clone(),
                 evidence: s.evidence.clone(),
             })
             .collect(),
+        selection: fitted.selection_tests.clone(),
         dropped: fitted.dropped.clone(),
         notes,
     }
@@ -140,7 +146,7 @@ pub fn write(
     write_json(rep, out)?;
     let tp = out.join("fitted.toml");
     let mut toml = String::from(
-        "# Fault model fitted by `faultcam diagnose`: apply it to sim images with\n# `faultcam apply --config fitted.toml ...`\n",
+        "# Fault model fitted by `faultcam diagnose`: apply it to sim images with\n# `faultcam apply --faults fitted.toml --in SIM --out OUT`\n",
     );
     toml.push_str(&fitted.config.to_toml());
     std::fs::write(&tp, toml).map_err(|e| werr(&tp, e))?;
@@ -217,6 +223,30 @@ pub fn write(
     }
     if n_plot == 0 {
         md.push_str("No profiles (nothing detected).\n\n");
+    }
+    if !rep.selection.is_empty() {
+        md.push_str(
+            "## Forward-model selection\n\nEach candidate is added to the current model and fitted on the library's forward model; \
+             ΔL is the drop of the robust loss, D the design effect of the residual (1 = white), z the significance of \
+             2ΔL/D on k parameters, BIC whether it pays for its parameters, and 'change' the size of its change of the \
+             expected image (DN). The most important significant candidate joins the model each round.\n\n\
+             | round | candidate | ΔL | D | k | z | BIC | change (DN) | chosen |\n|---|---|---|---|---|---|---|---|---|\n",
+        );
+        for t in &rep.selection {
+            md.push_str(&format!(
+                "| {} | {} | {:.1} | {:.2} | {} | {:.1} | {} | {:.2} | {} |\n",
+                t.round,
+                t.label,
+                t.delta,
+                t.design,
+                t.k,
+                t.z,
+                if t.bic { "yes" } else { "no" },
+                t.material_dn,
+                if t.accepted { "yes" } else { "" }
+            ));
+        }
+        md.push('\n');
     }
     md.push_str("## All signature tests\n\n| effect | z | detected | size | evidence |\n|---|---|---|---|---|\n");
     for t in &rep.tests {

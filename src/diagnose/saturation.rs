@@ -159,7 +159,7 @@ pub fn blooming(
 /// pixels in that column/row.
 pub fn smear(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], q: &[Vec<Plane>], noise: &NoiseModel) -> Signature {
     let mut sig = Signature::new("smear");
-    let sigma0 = noise.dark.map(|d| d.sigma).unwrap_or_else(|| noise.sd(0.0));
+    let sigma0 = (noise.var(0.0) - noise.quant * noise.quant / 12.0).max(0.01).sqrt();
     let lo = 3.0 * noise.sd(0.0);
     let mut results = Vec::new();
     for vertical in [true, false] {

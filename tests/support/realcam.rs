@@ -270,6 +270,8 @@ pub struct Scene {
     body_rgb: [f64; 3],
     cell_rgb: [f64; 3],
     earth: Option<(f64, f64, f64)>,
+    /// Lit lab wall behind the mock-up (mean level, gradient) instead of dark space.
+    lab: Option<(f64, f64, f64)>,
     stars: Vec<(usize, usize, f64)>,
     pub glints: Vec<Glint>,
 }
@@ -315,9 +317,19 @@ impl Scene {
             body_rgb: [r.range(180.0, 210.0), r.range(140.0, 165.0), r.range(50.0, 80.0)],
             cell_rgb: [r.range(25.0, 45.0), r.range(45.0, 65.0), r.range(100.0, 130.0)],
             earth,
+            lab: None,
             stars,
             glints,
         }
+    }
+
+    /// The same kind of mock-up in front of a lit, textured lab wall (no dark background).
+    pub fn lab(w: usize, h: usize, seed: u64) -> Self {
+        let mut s = Scene::new(w, h, seed, false);
+        let mut r = Prng::new(seed ^ 0x1ab);
+        s.lab = Some((r.range(55.0, 85.0), r.range(-20.0, 20.0), r.range(-15.0, 15.0)));
+        s.stars.clear();
+        s
     }
 
     /// Pose of frame `i` of `n`: a slow drift and roll.
@@ -348,6 +360,12 @@ impl Scene {
     /// Colour (linear DN, unclipped) at a screen point.
     fn shade(&self, p: &Pose, x: f64, y: f64, glints: &[(f64, f64, f64, f64)]) -> [f64; 3] {
         let mut col = [2.0, 2.0, 3.0];
+        if let Some((mean, gx, gy)) = self.lab {
+            let (u, v) = (x / self.w as f64 - 0.5, y / self.h as f64 - 0.5);
+            let tex = 0.85 + 0.3 * value_noise(x / 11.0, y / 13.0, self.seed ^ 0x7a11);
+            let l = (mean + gx * u + gy * v) * tex;
+            col = [l * 1.04, l, l * 0.93];
+        }
         if let Some((ex, ey, er)) = self.earth {
             let d = ((x - ex).powi(2) + (y - ey).powi(2)).sqrt();
             if d < er {
@@ -513,6 +531,17 @@ pub enum Hidden {
     Gamma { gamma: f64 },
     /// JPEG round trip through the `image` crate encoder.
     Jpeg { quality: u8 },
+    /// Box-filtered straight streak of length `length_px` along `angle_deg` (counter-clockwise
+    /// from +x, y up).
+    MotionBlur { length_px: f64, angle_deg: f64 },
+    /// Charge above the full well `full_well·FS` spills to the neighbours (not itself) with
+    /// weights exp(-r/decay_px) within 5 decay lengths, repeated until nothing exceeds the well;
+    /// full pixels read the well.
+    Blooming { full_well: f64, decay_px: f64 },
+    /// Fixed pixels with a constant extra signal uniform in [60, 150] DN.
+    HotPixels { rate: f64 },
+    /// Readout transfer v·gain + offset (before rounding).
+    GainOffset { gain: f64, offset_dn: f64 },
 }
 
 impl Hidden {
@@ -529,6 +558,10 @@ impl Hidden {
             Hidden::RowNoise { .. } => "row_noise",
             Hidden::Gamma { .. } => "gamma",
             Hidden::Jpeg { .. } => "jpeg",
+            Hidden::MotionBlur { .. } => "motion_blur",
+            Hidden::Blooming { .. } => "blooming",
+            Hidden::HotPixels { .. } => "hot_pixels",
+            Hidden::GainOffset { .. } => "gain_offset",
         }
     }
 
@@ -547,6 +580,12 @@ impl Hidden {
             Hidden::RowNoise { sigma_dn } => vec![("sigma_dn", sigma_dn)],
             Hidden::Gamma { gamma } => vec![("gamma", gamma)],
             Hidden::Jpeg { quality } => vec![("quality", quality as f64)],
+            Hidden::MotionBlur { length_px, angle_deg } => vec![("length_px", length_px), ("angle_deg", angle_deg)],
+            Hidden::Blooming { full_well, decay_px } => {
+                vec![("full_well_fraction", full_well), ("spread_px", spill_sigma(decay_px))]
+            }
+            Hidden::HotPixels { rate } => vec![("rate", rate)],
+            Hidden::GainOffset { gain, offset_dn } => vec![("gain", gain), ("offset_dn", offset_dn)],
         }
     }
 
@@ -573,8 +612,73 @@ impl Hidden {
             Hidden::RowNoise { .. } => "Gaussian row offsets per frame".into(),
             Hidden::Gamma { .. } => "FS*(v/FS)^gamma after clip".into(),
             Hidden::Jpeg { .. } => "image crate JPEG encoder".into(),
+            Hidden::MotionBlur { .. } => "box-filtered line streak, 64 samples".into(),
+            Hidden::Blooming { decay_px, .. } => {
+                format!("iterated exponential spill to neighbours, decay {decay_px:.2} px")
+            }
+            Hidden::HotPixels { .. } => "fixed constant offsets 60-150 DN".into(),
+            Hidden::GainOffset { .. } => "v*gain + offset before rounding".into(),
         }
     }
+}
+
+/// Normalised spill weights of realcam blooming (centre excluded), radius ceil(5·decay).
+pub fn spill_kernel(decay: f64) -> (Vec<f64>, usize) {
+    let half = (5.0 * decay).ceil().max(1.0) as usize;
+    let n = 2 * half + 1;
+    let mut k = vec![0.0; n * n];
+    for j in 0..n {
+        for i in 0..n {
+            let (dx, dy) = (i as f64 - half as f64, j as f64 - half as f64);
+            let r = (dx * dx + dy * dy).sqrt();
+            if r > 0.0 && r <= 5.0 * decay + 0.5 {
+                k[j * n + i] = (-r / decay).exp();
+            }
+        }
+    }
+    let s: f64 = k.iter().sum();
+    k.iter_mut().for_each(|v| *v /= s);
+    (k, half)
+}
+
+/// Per-axis standard deviation of the spill kernel: the `blooming.spread_px` truth.
+pub fn spill_sigma(decay: f64) -> f64 {
+    let (k, half) = spill_kernel(decay);
+    let n = 2 * half + 1;
+    let mut m2 = 0.0;
+    for j in 0..n {
+        for i in 0..n {
+            m2 += k[j * n + i] * (i as f64 - half as f64).powi(2);
+        }
+    }
+    m2.sqrt()
+}
+
+/// Box-filtered line kernel (motion streak) of length `len` along `angle_deg`.
+pub fn streak_kernel(len: f64, angle_deg: f64) -> (Vec<f64>, usize) {
+    let half = (len / 2.0).ceil() as usize + 1;
+    let n = 2 * half + 1;
+    let mut k = vec![0.0; n * n];
+    let (c, s) = (angle_deg.to_radians().cos(), angle_deg.to_radians().sin());
+    const N: usize = 64;
+    for j in 0..N {
+        let t = (j as f64 + 0.5) / N as f64 - 0.5;
+        // y grows downward on screen: a counter-clockwise angle moves up.
+        let (x, y) = (half as f64 + t * len * c, half as f64 - t * len * s);
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = (x - x0, y - y0);
+        for (dx, dy, w) in
+            [(0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy), (1, 1, fx * fy)]
+        {
+            let (xi, yi) = (x0 as usize + dx, y0 as usize + dy);
+            if xi < n && yi < n {
+                k[yi * n + xi] += w;
+            }
+        }
+    }
+    let sum: f64 = k.iter().sum();
+    k.iter_mut().for_each(|v| *v /= sum);
+    (k, half)
 }
 
 /// Pixel-area-weighted pillbox kernel of radius `r` (odd size), normalised to sum 1.
@@ -738,13 +842,15 @@ pub fn stray_field(w: usize, h: usize, sx: f64, sy: f64, width: f64) -> Vec<f64>
 pub struct FixedPattern {
     prnu: Option<Vec<f64>>,
     hot: Option<Vec<f64>>,
+    hot_const: Option<Vec<f64>>,
     stray: Option<Vec<f64>>,
     kernel: Option<(Vec<f64>, usize)>,
+    streak: Option<(Vec<f64>, usize)>,
 }
 
 impl FixedPattern {
     pub fn new(w: usize, h: usize, c: usize, hidden: &[Hidden], seed: u64) -> Self {
-        let mut fp = FixedPattern { prnu: None, hot: None, stray: None, kernel: None };
+        let mut fp = FixedPattern { prnu: None, hot: None, hot_const: None, stray: None, kernel: None, streak: None };
         let mut r = Prng::new(seed ^ 0xf1c5ed);
         for hd in hidden {
             match *hd {
@@ -769,6 +875,19 @@ impl FixedPattern {
                     fp.stray = Some(stray_field(w, h, src_x, src_y, width_px));
                 }
                 Hidden::Defocus { radius_px } => fp.kernel = Some(pillbox_kernel(radius_px)),
+                Hidden::MotionBlur { length_px, angle_deg } => fp.streak = Some(streak_kernel(length_px, angle_deg)),
+                Hidden::HotPixels { rate } => {
+                    let mut m = vec![0.0; w * h * c];
+                    for px in 0..w * h {
+                        if r.unif() < rate {
+                            let v = r.range(60.0, 150.0);
+                            for ch in 0..c {
+                                m[px * c + ch] = v;
+                            }
+                        }
+                    }
+                    fp.hot_const = Some(m);
+                }
                 _ => {}
             }
         }
@@ -785,6 +904,9 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
         Some((k, half)) => convolve2d(sim, k, *half),
         None => sim.clone(),
     };
+    if let Some((k, half)) = &fp.streak {
+        irr = convolve2d(&irr, k, *half);
+    }
     for hd in hidden {
         if let Hidden::ChannelShift { dx_r, dy_r, dx_b, dy_b } = *hd
             && c == 3
@@ -824,8 +946,51 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
             *v *= gi;
         }
     }
-    // Saturated photosites: expected signal at or above full scale.
-    let saturated: Vec<bool> = irr.v.iter().map(|&v| v >= FS - 0.5).collect();
+    // Blooming: charge above the well spills to the neighbours until none exceeds it.
+    let well = hidden.iter().find_map(|hd| {
+        if let Hidden::Blooming { full_well, decay_px } = *hd { Some((full_well * FS, decay_px)) } else { None }
+    });
+    if let Some((wl, decay)) = well {
+        let (k, half) = spill_kernel(decay);
+        let n = 2 * half + 1;
+        for ch in 0..c {
+            for _round in 0..40 {
+                let mut excess = vec![0.0; w * h];
+                let mut any = false;
+                for i in 0..w * h {
+                    let v = irr.v[i * c + ch];
+                    if v > wl {
+                        excess[i] = v - wl;
+                        irr.v[i * c + ch] = wl;
+                        any = true;
+                    }
+                }
+                if !any {
+                    break;
+                }
+                for y in 0..h {
+                    for x in 0..w {
+                        let e = excess[y * w + x];
+                        if e <= 0.0 {
+                            continue;
+                        }
+                        for j in 0..n {
+                            for i in 0..n {
+                                let (xx, yy) =
+                                    (x as isize + i as isize - half as isize, y as isize + j as isize - half as isize);
+                                if xx >= 0 && yy >= 0 && (xx as usize) < w && (yy as usize) < h {
+                                    irr.v[(yy as usize * w + xx as usize) * c + ch] += e * k[j * n + i];
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    // Saturated photosites: expected signal at or above full scale (or the full well).
+    let sat_level = well.map(|(wl, _)| wl - 0.5).unwrap_or(FS - 0.5);
+    let saturated: Vec<bool> = irr.v.iter().map(|&v| v >= sat_level).collect();
     for hd in hidden {
         if let Hidden::Smear { strength, vertical } = *hd {
             let per = strength * FS;
@@ -859,6 +1024,9 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
     let row_sigma =
         hidden.iter().map(|hd| if let Hidden::RowNoise { sigma_dn } = *hd { sigma_dn } else { 0.0 }).sum::<f64>();
     let gamma = hidden.iter().find_map(|hd| if let Hidden::Gamma { gamma } = *hd { Some(gamma) } else { None });
+    let gain_off = hidden
+        .iter()
+        .find_map(|hd| if let Hidden::GainOffset { gain, offset_dn } = *hd { Some((gain, offset_dn)) } else { None });
     let g = cam.gain_e_per_dn;
     let mut out = Img::new(w, h, c);
     for y in 0..h {
@@ -868,7 +1036,8 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
                 let i = (y * w + x) * c + ch;
                 let mu = irr.v[i];
                 if saturated[i] || mu >= FS - 0.5 {
-                    out.v[i] = FS;
+                    // A full photosite reads the well (or the end of the ADC range).
+                    out.v[i] = well.map(|(wl, _)| (wl + hot_const_of(fp, i)).min(FS).round()).unwrap_or(FS);
                     continue;
                 }
                 // Electrons: photo (Poisson) + dark (Poisson) + hot-pixel dark (Poisson).
@@ -877,7 +1046,10 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
                     dark += hm[i];
                 }
                 let electrons = rng.poisson(mu.max(0.0) * g) + rng.poisson(dark * g);
-                let mut v = electrons / g + cam.read_sigma_dn * rng.normal() + row_off;
+                let mut v = electrons / g + hot_const_of(fp, i) + cam.read_sigma_dn * rng.normal() + row_off;
+                if let Some((gn, off)) = gain_off {
+                    v = gn * v + off;
+                }
                 v = v.clamp(0.0, FS);
                 if let Some(gm) = gamma {
                     v = FS * (v / FS).powf(gm);
@@ -892,6 +1064,10 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
         }
     }
     out
+}
+
+fn hot_const_of(fp: &FixedPattern, i: usize) -> f64 {
+    fp.hot_const.as_ref().map(|m| m[i]).unwrap_or(0.0)
 }
 
 /// JPEG encode and decode with the `image` crate.
@@ -923,13 +1099,40 @@ pub struct Case {
     pub h: usize,
     pub seed: u64,
     pub earth: bool,
+    /// Lab wall backdrop instead of space (overrides `earth`).
+    pub lab: bool,
     pub camera: Camera,
     pub hidden: Vec<Hidden>,
+    /// Unpaired case: the real frames show another scene (this seed) at other poses.
+    pub real_scene_seed: Option<u64>,
 }
 
 impl Case {
     pub fn is_negative_control(&self) -> bool {
         self.hidden.is_empty()
+    }
+
+    /// The scene of this case with a given seed.
+    pub fn scene(&self, seed: u64) -> Scene {
+        if self.lab { Scene::lab(self.w, self.h, seed) } else { Scene::new(self.w, self.h, seed, self.earth) }
+    }
+
+    /// Same case at another size and frame count.
+    pub fn sized(mut self, w: usize, h: usize, frames: usize) -> Self {
+        self.w = w;
+        self.h = h;
+        self.frames = frames;
+        self
+    }
+
+    /// Same case in front of a lab wall.
+    pub fn in_lab(mut self) -> Self {
+        self.lab = true;
+        self
+    }
+
+    pub fn is_unpaired(&self) -> bool {
+        self.real_scene_seed.is_some()
     }
 
     /// Truth record (JSON) in EFFECTS.md names and units.
@@ -955,6 +1158,8 @@ impl Case {
             "width": self.w,
             "height": self.h,
             "seed": self.seed,
+            "backdrop": if self.lab { "lab" } else if self.earth { "earth" } else { "space" },
+            "unpaired_real_scene_seed": self.real_scene_seed,
             "camera": {
                 "shot_noise": {"gain_e_per_dn": self.camera.gain_e_per_dn},
                 "gaussian_noise": {"sigma_dn": self.camera.read_sigma_dn},
@@ -971,13 +1176,19 @@ impl Case {
         for d in [&sim_dir, &real_dir] {
             std::fs::create_dir_all(d).map_err(|e| format!("{}: {e}", d.display()))?;
         }
-        let scene = Scene::new(self.w, self.h, self.seed, self.earth);
+        let scene = self.scene(self.seed);
+        let real_scene = self.real_scene_seed.map(|s| self.scene(s));
         let fp = FixedPattern::new(self.w, self.h, self.fmt.channels(), &self.hidden, self.seed);
         let base = Prng::new(self.seed ^ 0xca3e7a);
         for i in 0..self.frames {
             let sim = scene.render(i, self.frames, self.fmt);
             let mut rng = base.fork(i as u64);
-            let real = expose(&sim, &self.camera, &self.hidden, &fp, &mut rng);
+            // Unpaired: the real camera looks at another scene, in reverse pose order.
+            let real_in = match &real_scene {
+                Some(rs) => rs.render(self.frames - 1 - i, self.frames, self.fmt),
+                None => sim.clone(),
+            };
+            let real = expose(&real_in, &self.camera, &self.hidden, &fp, &mut rng);
             let name = format!("frame_{i:02}.png");
             sim.save_png(&sim_dir.join(&name))?;
             real.save_png(&real_dir.join(&name))?;
@@ -996,14 +1207,24 @@ fn case(name: &str, fmt: Fmt, seed: u64, earth: bool, gain: f64, read: f64, hidd
         h: 192,
         seed,
         earth,
+        lab: false,
         camera: Camera { gain_e_per_dn: gain, read_sigma_dn: read },
         hidden,
+        real_scene_seed: None,
     }
 }
 
-/// The full corpus: negative controls, one-effect cases and two-effect cases. Strengths are
-/// below what the eye sees and comparable to the per-pixel noise (see README, "Diagnosis corpus
-/// results", for the signal-to-noise argument).
+/// An unpaired case: the real frames show another scene (seed + 1000) at other poses.
+fn unpaired(name: &str, fmt: Fmt, seed: u64, earth: bool, gain: f64, read: f64, hidden: Vec<Hidden>) -> Case {
+    let mut c = case(name, fmt, seed, earth, gain, read, hidden);
+    c.real_scene_seed = Some(seed + 1000);
+    c
+}
+
+/// The full paired corpus: negative controls, one-effect cases and two-effect cases, over two
+/// backdrops (space with or without the Earth, a lit lab wall), mono and RGB, several sizes,
+/// frame counts and camera noise levels. Strengths are below what the eye sees and comparable to
+/// the per-pixel noise (see README, "Diagnose", for the signal-to-noise argument).
 pub fn corpus() -> Vec<Case> {
     use Fmt::{Mono8, Rgb8};
     use Hidden::*;
@@ -1013,13 +1234,22 @@ pub fn corpus() -> Vec<Case> {
         case("neg_rgb_b", Rgb8, 102, true, 4.0, 2.0, vec![]),
         case("neg_mono_c", Mono8, 103, false, 10.0, 1.0, vec![]),
         case("neg_rgb_d", Rgb8, 104, false, 8.0, 1.2, vec![]),
+        case("neg_lab_mono", Mono8, 105, false, 3.0, 2.5, vec![]).in_lab().sized(320, 240, 4),
+        case("neg_lab_rgb_small", Rgb8, 106, false, 12.0, 0.8, vec![]).in_lab().sized(160, 120, 3),
+        case("neg_mono_noisy", Mono8, 107, true, 1.5, 3.0, vec![]).sized(288, 216, 8),
         // One hidden effect.
         case("vignetting_mono", Mono8, 201, true, 6.0, 1.5, vec![Vignetting { strength: 0.12 }]),
         case("vignetting_rgb", Rgb8, 202, true, 5.0, 1.5, vec![Vignetting { strength: 0.09 }]),
+        case("vignetting_lab_mono", Mono8, 221, false, 4.0, 2.0, vec![Vignetting { strength: 0.08 }]).in_lab(),
         case("defocus_mono", Mono8, 203, true, 6.0, 1.2, vec![Defocus { radius_px: 2.0 }]),
         case("defocus_rgb", Rgb8, 204, false, 6.0, 1.5, vec![Defocus { radius_px: 1.6 }]),
+        case("defocus_lab_mono_3f", Mono8, 222, false, 6.0, 1.5, vec![Defocus { radius_px: 2.0 }])
+            .in_lab()
+            .sized(256, 192, 3),
+        case("motion_blur_mono", Mono8, 223, true, 6.0, 1.5, vec![MotionBlur { length_px: 3.0, angle_deg: 30.0 }]),
         case("dark_current_mono", Mono8, 205, true, 6.0, 1.2, vec![DarkCurrent { mean_dn: 3.0, hot_rate: 0.0 }]),
         case("dark_hot_rgb", Rgb8, 206, false, 5.0, 1.5, vec![DarkCurrent { mean_dn: 3.0, hot_rate: 4e-4 }]),
+        case("hot_pixels_mono", Mono8, 224, true, 6.0, 1.5, vec![HotPixels { rate: 3e-4 }]),
         case(
             "channel_shift_rgb",
             Rgb8,
@@ -1040,6 +1270,8 @@ pub fn corpus() -> Vec<Case> {
         ),
         case("smear_mono", Mono8, 209, true, 6.0, 1.5, vec![Smear { strength: 0.006, vertical: true }]),
         case("smear_rgb", Rgb8, 210, false, 6.0, 1.5, vec![Smear { strength: 0.004, vertical: true }]),
+        case("smear_horizontal_mono", Mono8, 225, false, 6.0, 1.5, vec![Smear { strength: 0.01, vertical: false }]),
+        case("blooming_mono", Mono8, 226, false, 6.0, 1.5, vec![Blooming { full_well: 0.94, decay_px: 1.0 }]),
         case("prnu_mono", Mono8, 211, true, 10.0, 1.2, vec![Prnu { sigma: 0.02 }]),
         case("prnu_rgb", Rgb8, 212, true, 8.0, 1.5, vec![Prnu { sigma: 0.025 }]),
         case(
@@ -1053,6 +1285,9 @@ pub fn corpus() -> Vec<Case> {
         ),
         case("row_noise_mono", Mono8, 214, true, 6.0, 1.2, vec![RowNoise { sigma_dn: 1.2 }]),
         case("gamma_mono", Mono8, 215, true, 6.0, 1.5, vec![Gamma { gamma: 0.92 }]),
+        case("gain_offset_lab_mono", Mono8, 227, false, 6.0, 1.5, vec![GainOffset { gain: 1.05, offset_dn: -2.0 }])
+            .in_lab(),
+        case("jpeg_rgb", Rgb8, 228, true, 6.0, 1.5, vec![Jpeg { quality: 85 }]),
         // Two hidden effects.
         case(
             "vignetting_dark_mono",
@@ -1082,11 +1317,54 @@ pub fn corpus() -> Vec<Case> {
             1.5,
             vec![Smear { strength: 0.005, vertical: true }, DarkCurrent { mean_dn: 3.0, hot_rate: 0.0 }],
         ),
+        case(
+            "defocus_dark_rgb_small",
+            Rgb8,
+            305,
+            true,
+            6.0,
+            1.5,
+            vec![Defocus { radius_px: 2.0 }, DarkCurrent { mean_dn: 3.0, hot_rate: 0.0 }],
+        )
+        .sized(192, 144, 4),
+        case(
+            "motion_vignetting_lab_mono",
+            Mono8,
+            306,
+            false,
+            5.0,
+            1.5,
+            vec![MotionBlur { length_px: 3.0, angle_deg: 120.0 }, Vignetting { strength: 0.12 }],
+        )
+        .in_lab(),
+        case(
+            "blooming_smear_mono",
+            Mono8,
+            307,
+            true,
+            6.0,
+            1.5,
+            vec![Blooming { full_well: 0.94, decay_px: 1.0 }, Smear { strength: 0.005, vertical: true }],
+        ),
     ]
 }
 
-/// The always-on subset: one optical, one colour and one fixed-pattern-free sensor case, plus a
+/// Unpaired cases: the real frames show another scene than the sim frames (another spacecraft
+/// design, Earth position and stars, poses in reverse order), with hidden effects; plus a
 /// negative control.
+pub fn unpaired_corpus() -> Vec<Case> {
+    use Fmt::{Mono8, Rgb8};
+    use Hidden::*;
+    vec![
+        unpaired("unpaired_neg_mono", Mono8, 401, false, 6.0, 1.5, vec![]),
+        unpaired("unpaired_defocus_mono", Mono8, 402, false, 6.0, 1.5, vec![Defocus { radius_px: 2.0 }]),
+        unpaired("unpaired_dark_rgb", Rgb8, 403, false, 6.0, 1.5, vec![DarkCurrent { mean_dn: 4.0, hot_rate: 0.0 }]),
+        unpaired("unpaired_smear_mono", Mono8, 404, false, 6.0, 1.5, vec![Smear { strength: 0.01, vertical: true }]),
+    ]
+}
+
+/// The always-on subset: a negative control, one optical, one colour case; the unpaired
+/// negative control and one unpaired effect case.
 pub fn subset_names() -> &'static [&'static str] {
     &["neg_mono_a", "vignetting_mono", "channel_shift_rgb"]
 }

@@ -3,7 +3,7 @@
 //! with `faultcam apply`, and scores detection, false discoveries, parameter error and fit.
 #![allow(dead_code)]
 
-use crate::realcam::{Case, FS, FixedPattern, Hidden, Img, Prng, Scene, expose};
+use crate::realcam::{Case, FS, FixedPattern, Hidden, Img, Prng, expose};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
@@ -32,6 +32,13 @@ pub fn tolerance(effect: &str, param: &str) -> Tol {
         ("row_noise", "sigma_dn") => Tol { abs: 0.2, rel: 0.30 },
         ("gamma", "gamma") => Tol { abs: 0.03, rel: 0.0 },
         ("jpeg", "quality") => Tol { abs: 10.0, rel: 0.0 },
+        ("motion_blur", "length_px") => Tol { abs: 0.75, rel: 0.25 },
+        ("motion_blur", "angle_deg") => Tol { abs: 15.0, rel: 0.0 },
+        ("blooming", "full_well_fraction") => Tol { abs: 0.03, rel: 0.0 },
+        ("blooming", "spread_px") => Tol { abs: 0.5, rel: 0.5 },
+        ("hot_pixels", "rate") => Tol { abs: 1e-4, rel: 0.5 },
+        ("gain_offset", "gain") => Tol { abs: 0.02, rel: 0.0 },
+        ("gain_offset", "offset_dn") => Tol { abs: 1.0, rel: 0.0 },
         ("shot_noise", "gain_e_per_dn") => Tol { abs: 0.0, rel: 0.25 },
         ("gaussian_noise", "sigma_dn") => Tol { abs: 0.4, rel: 0.0 },
         _ => Tol { abs: 0.0, rel: 0.3 },
@@ -41,7 +48,17 @@ pub fn tolerance(effect: &str, param: &str) -> Tol {
 /// Effects whose hidden presence changes 16x16 block means, so `apply` with the fitted model must
 /// bring the sim's block means closer to the real ones.
 pub fn changes_block_means(effect: &str) -> bool {
-    matches!(effect, "vignetting" | "dark_current" | "stray_light" | "gamma")
+    matches!(effect, "vignetting" | "dark_current" | "stray_light" | "gamma" | "gain_offset")
+}
+
+/// Error of a reported parameter against the truth (angles modulo 180 degrees).
+pub fn param_error(effect: &str, param: &str, reported: f64, truth: f64) -> f64 {
+    if effect == "motion_blur" && param == "angle_deg" {
+        let d = (reported - truth).rem_euclid(180.0);
+        d.min(180.0 - d)
+    } else {
+        (reported - truth).abs()
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -63,6 +80,8 @@ impl ParamScore {
 pub struct CaseScore {
     pub name: String,
     pub negative: bool,
+    /// Unpaired case (sim and real show different scenes; `--unpaired`).
+    pub unpaired: bool,
     pub hidden: Vec<String>,
     /// Effect names in report order.
     pub reported: Vec<String>,
@@ -89,7 +108,7 @@ impl CaseScore {
         self.rmse_after < self.rmse_before
     }
     pub fn needs_block_improvement(&self) -> bool {
-        self.hidden.iter().any(|e| changes_block_means(e))
+        !self.unpaired && self.hidden.iter().any(|e| changes_block_means(e))
     }
 }
 
@@ -167,6 +186,7 @@ pub fn score_report(case: &Case, report: &serde_json::Value) -> CaseScore {
     let mut s = CaseScore {
         name: case.name.clone(),
         negative: case.is_negative_control(),
+        unpaired: case.is_unpaired(),
         hidden: case.hidden.iter().map(|h| h.name().to_string()).collect(),
         ..Default::default()
     };
@@ -192,7 +212,8 @@ pub fn score_report(case: &Case, report: &serde_json::Value) -> CaseScore {
                 for (p, truth) in hd.canonical() {
                     let reported = params.and_then(|ps| ps.get(p)).and_then(num);
                     let tol = tolerance(name, p);
-                    let pass = reported.is_some_and(|r| (r - truth).abs() <= tol.abs.max(tol.rel * truth.abs()));
+                    let pass =
+                        reported.is_some_and(|r| param_error(name, p, r, truth) <= tol.abs.max(tol.rel * truth.abs()));
                     s.params.push(ParamScore { effect: name.into(), param: p.into(), truth, reported, pass });
                 }
                 for (p, truth) in hd.canonical_choices() {
@@ -226,6 +247,7 @@ pub fn run_case(case: &Case, root: &Path, faultcam: &Path) -> CaseScore {
     let fail = |msg: String| CaseScore {
         name: case.name.clone(),
         negative: case.is_negative_control(),
+        unpaired: case.is_unpaired(),
         hidden: case.hidden.iter().map(|h| h.name().to_string()).collect(),
         missed: case.hidden.iter().map(|h| h.name().to_string()).collect(),
         rmse_before: f64::NAN,
@@ -238,14 +260,12 @@ pub fn run_case(case: &Case, root: &Path, faultcam: &Path) -> CaseScore {
     }
     let out = dir.join("diag");
     let t0 = Instant::now();
-    let res = run(Command::new(faultcam)
-        .arg("diagnose")
-        .arg("--sim")
-        .arg(dir.join("sim"))
-        .arg("--real")
-        .arg(dir.join("real"))
-        .arg("--out")
-        .arg(&out));
+    let mut cmd = Command::new(faultcam);
+    cmd.arg("diagnose");
+    if case.is_unpaired() {
+        cmd.arg("--unpaired");
+    }
+    let res = run(cmd.arg("--sim").arg(dir.join("sim")).arg("--real").arg(dir.join("real")).arg("--out").arg(&out));
     let secs = t0.elapsed().as_secs_f64();
     if let Err(e) = res {
         let mut s = fail(e);
@@ -301,7 +321,7 @@ pub fn run_case(case: &Case, root: &Path, faultcam: &Path) -> CaseScore {
 /// Size of the hidden signal against the noise for a case, measured on frame 0: RMS and max |Δ|
 /// of the noise-free real-minus-sim difference, and the RMS camera noise over the same image.
 pub fn effect_visibility(case: &Case) -> (f64, f64, f64) {
-    let scene = Scene::new(case.w, case.h, case.seed, case.earth);
+    let scene = case.scene(case.seed);
     let sim = scene.render(0, case.frames, case.fmt);
     // Noise-free exposure: enormous gain (no shot noise), no read noise, no per-frame row noise.
     let cam = crate::realcam::Camera { gain_e_per_dn: 1e9, read_sigma_dn: 0.0 };
@@ -348,6 +368,7 @@ pub struct Summary {
     pub errors: usize,
     pub choice_errors: usize,
     pub diagnose_s: f64,
+    pub paired_effect_cases: usize,
 }
 
 pub fn summarise(scores: &[CaseScore]) -> Summary {
@@ -361,7 +382,10 @@ pub fn summarise(scores: &[CaseScore]) -> Summary {
             m.fd_negatives += s.false_discoveries.len();
         } else {
             m.effect_cases += 1;
-            m.fit_improved += s.fit_improved() as usize;
+            if !s.unpaired {
+                m.paired_effect_cases += 1;
+                m.fit_improved += s.fit_improved() as usize;
+            }
         }
         m.params += s.params.len();
         m.params_pass += s.params.iter().filter(|p| p.pass).count();
@@ -384,9 +408,63 @@ fn fmt_param(p: &ParamScore) -> String {
     format!("{}.{} {:.4}→{}{}", p.effect, p.param, p.truth, got, if p.pass { "" } else { " ✗" })
 }
 
+/// Three significant digits.
+fn sig3(v: f64) -> String {
+    if !v.is_finite() {
+        "—".into()
+    } else if v == 0.0 {
+        "0".into()
+    } else if v.abs() >= 0.01 {
+        format!("{v:.3}")
+    } else {
+        format!("{v:.2e}")
+    }
+}
+
+/// Per effect: cases hiding it, detections, and the median absolute error of each canonical
+/// parameter of the detected ones (with the number within tolerance).
+pub fn per_effect(scores: &[CaseScore]) -> String {
+    let mut effects: Vec<String> = Vec::new();
+    for s in scores {
+        for h in &s.hidden {
+            if !effects.contains(h) {
+                effects.push(h.clone());
+            }
+        }
+    }
+    let mut t = String::from(
+        "| effect | cases | detected | parameter: median abs. error (within tolerance) |\n|---|---|---|---|\n",
+    );
+    for e in &effects {
+        let cases = scores.iter().filter(|s| s.hidden.contains(e)).count();
+        let det = scores.iter().filter(|s| s.detected.contains(e)).count();
+        let mut names: Vec<String> = Vec::new();
+        for s in scores {
+            for p in s.params.iter().filter(|p| &p.effect == e) {
+                if !names.contains(&p.param) {
+                    names.push(p.param.clone());
+                }
+            }
+        }
+        let mut cols = Vec::new();
+        for n in &names {
+            let ps: Vec<&ParamScore> =
+                scores.iter().flat_map(|s| s.params.iter()).filter(|p| &p.effect == e && &p.param == n).collect();
+            let mut errs: Vec<f64> =
+                ps.iter().filter_map(|p| p.reported.map(|r| param_error(e, n, r, p.truth))).collect();
+            errs.sort_by(|a, b| a.total_cmp(b));
+            let med = if errs.is_empty() { f64::NAN } else { errs[errs.len() / 2] };
+            cols.push(format!("{n}: {} ({}/{})", sig3(med), ps.iter().filter(|p| p.pass).count(), ps.len()));
+        }
+        t.push_str(&format!("| {e} | {cases} | {det} | {} |\n", cols.join("; ")));
+    }
+    t
+}
+
 /// Markdown table, one row per case, plus the summary lines.
 pub fn markdown(scores: &[CaseScore]) -> String {
-    let mut t = String::new();
+    let mut t = per_effect(scores);
+    t.push('\n');
     t.push_str("| case | hidden | reported (order) | missed | false disc. | params truth→fit | noise truth→fit | rmse before→after | apply / block-mean rmse | s |\n");
     t.push_str("|---|---|---|---|---|---|---|---|---|---|\n");
     for s in scores {
@@ -427,7 +505,7 @@ pub fn markdown(scores: &[CaseScore]) -> String {
     t.push_str(&format!(
         "\nCases {} ({} negative controls). Detection {}/{} hidden effects. False discoveries: {} in total, {} on negative controls. \
          Parameters within tolerance: {}/{} (detected effects); camera noise parameters within tolerance: {}/{}. \
-         Fit rmse improved on {}/{} effect cases. fitted.toml accepted by apply: {}/{}; block means closer after apply: {}/{} low-frequency cases. \
+         Fit rmse improved on {}/{} paired effect cases. fitted.toml accepted by apply: {}/{}; block means closer after apply: {}/{} low-frequency cases. \
          Errors: {}. Diagnose time: {:.0} s total.\n",
         m.cases,
         m.negatives,
@@ -440,7 +518,7 @@ pub fn markdown(scores: &[CaseScore]) -> String {
         m.noise_params_pass,
         m.noise_params,
         m.fit_improved,
-        m.effect_cases,
+        m.paired_effect_cases,
         m.apply_ok,
         m.cases,
         m.block_improved,

@@ -1,0 +1,992 @@
+//! Forward-model selection of the deterministic effects.
+//!
+//! The sim frames are pushed through the library's effects (`faults::create`, `Effect::apply`) in
+//! physical order, and the output is compared with the real frames by a robust likelihood:
+//! Huber (δ = 3) on the residual standardised by the noise model where real is inside (0, FS),
+//! the interval-censored normal likelihood where real is clipped. The fit works on 16-bit copies
+//! of the sim (one Mono16 frame per channel), so that the library's rounding happens at 1/257 DN
+//! and the loss is smooth in every parameter; `channel_shift`, which needs the three planes of a
+//! colour frame together, runs on an Rgb8 frame assembled from them.
+//!
+//! **Selection** (forward stepwise, then backward):
+//! 1. every applicable candidate effect (initialised from its signature estimate) is added in
+//!    turn to the current model and its parameters fitted; the loss drop ΔL is its evidence;
+//! 2. the evidence is scaled by the *design effect* D of the candidate model's residuals (the
+//!    mean squared sum of standardised residuals over 16x16 blocks; 1 for white noise that the
+//!    noise model describes, larger when residuals are correlated or the noise is underestimated)
+//!    — a quasi-likelihood correction that keeps the test honest when the residual is not white;
+//! 3. a candidate is significant when `2ΔL/D`, a chi-square with k degrees of freedom (k fitted
+//!    parameters) under "absent", reaches the z threshold, and when it pays its parameters by the
+//!    Bayesian information criterion (`2ΔL/D > k ln n`);
+//! 4. the most important significant candidate (largest `ΔL/D`) joins the model, all parameters
+//!    are refined jointly, and the round repeats;
+//! 5. finally each selected effect must still be significant when dropped from the full model
+//!    (the others fixed); the weakest that is not is removed and the rest refitted.
+
+use super::img::{FS, Pair, Plane, planes_of};
+use super::noise::NoiseModel;
+use super::{DiagnoseError, stats};
+use crate::faults::{self, Effect, EffectCtx, ParamKind, Params, Scale, Stage, registry};
+use crate::frame::{Frame, FrameData, PixelFormat};
+
+/// Effects fitted by pixel loss, in physical order.
+pub const DETERMINISTIC: &[&str] = &[
+    "lens_flare",
+    "stray_light",
+    "vignetting",
+    "defocus",
+    "motion_blur",
+    "channel_shift",
+    "dark_current",
+    "blooming",
+    "smear",
+    "gain_offset",
+    "gamma",
+];
+
+/// A candidate for the model: an effect with initial parameters and the parameters to fit.
+#[derive(Debug, Clone)]
+pub struct Candidate {
+    pub name: &'static str,
+    /// Label in the report (e.g. "smear (vertical)").
+    pub label: String,
+    pub params: Params,
+    /// Names of the parameters fitted.
+    pub fit: Vec<&'static str>,
+}
+
+/// One step of the deterministic model.
+pub struct Step {
+    pub name: &'static str,
+    pub label: String,
+    effect: Option<Box<dyn Effect>>,
+    pub params: Params,
+    key: (Stage, u16),
+    /// Indices (into the effect's parameter list) of the fitted parameters.
+    pub fit: Vec<usize>,
+    /// Part of the model from the start (e.g. JPEG found by its own test): never tested or
+    /// dropped by the selection.
+    pub fixed: bool,
+    /// JPEG of a noisy image is not the JPEG of its expectation (the coefficient rounding is
+    /// dithered by the noise): with a noise model the step returns the mean of several JPEG round
+    /// trips of the image plus noise, which approximates the expected output.
+    pub dither: Option<NoiseModel>,
+}
+
+/// Noise draws averaged by a dithered JPEG step.
+const DITHER_DRAWS: u64 = 3;
+
+impl Step {
+    /// A step that is part of the model from the start and never tested (no fitted parameters).
+    pub fn fixed(name: &'static str, params: Params) -> Result<Step, DiagnoseError> {
+        let c = Candidate { name, label: name.to_string(), params, fit: Vec::new() };
+        let mut s = Step::new(&c)?;
+        s.fixed = true;
+        Ok(s)
+    }
+
+    pub fn new(c: &Candidate) -> Result<Step, DiagnoseError> {
+        let reg = registry::find(c.name).ok_or_else(|| {
+            DiagnoseError::Fault(faults::FaultError::UnknownEffect { name: c.name.to_string(), known: String::new() })
+        })?;
+        let fit = c.fit.iter().filter_map(|n| reg.info.param(n).map(|(i, _)| i)).collect();
+        // dark_current is fitted as its mean only (its shot noise and hot pixels are stochastic).
+        let effect = if c.name == "dark_current" { None } else { Some((reg.create)()) };
+        Ok(Step {
+            name: c.name,
+            label: c.label.clone(),
+            effect,
+            params: c.params,
+            key: (reg.info.stage, reg.info.order),
+            fit,
+            fixed: false,
+            dither: None,
+        })
+    }
+
+    pub fn boxed_clone(&self) -> Step {
+        Step {
+            name: self.name,
+            label: self.label.clone(),
+            effect: self.effect.as_ref().and_then(|_| faults::create(self.name).ok()),
+            params: self.params,
+            key: self.key,
+            fit: self.fit.clone(),
+            fixed: self.fixed,
+            dither: self.dither.clone(),
+        }
+    }
+
+    /// Apply to the planes of one image (Mono16 frames, one per channel).
+    fn apply(&mut self, img: &mut [Frame], seed: u64, seq: u64, index: usize) -> Result<(), DiagnoseError> {
+        if self.name == "dark_current" {
+            let off = self.params.get("mean_dn") * 257.0;
+            for f in img.iter_mut() {
+                if let Some(d) = f.as_u16_mut() {
+                    for v in d.iter_mut() {
+                        *v = (*v as f64 + off).round().min(65535.0) as u16;
+                    }
+                }
+            }
+            return Ok(());
+        }
+        if self.name == "jpeg"
+            && let Some(nm) = self.dither.clone()
+        {
+            let orig: Vec<Frame> = img.to_vec();
+            let mut acc: Vec<Vec<f64>> =
+                orig.iter().map(|f| vec![0.0; f.as_u16().map(|d| d.len()).unwrap_or(0)]).collect();
+            let mut plain = Step { dither: None, effect: faults::create("jpeg").ok(), ..self.boxed_clone() };
+            for k in 0..DITHER_DRAWS {
+                let mut noisy = orig.clone();
+                let mut rng = crate::rng::Rng::new(crate::rng::mix_seed(&[seed, seq, index as u64, k]));
+                for f in noisy.iter_mut() {
+                    if let Some(d) = f.as_u16_mut() {
+                        for v in d.iter_mut() {
+                            let m = *v as f64 / 257.0;
+                            let sd = (1.5 * nm.var(m)).sqrt();
+                            *v = ((m + sd * rng.normal()) * 257.0).round().clamp(0.0, 65535.0) as u16;
+                        }
+                    }
+                }
+                plain.apply(&mut noisy, seed, seq, index)?;
+                for (a, f) in acc.iter_mut().zip(&noisy) {
+                    if let Some(d) = f.as_u16() {
+                        for (x, &v) in a.iter_mut().zip(d) {
+                            *x += v as f64;
+                        }
+                    }
+                }
+            }
+            for (f, a) in img.iter_mut().zip(&acc) {
+                if let Some(d) = f.as_u16_mut() {
+                    for (v, &x) in d.iter_mut().zip(a) {
+                        *v = (x / DITHER_DRAWS as f64).round().clamp(0.0, 65535.0) as u16;
+                    }
+                }
+            }
+            return Ok(());
+        }
+        let Some(e) = self.effect.as_mut() else { return Ok(()) };
+        if self.name == "channel_shift" || (self.name == "jpeg" && img.len() == 3) {
+            if img.len() == 3 {
+                let mut rgb = assemble_rgb8(img)?;
+                rgb.seq = seq;
+                let mut ctx = EffectCtx::new(seed, seq, index);
+                e.apply(&mut rgb, &self.params, &mut ctx)?;
+                split_rgb8(&rgb, img);
+            }
+            return Ok(());
+        }
+        for f in img.iter_mut() {
+            let mut ctx = EffectCtx::new(seed, seq, index);
+            e.apply(f, &self.params, &mut ctx)?;
+        }
+        Ok(())
+    }
+}
+
+/// Rgb8 frame from three Mono16 planes (rounded to 8 bits).
+fn assemble_rgb8(planes: &[Frame]) -> Result<Frame, DiagnoseError> {
+    let (w, h) = (planes[0].width, planes[0].height);
+    let n = w as usize * h as usize;
+    let mut data = vec![0u8; n * 3];
+    for (c, p) in planes.iter().enumerate().take(3) {
+        if let Some(d) = p.as_u16() {
+            for i in 0..n {
+                data[i * 3 + c] = ((d[i] as f32 / 257.0).round()).clamp(0.0, 255.0) as u8;
+            }
+        }
+    }
+    Frame::from_data(w, h, 3 * w as usize, PixelFormat::Rgb8, FrameData::U8(data)).map_err(|e| {
+        DiagnoseError::Fault(faults::FaultError::Failed { effect: "channel_shift", reason: e.to_string() })
+    })
+}
+
+fn split_rgb8(rgb: &Frame, planes: &mut [Frame]) {
+    let Some(src) = rgb.as_u8() else { return };
+    for (c, p) in planes.iter_mut().enumerate().take(3) {
+        if let Some(d) = p.as_u16_mut() {
+            for (i, v) in d.iter_mut().enumerate() {
+                *v = src[i * 3 + c] as u16 * 257;
+            }
+        }
+    }
+}
+
+/// The planes of a frame as Mono16 frames (8-bit DN × 257).
+pub fn work_planes(frame: &Frame, seq: u64) -> Result<Vec<Frame>, DiagnoseError> {
+    let planes = planes_of(frame);
+    let mut out = Vec::with_capacity(planes.len());
+    for p in &planes {
+        let data: Vec<u16> = p.data.iter().map(|&v| (v * 257.0).round().clamp(0.0, 65535.0) as u16).collect();
+        let mut f = Frame::from_data(p.w as u32, p.h as u32, p.w, PixelFormat::Mono16, FrameData::U16(data))
+            .map_err(|e| DiagnoseError::Fault(faults::FaultError::Failed { effect: "fit", reason: e.to_string() }))?;
+        f.seq = seq;
+        out.push(f);
+    }
+    Ok(out)
+}
+
+/// Planes (8-bit DN) of Mono16 work frames.
+pub fn planes_of_work(img: &[Frame]) -> Vec<Plane> {
+    img.iter().map(|f| planes_of(f).remove(0)).collect()
+}
+
+/// Result of a loss evaluation.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct LossEval {
+    pub total: f64,
+    /// Number of values in the loss.
+    pub n: usize,
+    /// Design effect of the standardised residuals over 16x16 blocks.
+    pub design: f64,
+}
+
+/// The real data the loss compares with.
+pub struct LossData<'a> {
+    pub pairs: Vec<&'a Pair>,
+    pub skip: Vec<&'a [bool]>,
+    pub noise: NoiseModel,
+    /// Row subsampling of the loss (1 = every row).
+    pub row_step: usize,
+}
+
+const DBLOCK: usize = 16;
+
+impl LossData<'_> {
+    /// Robust negative log-likelihood of the real planes given model planes.
+    pub fn eval(&self, model: &[Vec<Plane>]) -> LossEval {
+        let q = self.noise.quant;
+        let fs = FS as f64;
+        let mut total = 0.0;
+        let mut n = 0usize;
+        let mut dsum = 0.0;
+        let mut dn = 0usize;
+        for (k, mp) in model.iter().enumerate() {
+            let p = self.pairs[k];
+            let (w, h) = (p.w(), p.h());
+            let bw = w.div_ceil(DBLOCK);
+            let nb = bw * h.div_ceil(DBLOCK);
+            for (c, plane) in mp.iter().enumerate() {
+                let r = &p.real[c].data;
+                let mut bs = vec![0.0f64; nb];
+                let mut bc = vec![0u32; nb];
+                for y in (0..h).step_by(self.row_step) {
+                    for x in 0..w {
+                        let i = y * w + x;
+                        if self.skip[k][i] {
+                            continue;
+                        }
+                        let m = plane.data[i] as f64;
+                        let rv = r[i] as f64;
+                        let sd = self.noise.sd(m);
+                        let l = if rv <= 0.0 {
+                            censored(m - 0.5 * q, sd)
+                        } else if rv >= fs {
+                            censored(fs - 0.5 * q - m, sd)
+                        } else {
+                            let z = (rv - m) / sd;
+                            let b = (y / DBLOCK) * bw + x / DBLOCK;
+                            bs[b] += z.clamp(-4.0, 4.0);
+                            bc[b] += 1;
+                            huber(z)
+                        };
+                        total += l;
+                        n += 1;
+                    }
+                }
+                for (s, &cnt) in bs.iter().zip(&bc) {
+                    if cnt >= 32 {
+                        dsum += s * s / cnt as f64;
+                        dn += 1;
+                    }
+                }
+            }
+        }
+        LossEval { total, n, design: if dn > 0 { dsum / dn as f64 } else { 1.0 } }
+    }
+}
+
+#[inline]
+fn huber(z: f64) -> f64 {
+    let a = z.abs();
+    if a <= 3.0 { 0.5 * a * a } else { 3.0 * a - 4.5 }
+}
+
+/// Loss of a value clipped at a bound when the model is `t` noise sigmas inside the bound
+/// (`t = (m - bound) / sd` for the lower bound): -ln Φ(-t), capped by the Huber loss of t.
+#[inline]
+fn censored(t_dn: f64, sd: f64) -> f64 {
+    let t = t_dn / sd;
+    if t <= 0.0 {
+        return -stats::norm_cdf(-t).max(1e-300).ln();
+    }
+    (-stats::norm_cdf(-t).max(1e-300).ln()).min(huber(t) + std::f64::consts::LN_2)
+}
+
+/// The fit frames and the loss.
+pub struct FitCtx<'a> {
+    /// Per fitted pair: Mono16 work frames (one per channel).
+    pub inputs: Vec<Vec<Frame>>,
+    pub seqs: Vec<u64>,
+    pub loss: LossData<'a>,
+    pub seed: u64,
+    /// Number of loss evaluations (for the report).
+    pub evals: std::cell::Cell<usize>,
+}
+
+/// Keep coupled parameters consistent: after blooming, saturated pixels read the full well, so
+/// smear must count pixels at the well (the library's documented `sat_level` rule).
+fn sync_coupled(steps: &mut [Step]) {
+    let well = steps.iter().find(|s| s.name == "blooming").map(|s| s.params.get("full_well_fraction"));
+    for s in steps.iter_mut().filter(|s| s.name == "smear") {
+        let lvl = match well {
+            Some(f) => (f - 0.75 / 255.0).clamp(0.5, 1.0),
+            None => 0.98,
+        };
+        let _ = s.params.set("sat_level", lvl);
+    }
+}
+
+impl FitCtx<'_> {
+    /// Run `steps[from..]` on `start` (outputs of the steps before `from`).
+    fn run_from(
+        &self,
+        steps: &mut [Step],
+        from: usize,
+        start: &[Vec<Frame>],
+    ) -> Result<Vec<Vec<Plane>>, DiagnoseError> {
+        sync_coupled(steps);
+        let mut out = Vec::with_capacity(start.len());
+        for (k, img) in start.iter().enumerate() {
+            let mut img = img.clone();
+            for (j, s) in steps.iter_mut().enumerate().skip(from) {
+                s.apply(&mut img, self.seed, self.seqs[k], j)?;
+            }
+            out.push(planes_of_work(&img));
+        }
+        Ok(out)
+    }
+    /// Frames after `steps[..upto]`.
+    fn prefix(&self, steps: &mut [Step], upto: usize) -> Result<Vec<Vec<Frame>>, DiagnoseError> {
+        sync_coupled(steps);
+        let mut out = Vec::with_capacity(self.inputs.len());
+        for (k, img) in self.inputs.iter().enumerate() {
+            let mut img = img.clone();
+            for (j, s) in steps.iter_mut().enumerate().take(upto) {
+                s.apply(&mut img, self.seed, self.seqs[k], j)?;
+            }
+            out.push(img);
+        }
+        Ok(out)
+    }
+    pub fn eval(&self, steps: &mut [Step]) -> Result<LossEval, DiagnoseError> {
+        self.evals.set(self.evals.get() + 1);
+        Ok(self.loss.eval(&self.run_from(steps, 0, &self.inputs)?))
+    }
+    /// Model planes of the fit frames.
+    pub fn model_planes(&self, steps: &mut [Step]) -> Result<Vec<Vec<Plane>>, DiagnoseError> {
+        self.run_from(steps, 0, &self.inputs)
+    }
+    /// Model planes without the fixed steps (materiality is judged before JPEG, whose
+    /// quantisation turns tiny input changes into whole-DN output changes).
+    pub fn physical_planes(&self, steps: &[Step]) -> Result<Vec<Vec<Plane>>, DiagnoseError> {
+        let mut st: Vec<Step> = steps.iter().filter(|s| !s.fixed).map(Step::boxed_clone).collect();
+        self.run_from(&mut st, 0, &self.inputs)
+    }
+}
+
+/// Apply a model to any frame (for residual maps and the stochastic tests on every pair).
+pub fn apply_steps(steps: &mut [Step], frame: &Frame, seq: u64, seed: u64) -> Result<Vec<Plane>, DiagnoseError> {
+    sync_coupled(steps);
+    let mut img = work_planes(frame, seq)?;
+    for (j, s) in steps.iter_mut().enumerate() {
+        s.apply(&mut img, seed, seq, j)?;
+    }
+    Ok(planes_of_work(&img))
+}
+
+/// A fitted coordinate.
+#[derive(Debug, Clone, Copy)]
+struct Coord {
+    step: usize,
+    pidx: usize,
+    lo: f64,
+    hi: f64,
+    log: bool,
+}
+
+impl Coord {
+    fn to_u(self, v: f64) -> f64 {
+        if self.log {
+            let (a, b) = (self.lo.max(1e-6).ln(), self.hi.ln());
+            (v.max(1e-6).ln() - a) / (b - a)
+        } else {
+            (v - self.lo) / (self.hi - self.lo)
+        }
+    }
+    fn value_at(self, u: f64) -> f64 {
+        let u = u.clamp(0.0, 1.0);
+        if self.log {
+            let (a, b) = (self.lo.max(1e-6).ln(), self.hi.ln());
+            (a + u * (b - a)).exp()
+        } else {
+            self.lo + u * (self.hi - self.lo)
+        }
+    }
+}
+
+/// Practical search range of a parameter around its initial value (narrower than the declared
+/// range where that is huge compared with plausible values, so golden sections converge).
+fn search_range(effect: &str, name: &str, lo: f64, hi: f64, init: f64) -> (f64, f64) {
+    let r = match (effect, name) {
+        ("defocus", "sigma_px") => (0.0, (init * 3.0).clamp(2.5, 20.0)),
+        ("motion_blur", "length_px") => (0.0, (init * 2.5).clamp(4.0, 100.0)),
+        ("motion_blur", "angle_deg") => (0.0, 180.0),
+        ("channel_shift", _) => (init - 2.0, init + 2.0),
+        ("gain_offset", "gain") => (init - 0.15, init + 0.15),
+        ("gain_offset", "offset_dn") => (init - 10.0, init + 10.0),
+        ("dark_current", "mean_dn") => (0.0, (init * 3.0).max(6.0)),
+        ("gamma", "gamma") => (init * 0.8, init * 1.25),
+        ("vignetting", "strength") => (0.0, (init * 2.5).clamp(0.2, 1.0)),
+        ("vignetting", "field_deg") => (5.0, 75.0),
+        ("stray_light", "amplitude_dn") => (0.0, (init * 2.5).max(8.0)),
+        ("stray_light", "distance") => (0.0, 3.0),
+        ("stray_light", "width") => (0.2, 3.0),
+        ("smear", "strength") => (0.0, (init * 3.0).max(0.002)),
+        ("blooming", "full_well_fraction") => ((init - 0.2).max(lo), 1.0),
+        ("blooming", "spread_px") => (lo.max(0.3), (init * 3.0).clamp(3.0, hi)),
+        ("lens_flare", "intensity") => (0.0, (init * 3.0).max(0.03)),
+        ("lens_flare", "size") => (0.01, 0.15),
+        _ => (lo, hi),
+    };
+    (r.0.max(lo), r.1.min(hi))
+}
+
+fn coords_of(steps: &[Step], only: Option<usize>) -> Vec<Coord> {
+    let mut cs = Vec::new();
+    for (si, s) in steps.iter().enumerate() {
+        if only.is_some_and(|o| o != si) {
+            continue;
+        }
+        for &pi in &s.fit {
+            let spec = &s.params.info().params[pi];
+            if spec.kind != ParamKind::Float {
+                continue;
+            }
+            let v = s.params.at(pi);
+            let (lo, hi) = search_range(s.name, spec.name, spec.min, spec.max, v);
+            if hi <= lo {
+                continue;
+            }
+            cs.push(Coord { step: si, pidx: pi, lo, hi, log: spec.scale == Scale::Log && lo > 0.0 });
+        }
+    }
+    cs
+}
+
+fn set_coord(steps: &mut [Step], c: &Coord, v: f64) {
+    let spec = &steps[c.step].params.info().params[c.pidx];
+    let _ = steps[c.step].params.set(spec.name, v.clamp(spec.min, spec.max));
+}
+
+/// Coordinate-wise golden-section descent over `coords`; the frames before the step of each
+/// coordinate are cached during its search. Returns the final loss.
+fn optimise(
+    ctx: &FitCtx,
+    steps: &mut [Step],
+    coords: &[Coord],
+    widths: &[(f64, usize)],
+) -> Result<LossEval, DiagnoseError> {
+    let mut best = ctx.eval(steps)?;
+    for &(width, iters) in widths {
+        for c in coords {
+            let prefix = ctx.prefix(steps, c.step)?;
+            let cur = steps[c.step].params.at(c.pidx);
+            let u0 = c.to_u(cur);
+            let (a, b) = ((u0 - width).max(0.0), (u0 + width).min(1.0));
+            let mut err = None;
+            let mut last = LossEval::default();
+            let mut eval = |u: f64| -> f64 {
+                set_coord(steps, c, c.value_at(u));
+                ctx.evals.set(ctx.evals.get() + 1);
+                match ctx.run_from(steps, c.step, &prefix) {
+                    Ok(o) => {
+                        last = ctx.loss.eval(&o);
+                        last.total
+                    }
+                    Err(e) => {
+                        err = Some(e);
+                        f64::INFINITY
+                    }
+                }
+            };
+            let (u, v) = stats::golden(&mut eval, a, b, iters);
+            if let Some(e) = err {
+                return Err(e);
+            }
+            if std::env::var_os("FAULTCAM_DIAG_DEBUG").is_some() {
+                eprintln!(
+                    "opt {} {} [{:.4},{:.4}] cur {:.4} -> {:.4}: {:.1} vs best {:.1}",
+                    steps[c.step].name,
+                    steps[c.step].params.info().params[c.pidx].name,
+                    c.value_at(a),
+                    c.value_at(b),
+                    cur,
+                    c.value_at(u),
+                    v,
+                    best.total
+                );
+            }
+            if v < best.total {
+                set_coord(steps, c, c.value_at(u));
+                best = ctx.eval(steps)?;
+            } else {
+                set_coord(steps, c, cur);
+            }
+            let _ = last;
+        }
+    }
+    Ok(best)
+}
+
+/// Smallest change of the expected image (DN) an effect must make to be reported: the value
+/// exceeded by at least 20 values (or 0.05 % of them, if more) of the fitted frames. Below half a
+/// quantisation step of 8-bit data, a "significant" effect only reflects how far the real
+/// camera's noise departs from the idealised noise model (e.g. the skew of Poisson noise at a
+/// few electrons, which biases a Gaussian likelihood by hundredths of a DN), not a physical
+/// effect worth modelling.
+pub const MATERIAL_DN: f64 = 0.5;
+
+/// Materiality threshold of an effect (DN). Tone and additive effects act on every pixel, so a
+/// slight mismatch of the noise or interpolation model anywhere adds up in them: they must
+/// change the expected image by a whole DN.
+pub fn material_threshold(effect: &str) -> f64 {
+    match effect {
+        "gain_offset" | "gamma" | "dark_current" | "stray_light" => 2.0 * MATERIAL_DN,
+        _ => MATERIAL_DN,
+    }
+}
+
+/// Joint refinement of every parameter of a model: coordinate sweeps of shrinking width until a
+/// sweep gains less than one unit of loss.
+fn refine(ctx: &FitCtx, steps: &mut [Step]) -> Result<LossEval, DiagnoseError> {
+    let coords = coords_of(steps, None);
+    let mut cur = ctx.eval(steps)?;
+    for &(w, it) in &[(0.25, 10), (0.12, 8), (0.06, 8), (0.03, 6)] {
+        let next = optimise(ctx, steps, &coords, &[(w, it)])?;
+        let gain = cur.total - next.total;
+        cur = next;
+        if gain < 1.0 && w < 0.2 {
+            break;
+        }
+    }
+    Ok(cur)
+}
+
+/// Evidence of one candidate (or of one selected effect in the backward check).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Evidence {
+    pub effect: String,
+    pub label: String,
+    /// Loss without and with the effect (per value).
+    pub loss_without: f64,
+    pub loss_with: f64,
+    /// Total loss drop.
+    pub delta: f64,
+    pub design: f64,
+    /// Fitted parameters (count).
+    pub k: usize,
+    /// Significance: chi-square 2ΔL/D on k df as a one-sided normal z.
+    pub z: f64,
+    /// Passes the information criterion (2ΔL/D > k ln n).
+    pub bic: bool,
+    /// Size of the effect's change of the expected image (DN; see [`MATERIAL_DN`]).
+    pub material_dn: f64,
+    pub accepted: bool,
+    /// Selection round (0 = the final backward check).
+    pub round: usize,
+    #[serde(skip)]
+    pub params: Option<Params>,
+}
+
+/// Outcome of the selection.
+pub struct Selection {
+    pub steps: Vec<Step>,
+    /// Final drop-one evidence of each selected step (same order as `steps`).
+    pub evidence: Vec<Evidence>,
+    /// Every candidate test (all rounds), for the report.
+    pub tests: Vec<Evidence>,
+    pub loss_null: LossEval,
+    pub loss_final: LossEval,
+    pub notes: Vec<String>,
+    /// Best significance of each candidate over all rounds.
+    pub best_z: Vec<f64>,
+}
+
+fn insert_sorted(steps: &mut Vec<Step>, s: Step) -> usize {
+    let pos = steps.iter().position(|t| t.key > s.key).unwrap_or(steps.len());
+    steps.insert(pos, s);
+    pos
+}
+
+/// The `m`-th largest |with - without| over all values, m = max(20, 0.05 % of the values).
+fn material(with: &[Vec<Plane>], without: &[Vec<Plane>]) -> f64 {
+    let mut d: Vec<f64> = Vec::new();
+    for (a, b) in with.iter().zip(without) {
+        for (pa, pb) in a.iter().zip(b) {
+            d.extend(pa.data.iter().zip(&pb.data).map(|(x, y)| (x - y).abs() as f64));
+        }
+    }
+    if d.is_empty() {
+        return 0.0;
+    }
+    let m = (d.len() / 2000).max(20).min(d.len());
+    let idx = d.len() - m;
+    let (_, v, _) = d.select_nth_unstable_by(idx, |a, b| a.total_cmp(b));
+    *v
+}
+
+/// Practical floor of an effect's parameters: below these values an effect is physically
+/// negligible (e.g. a blur narrower than the pixel's own aperture, σ ≈ 0.29 px) and a "fit" of
+/// it only absorbs the difference between two models of the same thing (a pillbox and a
+/// Gaussian PSF, bilinear and Lanczos interpolation). They sit far below the strengths that are
+/// invisible to the eye yet matter (e.g. 8 % vignetting, 1 px defocus, 3 DN dark current).
+pub fn above_floor(p: &Params) -> bool {
+    let g = |n: &str| p.get(n);
+    match p.info().name {
+        "defocus" => g("sigma_px") >= 0.3,
+        "motion_blur" => g("length_px") >= 1.0,
+        "channel_shift" => ["dx_r", "dy_r", "dx_b", "dy_b"].iter().any(|n| g(n).abs() >= 0.1),
+        "vignetting" => g("strength") >= 0.02,
+        "stray_light" => g("amplitude_dn") >= 1.0,
+        "dark_current" => g("mean_dn") >= 0.5,
+        "gain_offset" => (g("gain") - 1.0).abs() >= 0.005 || g("offset_dn").abs() >= 0.5,
+        "gamma" => (g("gamma") - 1.0).abs() >= 0.01,
+        "smear" => g("strength") >= 2e-4,
+        "blooming" => g("full_well_fraction") <= 0.99,
+        "lens_flare" => g("intensity") >= 0.003,
+        _ => true,
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn evidence(
+    name: &str,
+    label: &str,
+    without: LossEval,
+    with: LossEval,
+    k: usize,
+    material_dn: f64,
+    z_thr: f64,
+    round: usize,
+) -> Evidence {
+    let delta = without.total - with.total;
+    let design = with.design.max(0.8);
+    let chi = 2.0 * delta / design;
+    let k = k.max(1);
+    let z = stats::chi2_to_z(chi, k as f64);
+    let bic = chi > k as f64 * (with.n.max(2) as f64).ln();
+    let nv = with.n.max(1) as f64;
+    Evidence {
+        effect: name.to_string(),
+        label: label.to_string(),
+        loss_without: without.total / nv,
+        loss_with: with.total / nv,
+        delta,
+        design,
+        k,
+        z,
+        bic,
+        material_dn,
+        accepted: z >= z_thr && bic && material_dn >= material_threshold(name),
+        round,
+        params: None,
+    }
+}
+
+fn clone_steps(steps: &[Step]) -> Vec<Step> {
+    steps.iter().map(Step::boxed_clone).collect()
+}
+
+/// Add `cand` to a copy of `steps`, fit its parameters, and measure its evidence against the
+/// current model (loss `current`, physical planes `current_planes`).
+#[allow(clippy::too_many_arguments)]
+fn try_candidate(
+    ctx: &FitCtx,
+    steps: &[Step],
+    cand: &Candidate,
+    current: LossEval,
+    current_planes: &[Vec<Plane>],
+    z_thr: f64,
+    round: usize,
+    widths: &[(f64, usize)],
+) -> Result<(Evidence, Vec<Step>, usize), DiagnoseError> {
+    let mut trial = clone_steps(steps);
+    let pos = insert_sorted(&mut trial, Step::new(cand)?);
+    let coords = coords_of(&trial, Some(pos));
+    let with = optimise(ctx, &mut trial, &coords, widths)?;
+    let planes = ctx.physical_planes(&trial)?;
+    let mut ev =
+        evidence(cand.name, &cand.label, current, with, coords.len(), material(&planes, current_planes), z_thr, round);
+    ev.accepted &= above_floor(&trial[pos].params);
+    ev.params = Some(trial[pos].params);
+    Ok((ev, trial, pos))
+}
+
+/// Penalised loss of a model (for swaps): L/D + ½ k ln n.
+fn penalised(ev: LossEval, k: usize, design: f64) -> f64 {
+    ev.total / design + 0.5 * k as f64 * (ev.n.max(2) as f64).ln()
+}
+
+/// Effects that can stand in for each other (the swap pass only exchanges within a family).
+fn family(name: &str) -> u8 {
+    match name {
+        "dark_current" | "gain_offset" | "gamma" | "stray_light" | "vignetting" => 1,
+        "defocus" | "motion_blur" => 2,
+        _ => 0,
+    }
+}
+
+/// Refinement after dropping an effect: shorter than [`refine`].
+fn refine_quick(ctx: &FitCtx, steps: &mut [Step]) -> Result<LossEval, DiagnoseError> {
+    let coords = coords_of(steps, None);
+    optimise(ctx, steps, &coords, &[(0.2, 8), (0.06, 6)])
+}
+
+/// Forward selection, swaps of selected effects for simpler or better ones, and a backward check.
+/// `start` is the initial model (fixed steps, or the model of an earlier pass).
+pub fn select(
+    ctx: &FitCtx,
+    candidates: &[Candidate],
+    z_thr: f64,
+    start: Vec<Step>,
+    prior_z: Option<&[f64]>,
+) -> Result<Selection, DiagnoseError> {
+    let mut steps: Vec<Step> = start;
+    let mut notes = Vec::new();
+    let mut fixed_only: Vec<Step> = steps.iter().filter(|s| s.fixed).map(Step::boxed_clone).collect();
+    let loss_null = ctx.eval(&mut fixed_only)?;
+    let mut tests: Vec<Evidence> = Vec::new();
+    let mut best_z: Vec<f64> = vec![f64::NEG_INFINITY; candidates.len()];
+    let mut round = 0;
+    let mut swapped: Vec<(String, String)> = Vec::new();
+    'outer: loop {
+        // ---- forward ----
+        loop {
+            round += 1;
+            let current = ctx.eval(&mut steps)?;
+            let current_planes = ctx.physical_planes(&steps)?;
+            let mut accepted: Vec<(Evidence, Vec<Step>)> = Vec::new();
+            for (ci, cand) in candidates.iter().enumerate() {
+                if steps.iter().any(|s| s.name == cand.name) {
+                    continue;
+                }
+                // Candidates without any evidence so far get a shorter search.
+                let quiet = best_z[ci] < 2.0 && (round > 1 || prior_z.is_some_and(|p| p[ci] < 2.0));
+                let widths: &[(f64, usize)] = if quiet { &[(0.5, 8)] } else { &[(0.5, 12), (0.12, 8)] };
+                let (ev, trial, _) = try_candidate(ctx, &steps, cand, current, &current_planes, z_thr, round, widths)?;
+                best_z[ci] = best_z[ci].max(ev.z);
+                tests.push(ev.clone());
+                if ev.accepted {
+                    accepted.push((ev, trial));
+                }
+            }
+            // Rank the significant candidates on a common scale: loss drop less the price of
+            // the parameters, both in units of the largest design effect among them (a model
+            // that fits worse must not win because its residual happens to be less correlated).
+            let d_ref = accepted.iter().map(|a| a.0.design).fold(1.0f64, f64::max);
+            let ln_n = (current.n.max(2) as f64).ln();
+            let best = accepted.into_iter().max_by(|a, b| {
+                (a.0.delta - 0.5 * a.0.k as f64 * ln_n * d_ref)
+                    .total_cmp(&(b.0.delta - 0.5 * b.0.k as f64 * ln_n * d_ref))
+            });
+            let Some((ev, trial)) = best else { break };
+            for t in tests.iter_mut().filter(|t| t.round == round) {
+                t.accepted = t.label == ev.label;
+            }
+            steps = trial;
+            refine(ctx, &mut steps)?;
+            if steps.len() >= 8 {
+                notes.push("selection stopped at 8 deterministic effects".into());
+                break;
+            }
+        }
+        // ---- swaps within a family: replace a selected effect by another candidate when that
+        // is as good with fewer parameters, or better by a material amount (e.g. an offset taken
+        // by gain_offset that is really dark current).
+        if steps.iter().all(|s| s.fixed) {
+            break;
+        }
+        let full = ctx.eval(&mut steps)?;
+        let k_full = coords_of(&steps, None).len();
+        let design = full.design.max(0.8);
+        let p_full = penalised(full, k_full, design);
+        let full_planes = ctx.physical_planes(&steps)?;
+        for j in 0..steps.len() {
+            if steps[j].fixed || swapped.len() >= 4 || family(steps[j].name) == 0 {
+                continue;
+            }
+            let k_j = coords_of(&steps, Some(j)).len();
+            let rest: Vec<Step> =
+                clone_steps(&steps).into_iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s).collect();
+            for (ci, cand) in candidates.iter().enumerate() {
+                if family(cand.name) != family(steps[j].name)
+                    || cand.name == steps[j].name
+                    || rest.iter().any(|s| s.name == cand.name)
+                    || best_z[ci] < 3.0
+                {
+                    continue;
+                }
+                let key = (steps[j].label.clone(), cand.label.clone());
+                if swapped.contains(&key) || swapped.iter().any(|s| s.1 == key.0 && s.0 == key.1) {
+                    continue;
+                }
+                let mut rest_c = clone_steps(&rest);
+                let rest_eval = ctx.eval(&mut rest_c)?;
+                let rest_planes = ctx.physical_planes(&rest_c)?;
+                let (_, mut trial, _) =
+                    try_candidate(ctx, &rest, cand, rest_eval, &rest_planes, z_thr, round, &[(0.5, 10), (0.12, 6)])?;
+                // More parameters must buy a material change of the expected image (judged with
+                // the other effects as they were).
+                let k_c = coords_of(&trial, None).len() + k_j - k_full;
+                let material_ok = k_c <= k_j
+                    || material(&ctx.physical_planes(&trial)?, &full_planes) >= material_threshold(cand.name);
+                if !material_ok {
+                    continue;
+                }
+                let ev = refine_quick(ctx, &mut trial)?;
+                if penalised(ev, coords_of(&trial, None).len(), design) < p_full - 2.0 {
+                    notes.push(format!(
+                        "{} replaced by {} (as good a fit with fewer or better-placed parameters)",
+                        key.0, key.1
+                    ));
+                    swapped.push(key);
+                    steps = trial;
+                    continue 'outer;
+                }
+            }
+        }
+        break;
+    }
+    // ---- backward check: every selected effect must still be significant, material and above
+    // its floor when it is dropped and the others are refitted.
+    let mut evidence_final;
+    let mut current;
+    loop {
+        current = ctx.eval(&mut steps)?;
+        let planes = ctx.physical_planes(&steps)?;
+        evidence_final = Vec::new();
+        let mut weakest: Option<(usize, f64)> = None;
+        for j in 0..steps.len() {
+            if steps[j].fixed {
+                evidence_final.push(Evidence {
+                    effect: steps[j].name.to_string(),
+                    label: steps[j].label.clone(),
+                    loss_without: f64::NAN,
+                    loss_with: current.total / current.n.max(1) as f64,
+                    delta: f64::NAN,
+                    design: current.design,
+                    k: 0,
+                    z: f64::NAN,
+                    bic: true,
+                    material_dn: f64::NAN,
+                    accepted: true,
+                    round: 0,
+                    params: Some(steps[j].params),
+                });
+                continue;
+            }
+            let mut without: Vec<Step> =
+                steps.iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s.boxed_clone()).collect();
+            let lw = if without.iter().any(|s| !s.fixed) {
+                refine_quick(ctx, &mut without)?
+            } else {
+                ctx.eval(&mut without)?
+            };
+            let pw = ctx.physical_planes(&without)?;
+            let k = coords_of(&steps, Some(j)).len();
+            let mut ev = evidence(steps[j].name, &steps[j].label, lw, current, k, material(&planes, &pw), z_thr, 0);
+            ev.accepted &= above_floor(&steps[j].params);
+            ev.params = Some(steps[j].params);
+            if steps[j].name == "motion_blur" && ev.accepted {
+                // A motion blur must show its direction: the same streak turned by 90° has to fit
+                // significantly worse. Otherwise it only reshapes an isotropic blur (e.g. a
+                // pillbox PSF seen through a Gaussian one) along edges it cannot tell apart.
+                let mut turned = clone_steps(&steps);
+                let a = turned[j].params.get("angle_deg");
+                let _ = turned[j].params.set("angle_deg", (a + 90.0).rem_euclid(180.0));
+                let lt = ctx.eval(&mut turned)?;
+                let dir = evidence(steps[j].name, &steps[j].label, lt, current, 1, f64::INFINITY, z_thr, 0);
+                if !dir.accepted {
+                    ev.accepted = false;
+                    ev.z = ev.z.min(dir.z);
+                }
+            }
+            if !ev.accepted && weakest.is_none_or(|(_, z)| ev.z < z) {
+                weakest = Some((j, ev.z));
+            }
+            evidence_final.push(ev);
+        }
+        match weakest {
+            Some((j, z)) => {
+                let s = steps.remove(j);
+                notes.push(format!(
+                    "{}: dropped in the backward check (z = {z:.1} given the other effects refitted, or too small to matter)",
+                    s.label
+                ));
+                if steps.iter().any(|s| !s.fixed) {
+                    refine(ctx, &mut steps)?;
+                }
+            }
+            None => break,
+        }
+    }
+    Ok(Selection { steps, evidence: evidence_final, tests, loss_null, loss_final: current, notes, best_z })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn material_is_the_twentieth_largest_change() {
+        let a = vec![vec![Plane::filled(100, 10, 10.0)]];
+        let mut b = a.clone();
+        for i in 0..19 {
+            b[0][0].data[i] = 20.0; // 19 large changes: fewer than 20
+        }
+        b[0][0].data[50] = 10.4;
+        assert!((material(&b, &a) - 0.4).abs() < 1e-6);
+        b[0][0].data[19] = 13.0;
+        assert!((material(&b, &a) - 3.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn floors_reject_negligible_parameters_only() {
+        let mut p = Params::defaults(registry::find("defocus").unwrap().info);
+        p.set("sigma_px", 0.2).unwrap();
+        assert!(!above_floor(&p));
+        p.set("sigma_px", 1.0).unwrap();
+        assert!(above_floor(&p));
+        let mut g = Params::defaults(registry::find("gain_offset").unwrap().info);
+        g.set("gain", 1.002).unwrap();
+        g.set("offset_dn", 0.2).unwrap();
+        assert!(!above_floor(&g));
+        g.set("offset_dn", -2.0).unwrap();
+        assert!(above_floor(&g));
+    }
+
+    #[test]
+    fn huber_and_censored_losses_are_continuous_and_increasing() {
+        assert!((huber(3.0) - 4.5).abs() < 1e-12 && (huber(3.0 + 1e-9) - 4.5).abs() < 1e-6);
+        let mut last = 0.0;
+        for i in 0..60 {
+            let t = -3.0 + i as f64 * 0.2;
+            let v = censored(t, 1.0);
+            assert!(v >= last - 1e-12, "t {t}: {v} < {last}");
+            last = v;
+        }
+    }
+}
