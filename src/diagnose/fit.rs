@@ -401,6 +401,13 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         loss: LossData {
             pairs: fidx.iter().map(|&k| &pairs[k]).collect(),
             skip: fidx.iter().map(|&k| loc.hot[k].as_slice()).collect(),
+            interior: fidx
+                .iter()
+                .map(|&k| {
+                    let m = &loc.masks[k];
+                    (0..m.sat.len()).map(|i| m.dist_edge[i] > 2.0 && m.dist_sat[i] > 4.0).collect()
+                })
+                .collect(),
             noise: loc.noise.clone(),
             row_step,
         },

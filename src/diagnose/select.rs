@@ -247,6 +247,8 @@ pub struct LossEval {
 pub struct LossData<'a> {
     pub pairs: Vec<&'a Pair>,
     pub skip: Vec<&'a [bool]>,
+    /// Pixels away from edges and saturation (global tone effects must show there).
+    pub interior: Vec<Vec<bool>>,
     pub noise: NoiseModel,
     /// Row subsampling of the loss (1 = every row).
     pub row_step: usize,
@@ -257,6 +259,11 @@ const DBLOCK: usize = 16;
 impl LossData<'_> {
     /// Robust negative log-likelihood of the real planes given model planes.
     pub fn eval(&self, model: &[Vec<Plane>]) -> LossEval {
+        self.eval_on(model, false)
+    }
+
+    /// [`Self::eval`], optionally on the interior pixels only.
+    pub fn eval_on(&self, model: &[Vec<Plane>], interior_only: bool) -> LossEval {
         let q = self.noise.quant;
         let fs = FS as f64;
         let mut total = 0.0;
@@ -275,22 +282,37 @@ impl LossData<'_> {
                 for y in (0..h).step_by(self.row_step) {
                     for x in 0..w {
                         let i = y * w + x;
-                        if self.skip[k][i] {
+                        if self.skip[k][i] || (interior_only && !self.interior[k][i]) {
                             continue;
                         }
                         let m = plane.data[i] as f64;
                         let rv = r[i] as f64;
                         let sd = self.noise.sd(m);
+                        let b = (y / DBLOCK) * bw + x / DBLOCK;
+                        // Block sums use generalised residuals (E[z | clipped] for clipped
+                        // values), so that clipping at 0 in dark regions does not bias them.
                         let l = if rv <= 0.0 {
+                            let t = (0.5 * q - m) / sd;
+                            bs[b] += -(stats::norm_pdf(t) / stats::norm_cdf(t).max(1e-12)).max(-4.0);
+                            bc[b] += 1;
                             censored(m - 0.5 * q, sd)
                         } else if rv >= fs {
+                            let t = (m - (fs - 0.5 * q)) / sd;
+                            bs[b] += (stats::norm_pdf(t) / stats::norm_cdf(t).max(1e-12)).min(4.0);
+                            bc[b] += 1;
                             censored(fs - 0.5 * q - m, sd)
                         } else {
                             let z = (rv - m) / sd;
-                            let b = (y / DBLOCK) * bw + x / DBLOCK;
                             bs[b] += z.clamp(-4.0, 4.0);
                             bc[b] += 1;
-                            huber(z)
+                            if (rv < 3.0 * sd || rv > fs - 3.0 * sd) && z.abs() <= 3.0 {
+                                // Near a clipping bound the rounding interval matters: the exact
+                                // probability of the rounded value (consistent with the censored
+                                // likelihood of the clipped ones), expressed on the scale of ½z².
+                                interval(rv, m, sd, q)
+                            } else {
+                                huber(z)
+                            }
                         };
                         total += l;
                         n += 1;
@@ -312,6 +334,15 @@ impl LossData<'_> {
 fn huber(z: f64) -> f64 {
     let a = z.abs();
     if a <= 3.0 { 0.5 * a * a } else { 3.0 * a - 4.5 }
+}
+
+/// -ln P(round(m + n) = r) for n ~ N(0, sd_c²) (sd_c: the noise without quantisation), shifted
+/// so that it equals ½z² where the density approximation holds.
+#[inline]
+fn interval(r: f64, m: f64, sd: f64, q: f64) -> f64 {
+    let sd_c = (sd * sd - q * q / 12.0).max(0.01 * sd * sd).sqrt();
+    let p = stats::norm_cdf((r + 0.5 * q - m) / sd_c) - stats::norm_cdf((r - 0.5 * q - m) / sd_c);
+    -p.max(1e-300).ln() + (q / (sd * (2.0 * std::f64::consts::PI).sqrt())).ln()
 }
 
 /// Loss of a value clipped at a bound when the model is `t` noise sigmas inside the bound
@@ -857,7 +888,16 @@ pub fn select(
                     continue;
                 }
                 let ev = refine_quick(ctx, &mut trial)?;
-                if penalised(ev, coords_of(&trial, None).len(), design) < p_full - 2.0 {
+                // Same number of parameters: the replacement must be clearly better (a tenth of
+                // what the replaced effect explains), not one of two near-equivalent readings.
+                let margin = if k_c < k_j {
+                    2.0
+                } else {
+                    let mut without = clone_steps(&rest);
+                    let lw = ctx.eval(&mut without)?;
+                    (0.1 * (lw.total - full.total) / design).max(2.0)
+                };
+                if penalised(ev, coords_of(&trial, None).len(), design) < p_full - margin {
                     notes.push(format!(
                         "{} replaced by {} (as good a fit with fewer or better-placed parameters)",
                         key.0, key.1
@@ -910,6 +950,20 @@ pub fn select(
             let mut ev = evidence(steps[j].name, &steps[j].label, lw, current, k, material(&planes, &pw), z_thr, 0);
             ev.accepted &= above_floor(&steps[j].params);
             ev.params = Some(steps[j].params);
+            if matches!(steps[j].name, "gain_offset" | "gamma" | "dark_current" | "stray_light" | "vignetting")
+                && ev.accepted
+            {
+                // A global tone or additive effect must be supported away from edges and
+                // saturated pixels; evidence only there is the shape of a PSF or an interpolation
+                // that another effect models imperfectly.
+                let li = ctx.loss.eval_on(&ctx.model_planes(&mut without)?, true);
+                let ci = ctx.loss.eval_on(&ctx.model_planes(&mut steps)?, true);
+                let inner = evidence(steps[j].name, &steps[j].label, li, ci, k, f64::INFINITY, z_thr, 0);
+                if !inner.accepted {
+                    ev.accepted = false;
+                    ev.z = ev.z.min(inner.z);
+                }
+            }
             if steps[j].name == "motion_blur" && ev.accepted {
                 // A motion blur must show its direction: the same streak turned by 90° has to fit
                 // significantly worse. Otherwise it only reshapes an isotropic blur (e.g. a
