@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The demo: installs system packages if missing, builds faultcam (release), and streams a
 # synthetic spacecraft scene (with Earth limb) through the eight faults of the original study.
-# Writes out/demo/clean/ (the scene without faults), out/demo/frames/ (faulted frames) and
-# out/demo/groundtruth.jsonl (one record per frame: effects, resolved parameters, seeds).
+# Writes out/demo/clean/ (the scene without faults), out/demo/frames/ (faulted frames),
+# out/demo/masks/ (per-pixel fault masks: which effect changed each pixel) and
+# out/demo/groundtruth.jsonl (one record per frame: effects, resolved parameters, seeds, masks).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/install-deps.sh
@@ -17,5 +18,5 @@ printf 'seed = 0\n' > out/demo/no-faults.toml
 "$FC" run --source "$SCENE" --sink files:out/demo/clean --faults out/demo/no-faults.toml \
   --log out/demo/clean.jsonl
 "$FC" run --source "$SCENE" --sink files:out/demo/frames --faults hil/campaigns/original8.toml \
-  --log out/demo/groundtruth.jsonl
-echo "demo: clean scene in out/demo/clean/, faulted frames in out/demo/frames/, ground truth in out/demo/groundtruth.jsonl"
+  --log out/demo/groundtruth.jsonl --masks out/demo/masks
+echo "demo: clean scene in out/demo/clean/, faulted frames in out/demo/frames/, per-pixel fault masks in out/demo/masks/, ground truth in out/demo/groundtruth.jsonl"
