@@ -90,6 +90,8 @@ pub struct Blooming {
     acc: Vec<f32>,
     exc: Vec<f32>,
     stamp: Vec<u32>,
+    /// Last fill generation written into `stamp` (kept across calls).
+    generation: u32,
     has_exc: Vec<bool>,
     hbuf: Vec<f32>,
     lbuf: Vec<f32>,
@@ -203,11 +205,16 @@ impl Blooming {
         let (tx, ty) = (tid % self.ntx, tid / self.ntx);
         let (w, h, ch) = (v.img.width, v.img.height, v.img.channels);
         let r = s * TT..(s + 1) * TT;
-        self.acc[r.clone()].fill(0.0);
-        self.stamp[r.clone()].fill(0);
-        self.cur[r.clone()].fill(0.0);
-        self.exc[r].fill(0.0);
+        // `acc` is all zero outside a round (every slot that receives charge is merged, which
+        // clears it) and `stamp` holds only generations of earlier fills (see `fallback`), so
+        // neither needs clearing; `cur` and `exc` are overwritten below except outside the frame
+        // in a border tile.
+        debug_assert!(self.acc[r.clone()].iter().all(|&a| a == 0.0));
         let (x0, xn) = (tx * TILE, TILE.min(w - tx * TILE));
+        if xn < TILE || h - ty * TILE < TILE {
+            self.cur[r.clone()].fill(0.0);
+            self.exc[r].fill(0.0);
+        }
         let mut any = false;
         for ly in 0..TILE.min(h - ty * TILE) {
             let row = &v.img.row(ty * TILE + ly)[x0 * ch..(x0 + xn) * ch];
@@ -324,10 +331,7 @@ impl Blooming {
         let mut lost = 0.0;
         let mut rounds = 0;
         let excess = |b: &Self| -> f64 {
-            (0..b.active.len())
-                .filter(|&s| b.has_exc[s])
-                .map(|s| b.exc[s * TT..(s + 1) * TT].iter().map(|&e| e as f64).sum::<f64>())
-                .sum()
+            (0..b.active.len()).filter(|&s| b.has_exc[s]).map(|s| sum_tile(&b.exc[s * TT..(s + 1) * TT])).sum()
         };
         let mut before = excess(self);
         while rounds < DIFFUSION_ROUNDS && before > 0.0 {
@@ -357,10 +361,8 @@ impl Blooming {
             before = after;
         }
         let n = self.active.len();
-        self.fallback_dn += (0..n)
-            .filter(|&s| self.has_exc[s])
-            .map(|s| self.exc[s * TT..(s + 1) * TT].iter().map(|&e| e as f64).sum::<f64>())
-            .sum::<f64>();
+        self.fallback_dn +=
+            (0..n).filter(|&s| self.has_exc[s]).map(|s| sum_tile(&self.exc[s * TT..(s + 1) * TT])).sum::<f64>();
         lost += self.fallback(v, vertical_only, horizontal_only);
         (lost, rounds)
     }
@@ -370,7 +372,9 @@ impl Blooming {
     fn fallback<T: Sample>(&mut self, v: &View<'_, T>, vertical_only: bool, horizontal_only: bool) -> f64 {
         let (w, h) = (v.img.width, v.img.height);
         let mut lost = 0.0;
-        let mut generation = 0u32;
+        // Generations increase across calls, so stamps left by earlier frames never match; on
+        // wrap-around the stamps are cleared once.
+        let mut generation = self.generation;
         let mut s = 0;
         while s < self.active.len() {
             if !self.has_exc[s] {
@@ -381,6 +385,10 @@ impl Blooming {
             for li in 0..TT {
                 if self.exc[s * TT + li] <= 0.0 {
                     continue;
+                }
+                if generation == u32::MAX {
+                    self.stamp.iter_mut().for_each(|t| *t = 0);
+                    generation = 0;
                 }
                 generation += 1;
                 let x0 = (tid % self.ntx) * TILE + li % TILE;
@@ -439,6 +447,7 @@ impl Blooming {
             self.has_exc[s] = false;
             s += 1;
         }
+        self.generation = generation;
         lost
     }
 
@@ -550,6 +559,45 @@ multiversion! {
             }
         }
     }
+}
+
+multiversion! {
+    /// `row[lx * ch] = round(src[lx])` (the frame's rounding and clipping) for every lx.
+    fn store_channel<T: Sample>(row: &mut [T], src: &[f32], ch: usize) {
+        if ch == 1 {
+            for (o, &v) in row.iter_mut().zip(src) {
+                *o = T::from_f32(v);
+            }
+        } else {
+            for (o, &v) in row.iter_mut().step_by(ch).zip(src) {
+                *o = T::from_f32(v);
+            }
+        }
+    }
+}
+
+multiversion! {
+    /// Sum of f32 values in f64 with four interleaved partial sums (the order is fixed, so the
+    /// result is the same on every run; it vectorises).
+    fn sum_f64<T: Copy>(v: &[f32], out: &mut f64, _t: T) {
+        let mut part = [0f64; 4];
+        let mut it = v.chunks_exact(4);
+        for q in &mut it {
+            for k in 0..4 {
+                part[k] += q[k] as f64;
+            }
+        }
+        let tail: f64 = it.remainder().iter().map(|&e| e as f64).sum();
+        *out = (part[0] + part[1]) + (part[2] + part[3]) + tail;
+    }
+}
+
+/// [`sum_f64`] as a function.
+#[inline]
+fn sum_tile(v: &[f32]) -> f64 {
+    let mut out = 0.0;
+    sum_f64(v, &mut out, 0u8);
+    out
 }
 
 multiversion! {
@@ -745,10 +793,8 @@ impl Blooming {
             for ly in 0..TILE.min(h - ty * TILE) {
                 let y = ty * TILE + ly;
                 let src = &self.cur[s * TT + ly * TILE..][..TILE.min(w - tx * TILE)];
-                let row = &mut img.data[y * stride + tx * TILE * ch..];
-                for (lx, &v) in src.iter().enumerate() {
-                    row[lx * ch + c] = T::from_f32(v);
-                }
+                let row = &mut img.data[y * stride + tx * TILE * ch..][..src.len() * ch];
+                store_channel(&mut row[c..], src, ch);
             }
         }
         // Glow streaks of this channel: kept for the end (the rescale pass runs first).
@@ -904,6 +950,33 @@ mod tests {
         for fmt in [PixelFormat::Mono8, PixelFormat::Mono16, PixelFormat::Rgb8] {
             check_charge(fmt, &[("full_well_fraction", 0.8), ("spread_px", 1.5)], &[(40, 40, 6, 4), (100, 70, 3, 3)]);
         }
+    }
+
+    #[test]
+    fn state_kept_across_frames_does_not_change_the_output() {
+        // The pool keeps stale values between frames (acc, stamps of earlier fills): a reused
+        // instance, one whose fill generation is about to wrap around, and a fresh one give the
+        // same bytes, frame after frame, with different saturated regions per frame.
+        let p = params(&[("full_well_fraction", 0.6), ("spread_px", 0.5), ("exposure_gain", 1.4)]);
+        let frames: Vec<Frame> = [(60, 45, 30, 30), (10, 100, 20, 20), (90, 5, 40, 12)]
+            .iter()
+            .map(|&spot| scene(PixelFormat::Mono16, 160, 128, &[spot]))
+            .collect();
+        let mut reused = Blooming::default();
+        let mut wrapping = Blooming { generation: u32::MAX - 3, ..Default::default() };
+        for _ in 0..2 {
+            for f in &frames {
+                let mut fresh_out = f.clone();
+                let fresh = run(&mut fresh_out, &p);
+                assert!(fresh.fallback_dn() > 0.0, "the fill runs (it uses the stamps)");
+                for b in [&mut reused, &mut wrapping] {
+                    let mut out = f.clone();
+                    b.apply(&mut out, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
+                    assert!(out == fresh_out, "reused state changed the output");
+                }
+            }
+        }
+        assert!(wrapping.generation < u32::MAX - 3, "the generation wrapped around");
     }
 
     #[test]
