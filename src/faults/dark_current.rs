@@ -123,6 +123,9 @@ pub struct PoissonTable {
     cdf: Vec<f64>,
     /// Per bucket: the DN offset, or AMBIGUOUS.
     quant: Vec<i32>,
+    /// Per bucket: the first k with cdf[k] > the bucket's lower edge (where `resolve` starts).
+    // allocation: once per parameter change
+    start: Vec<u32>,
     dn_per_e: f64,
     /// Index bits of the buckets (quant.len() = 1 << bits).
     bits: u32,
@@ -160,6 +163,7 @@ impl PoissonTable {
         let buckets = 1usize << bits;
         self.bits = bits;
         self.quant.clear();
+        self.start.clear();
         let mut k = 0usize;
         for u in 0..buckets {
             let a = u as f64 / buckets as f64;
@@ -169,6 +173,7 @@ impl PoissonTable {
             }
             let q = if self.cdf[k] >= b { self.offset(k as u64) } else { AMBIGUOUS };
             self.quant.push(q);
+            self.start.push(k as u32);
         }
     }
 
@@ -186,7 +191,12 @@ impl PoissonTable {
     #[cold]
     fn resolve(&self, u: usize, rng: &mut Rng) -> i32 {
         let x = (u as f64 + rng.uniform()) / self.quant.len() as f64;
-        let k = self.cdf.partition_point(|&c| c <= x);
+        // The first k with cdf[k] > x: every k below the bucket's start has cdf[k] <= its lower
+        // edge <= x, so the search starts there (the same k as a search of the whole CDF).
+        let mut k = self.start[u] as usize;
+        while k + 1 < self.cdf.len() && self.cdf[k] <= x {
+            k += 1;
+        }
         self.offset(k as u64)
     }
 
@@ -374,6 +384,29 @@ mod tests {
             let p0 = (-lam).exp();
             let f0 = xs.iter().filter(|&&x| x == 0.0).count() as f64 / nf;
             assert!((f0 - p0).abs() <= 5.0 * (p0 * (1.0 - p0) / nf).sqrt() + 1e-12, "lambda {lam}: P0 {f0} vs {p0}");
+        }
+    }
+
+    #[test]
+    fn resolving_from_the_bucket_start_equals_a_full_cdf_search() {
+        for (lambda, dn_per_e) in [(0.3, 1.0), (30.0, 0.1), (400.0, 0.25), (5000.0, 0.02)] {
+            let mut t = PoissonTable::default();
+            t.prepare(lambda, dn_per_e);
+            let (mut r1, mut r2) = (Rng::new(11), Rng::new(11));
+            let mut checked = 0;
+            for u in 0..t.quant.len() {
+                if t.quant[u] != AMBIGUOUS {
+                    continue;
+                }
+                for _ in 0..20 {
+                    let got = t.resolve(u, &mut r1);
+                    let x = (u as f64 + r2.uniform()) / t.quant.len() as f64;
+                    let want = t.offset(t.cdf.partition_point(|&c| c <= x) as u64);
+                    assert_eq!(got, want, "lambda {lambda}, bucket {u}");
+                    checked += 1;
+                }
+            }
+            assert!(checked > 0, "lambda {lambda}: some buckets straddle a CDF step");
         }
     }
 
