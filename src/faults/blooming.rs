@@ -122,6 +122,10 @@ pub struct Blooming {
     rounds: usize,
     /// Charge (DN) placed by the breadth-first fill on the last call (kept or lost).
     fallback_dn: f64,
+    /// One worker per channel (each with its own pool); allocated once per channel count.
+    chans: Vec<Blooming>,
+    /// Worker: whether its channel had a flagged tile on the last call.
+    ran: bool,
 }
 
 /// What one channel pass needs to read the frame.
@@ -748,26 +752,30 @@ impl Blooming {
         // Which (tile, channel) the tile pass wrote; the rest is rescaled by the exposure gain.
         self.tile_written.clear();
         self.tile_written.resize(ntiles * ch, false);
+        // One worker (its own pool) per channel; the channels are independent, so they run in
+        // parallel and their results are combined in channel order (the same bytes and totals on
+        // any thread count).
+        if self.chans.len() < ch {
+            self.chans.resize_with(ch, Blooming::default);
+        }
+        for b in &mut self.chans[..ch] {
+            if b.kernel_key != self.kernel_key {
+                b.kh.clone_from(&self.kh);
+                b.kv.clone_from(&self.kv);
+                b.kernel_key = self.kernel_key;
+            }
+        }
+        let (flags, view) = (&self.tile_flags, img.as_ref());
+        self.chans[..ch].par_iter_mut().enumerate().for_each(|(c, b)| b.run_channel(view, c, flags, o));
         for c in 0..ch {
-            if !(0..ntiles).any(|t| self.tile_flags[t * ch + c]) {
+            let b = &mut self.chans[c];
+            if !b.ran {
                 continue;
             }
-            self.reset(w, h);
-            let v = View { img: img.as_ref(), c, gain: o.gain, well: o.well, glow: o.glow };
-            for tid in 0..ntiles {
-                if self.tile_flags[tid * ch + c] {
-                    self.activate(tid, &v);
-                }
-            }
-            match o.glow {
-                None => {
-                    let (lost, rounds) = self.charge(&v, o.vertical_only, o.horizontal_only);
-                    self.lost += lost;
-                    self.rounds = self.rounds.max(rounds);
-                }
-                Some(amp) => self.glow(&v, o.streak_px, amp),
-            }
-            self.write_back(img, c);
+            self.lost += b.lost;
+            self.rounds = self.rounds.max(b.rounds);
+            self.fallback_dn += b.fallback_dn;
+            b.write_back(img, c, &mut self.tile_written, &mut self.streak_list, &mut self.streak_buf);
         }
         if o.gain != 1.0 {
             self.rescale(img, o.gain);
@@ -783,12 +791,52 @@ impl Blooming {
         }
     }
 
-    /// Write channel `c` of the active tiles into the frame.
-    fn write_back<T: Sample>(&mut self, img: &mut ImageMut<'_, T>, c: usize) {
+    /// Channel worker: load the flagged tiles of channel `c` and run the charge or glow pass
+    /// (results in `ran`, `lost`, `rounds`, `fallback_dn`, the pool, `streaks`, `streak_buf`).
+    fn run_channel<T: Sample>(&mut self, view: ImageRef<'_, T>, c: usize, flags: &[bool], o: &Opts) {
+        self.ran = false;
+        self.lost = 0.0;
+        self.rounds = 0;
+        self.fallback_dn = 0.0;
+        self.streaks.clear();
+        self.streak_buf.clear();
+        let (w, h, ch) = (view.width, view.height, view.channels);
+        let ntiles = w.div_ceil(TILE) * h.div_ceil(TILE);
+        if !(0..ntiles).any(|t| flags[t * ch + c]) {
+            return;
+        }
+        self.ran = true;
+        self.reset(w, h);
+        let v = View { img: view, c, gain: o.gain, well: o.well, glow: o.glow };
+        for tid in 0..ntiles {
+            if flags[tid * ch + c] {
+                self.activate(tid, &v);
+            }
+        }
+        match o.glow {
+            None => {
+                let (lost, rounds) = self.charge(&v, o.vertical_only, o.horizontal_only);
+                self.lost = lost;
+                self.rounds = rounds;
+            }
+            Some(amp) => self.glow(&v, o.streak_px, amp),
+        }
+    }
+
+    /// Write channel `c` of the worker's active tiles into the frame, mark them in
+    /// `tile_written` and hand its glow streaks to `streak_list` / `streak_buf`.
+    fn write_back<T: Sample>(
+        &mut self,
+        img: &mut ImageMut<'_, T>,
+        c: usize,
+        tile_written: &mut [bool],
+        streak_list: &mut Vec<(u32, u32, u32, u32)>,
+        streak_buf: &mut Vec<f32>,
+    ) {
         let (w, h, ch, stride) = (img.width, img.height, img.channels, img.stride);
         for s in 0..self.active.len() {
             let tid = self.active[s] as usize;
-            self.tile_written[tid * ch + c] = true;
+            tile_written[tid * ch + c] = true;
             let (tx, ty) = (tid % self.ntx, tid / self.ntx);
             for ly in 0..TILE.min(h - ty * TILE) {
                 let y = ty * TILE + ly;
@@ -799,9 +847,10 @@ impl Blooming {
         }
         // Glow streaks of this channel: kept for the end (the rescale pass runs first).
         for &(x, y0, y1) in &self.streaks {
-            self.streak_list.push((c as u32, x, y0, y1));
+            streak_list.push((c as u32, x, y0, y1));
         }
         self.streaks.clear();
+        streak_buf.extend_from_slice(&self.streak_buf);
     }
 
     /// Rescale every sample the tile pass did not write by the exposure gain,
@@ -963,7 +1012,9 @@ mod tests {
             .map(|&spot| scene(PixelFormat::Mono16, 160, 128, &[spot]))
             .collect();
         let mut reused = Blooming::default();
-        let mut wrapping = Blooming { generation: u32::MAX - 3, ..Default::default() };
+        // (Mono: channel 0's worker does the fill.)
+        let mut wrapping =
+            Blooming { chans: vec![Blooming { generation: u32::MAX - 3, ..Default::default() }], ..Default::default() };
         for _ in 0..2 {
             for f in &frames {
                 let mut fresh_out = f.clone();
@@ -976,7 +1027,7 @@ mod tests {
                 }
             }
         }
-        assert!(wrapping.generation < u32::MAX - 3, "the generation wrapped around");
+        assert!(wrapping.chans[0].generation < u32::MAX - 3, "the generation wrapped around");
     }
 
     #[test]
