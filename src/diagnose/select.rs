@@ -696,7 +696,10 @@ pub fn above_floor(p: &Params) -> bool {
         "gain_offset" => (g("gain") - 1.0).abs() >= 0.005 || g("offset_dn").abs() >= 0.5,
         "gamma" => (g("gamma") - 1.0).abs() >= 0.01,
         "smear" => g("strength") >= 2e-4,
-        "blooming" => g("full_well_fraction") <= 0.99,
+        // A well within 2 % of full scale caps only the brightest few DN: indistinguishable from
+        // what PRNU, noise or JPEG ringing do to clipped pixels (the fitted "well" then only
+        // lowers the mean of clipped samples), so it is not reported as charge overflow.
+        "blooming" => g("full_well_fraction") <= 0.98,
         "lens_flare" => g("intensity") >= 0.003,
         _ => true,
     }
@@ -1030,6 +1033,11 @@ mod tests {
         assert!(!above_floor(&g));
         g.set("offset_dn", -2.0).unwrap();
         assert!(above_floor(&g));
+        let mut b = Params::defaults(registry::find("blooming").unwrap().info);
+        b.set("full_well_fraction", 0.987).unwrap();
+        assert!(!above_floor(&b), "a well 1.3 % below full scale is clipping, not overflow");
+        b.set("full_well_fraction", 0.94).unwrap();
+        assert!(above_floor(&b));
     }
 
     #[test]
