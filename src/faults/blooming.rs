@@ -257,11 +257,21 @@ impl Blooming {
     fn scatter<T: Sample>(&mut self, s: usize, v: &View<'_, T>) -> f64 {
         let (rh, rv) = (self.kh.len() / 2, self.kv.len() / 2);
         let (lw, lh) = (TILE + 2 * rh, TILE + 2 * rv);
-        self.hbuf.clear();
+        // Only the rows of the tile that hold excess (and the rows the vertical kernel reaches
+        // from them) can be non-zero: just those are cleared, spread and distributed. Zero rows
+        // add nothing anywhere, so the result is the same as for the whole tile.
+        let exc = &self.exc[s * TT..(s + 1) * TT];
+        let nonzero = |ly: &usize| exc[ly * TILE..(ly + 1) * TILE].iter().any(|&e| e != 0.0);
+        let (Some(y0), Some(y1)) = ((0..TILE).find(nonzero), (0..TILE).rev().find(nonzero)) else {
+            self.has_exc[s] = false;
+            return 0.0;
+        };
         self.hbuf.resize(TILE * lw, 0.0);
-        self.lbuf.clear();
+        self.hbuf[y0 * lw..(y1 + 1) * lw].fill(0.0);
         self.lbuf.resize(lh * lw, 0.0);
-        scatter_passes(&self.exc[s * TT..(s + 1) * TT], &self.kh, &self.kv, &mut self.hbuf, &mut self.lbuf, lw, 0u8);
+        let (l0, l1) = (y0, y1 + 2 * rv + 1);
+        self.lbuf[l0 * lw..l1 * lw].fill(0.0);
+        scatter_passes(exc, &self.kh, &self.kv, &mut self.hbuf, &mut self.lbuf, lw, y0, y1 + 1, 0u8);
         self.exc[s * TT..(s + 1) * TT].iter_mut().for_each(|e| *e = 0.0);
         self.has_exc[s] = false;
         let tid = self.active[s] as usize;
@@ -275,8 +285,8 @@ impl Blooming {
         let lbuf = std::mem::take(&mut self.lbuf);
         for dty in -1..=1isize {
             let nty = ty + dty;
-            // Rows of lbuf that fall in tile row nty.
-            let (y_lo, y_hi) = ((nty * t).max(oy), ((nty + 1) * t).min(oy + lh as isize));
+            // Rows of lbuf that fall in tile row nty (and may be non-zero).
+            let (y_lo, y_hi) = ((nty * t).max(oy + l0 as isize), ((nty + 1) * t).min(oy + l1 as isize));
             if y_lo >= y_hi {
                 continue;
             }
@@ -536,8 +546,20 @@ impl Blooming {
 multiversion! {
     /// Separable spread of one tile's excess (`TILE` x `TILE`) into `lbuf` ((TILE + 2 rv) rows of
     /// `lw` = TILE + 2 rh): horizontal kernel into `hbuf`, then the vertical kernel.
-    fn scatter_passes<T: Copy>(exc: &[f32], kh: &[f32], kv: &[f32], hbuf: &mut [f32], lbuf: &mut [f32], lw: usize, _t: T) {
-        for ly in 0..TILE {
+    /// Only rows `y0..y1` of `exc` are read (the others must be zero); the matching rows of
+    /// `hbuf` and rows `y0..y1 + kv.len() - 1` of `lbuf` must be zero on entry.
+    fn scatter_passes<T: Copy>(
+        exc: &[f32],
+        kh: &[f32],
+        kv: &[f32],
+        hbuf: &mut [f32],
+        lbuf: &mut [f32],
+        lw: usize,
+        y0: usize,
+        y1: usize,
+        _t: T,
+    ) {
+        for ly in y0..y1 {
             let e_row = &exc[ly * TILE..][..TILE];
             if e_row.iter().all(|&e| e == 0.0) {
                 continue;
@@ -550,7 +572,7 @@ multiversion! {
                 }
             }
         }
-        for ly in 0..TILE {
+        for ly in y0..y1 {
             let h_row = &hbuf[ly * lw..][..lw];
             if h_row.iter().all(|&x| x == 0.0) {
                 continue;
