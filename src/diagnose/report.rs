@@ -45,6 +45,21 @@ pub struct TestRow {
     pub evidence: String,
 }
 
+impl TestRow {
+    /// The report row of a signature test (values rounded for the report).
+    pub fn of(s: &super::Signature) -> TestRow {
+        TestRow {
+            effect: s.effect.to_string(),
+            z: round_sig(s.z, 4),
+            detected: s.detected,
+            size: round_sig(s.size, 5),
+            size_unit: s.size_unit.to_string(),
+            where_: s.where_.clone(),
+            evidence: s.evidence.clone(),
+        }
+    }
+}
+
 /// The whole report.json.
 #[derive(Debug, Clone, Serialize)]
 pub struct Report {
@@ -92,19 +107,7 @@ pub fn build(pairs: &[Pair], loc: &Located, fitted: &Fitted, mut notes: Vec<Stri
         mode: "paired".into(),
         pairs: pairs.len(),
         rmse_after_with_noise: round_sig(fitted.rmse_after_with_noise, 6),
-        tests: loc
-            .signatures
-            .iter()
-            .map(|s| TestRow {
-                effect: s.effect.to_string(),
-                z: round_sig(s.z, 4),
-                detected: s.detected,
-                size: round_sig(s.size, 5),
-                size_unit: s.size_unit.to_string(),
-                where_: s.where_.clone(),
-                evidence: s.evidence.clone(),
-            })
-            .collect(),
+        tests: loc.signatures.iter().map(TestRow::of).collect(),
         selection: fitted.selection_tests.clone(),
         dropped: fitted.dropped.clone(),
         notes,

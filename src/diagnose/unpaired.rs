@@ -615,6 +615,12 @@ fn params_of(name: &str, vals: &[(&str, f64)]) -> Option<Params> {
     Some(p)
 }
 
+/// A finding for `sig` with the parameters `vals` of the library effect `name` (see
+/// [`params_of`]).
+fn finding(sig: &Signature, name: &str, vals: &[(&str, f64)], stat: &'static str, method: &str) -> Option<UFinding> {
+    params_of(name, vals).map(|params| UFinding { sig: sig.clone(), params, stat, method: method.into() })
+}
+
 /// One unpaired finding before it goes into the report.
 struct UFinding {
     sig: Signature,
@@ -821,14 +827,13 @@ pub fn run(
             let hi = (3.0 * gw.value.max(0.05).sqrt()).clamp(1.0, 8.0);
             let (sig_px, _) = stats::golden(&mut eval, 0.0, hi, 14);
             def.set_param("sigma_px", sig_px);
-            if let Some(p) = params_of("defocus", &[("sigma_px", sig_px)]) {
-                found.push(UFinding {
-                    sig: def.clone(),
-                    params: p,
-                    stat: "width",
-                    method: "moment matching: median edge spread of the sims through the library defocus (with the fitted noise)".into(),
-                });
-            }
+            found.extend(finding(
+                &def,
+                "defocus",
+                &[("sigma_px", sig_px)],
+                "width",
+                "moment matching: median edge spread of the sims through the library defocus (with the fitted noise)",
+            ));
         }
     } else {
         def.evidence = "too few strong isolated edges in one of the sets".into();
@@ -891,16 +896,13 @@ pub fn run(
                 bl.set_param("full_well_fraction", 1.0);
                 bl.set_param("spread_px", sp);
                 bl.set_param("exposure_gain", g);
-                if let Some(p) =
-                    params_of("blooming", &[("full_well_fraction", 1.0), ("spread_px", sp), ("exposure_gain", g)])
-                {
-                    found.push(UFinding {
-                        sig: bl.clone(),
-                        params: p,
-                        stat: "halo",
-                        method: "moment matching: halo profile and saturated fraction of the sims through the library blooming (exposure gain, spread)".into(),
-                    });
-                }
+                found.extend(finding(
+                    &bl,
+                    "blooming",
+                    &[("full_well_fraction", 1.0), ("spread_px", sp), ("exposure_gain", g)],
+                    "halo",
+                    "moment matching: halo profile and saturated fraction of the sims through the library blooming (exposure gain, spread)",
+                ));
             }
         }
         _ => bl.evidence = "no saturated regions in one of the sets: blooming cannot be compared".into(),
@@ -929,16 +931,13 @@ pub fn run(
                 .map(|f| f.params.get("gain_e_per_dn"))
                 .unwrap_or(1e3);
             dk.set_param("mean_dn", gd.value);
-            if let Some(p) =
-                params_of("dark_current", &[("mean_dn", gd.value), ("hot_pixel_rate", 0.0), ("gain_e_per_dn", gain)])
-            {
-                found.push(UFinding {
-                    sig: dk.clone(),
-                    params: p,
-                    stat: "dark",
-                    method: "level difference of the darkest regions (censored fits)".into(),
-                });
-            }
+            found.extend(finding(
+                &dk,
+                "dark_current",
+                &[("mean_dn", gd.value), ("hot_pixel_rate", 0.0), ("gain_e_per_dn", gain)],
+                "dark",
+                "level difference of the darkest regions (censored fits)",
+            ));
         }
     } else {
         dk.evidence = "no dark region (10 % of the pixels below 40 DN) in one of the sets".into();
@@ -1003,14 +1002,13 @@ pub fn run(
             for (n, v) in &vals {
                 cs.set_param(n, *v);
             }
-            if let Some(p) = params_of("channel_shift", &vals) {
-                found.push(UFinding {
-                    sig: cs.clone(),
-                    params: p,
-                    stat: "dx_r",
-                    method: "edge registration of the planes (real minus sim)".into(),
-                });
-            }
+            found.extend(finding(
+                &cs,
+                "channel_shift",
+                &vals,
+                "dx_r",
+                "edge registration of the planes (real minus sim)",
+            ));
         }
     } else {
         cs.evidence = "not colour, or too few edges: channel shift cannot be compared".into();
@@ -1033,14 +1031,13 @@ pub fn run(
         if hp.detected {
             hp.set_param("rate", g.value);
             hp.set_param("offset_dn", excess);
-            if let Some(p) = params_of("hot_pixels", &[("rate", g.value), ("offset_dn", excess)]) {
-                found.push(UFinding {
-                    sig: hp.clone(),
-                    params: p,
-                    stat: "hot",
-                    method: "outlier rate difference".into(),
-                });
-            }
+            found.extend(finding(
+                &hp,
+                "hot_pixels",
+                &[("rate", g.value), ("offset_dn", excess)],
+                "hot",
+                "outlier rate difference",
+            ));
         }
     }
     tests.push(hp);
@@ -1058,14 +1055,13 @@ pub fn run(
         rn.detected = rn.z > z_thr && rn.size >= 0.2;
         if rn.detected {
             rn.set_param("sigma_dn", rn.size);
-            if let Some(p) = params_of("row_noise", &[("sigma_dn", rn.size)]) {
-                found.push(UFinding {
-                    sig: rn.clone(),
-                    params: p,
-                    stat: "row",
-                    method: "split-half covariance of row means (real minus sim)".into(),
-                });
-            }
+            found.extend(finding(
+                &rn,
+                "row_noise",
+                &[("sigma_dn", rn.size)],
+                "row",
+                "split-half covariance of row means (real minus sim)",
+            ));
         }
     } else {
         rn.evidence = "no dark background rows in one of the sets".into();
@@ -1078,15 +1074,15 @@ pub fn run(
     let sref: Vec<&[Plane]> = sp.iter().map(|v| v.as_slice()).collect();
     let mut jp = jpeg::test_planes(&rref, &sref);
     jp.detected = jp.z > z_thr.max(8.0) && jp.param("quality").unwrap_or(100.0) < 98.0;
-    if jp.detected
-        && let Some(p) = params_of("jpeg", &[("quality", jp.param("quality").unwrap_or(90.0).round())])
-    {
-        found.push(UFinding {
-            sig: jp.clone(),
-            params: p,
-            stat: "",
-            method: "quality from the DCT quantisation lattice (libjpeg tables)".into(),
-        });
+    if jp.detected {
+        let q = jp.param("quality").unwrap_or(90.0).round();
+        found.extend(finding(
+            &jp,
+            "jpeg",
+            &[("quality", q)],
+            "",
+            "quality from the DCT quantisation lattice (libjpeg tables)",
+        ));
     }
     tests.push(jp);
     // ---- the fitted model and the gaps after ----
@@ -1127,18 +1123,7 @@ pub fn run(
         mode: "unpaired".into(),
         pairs: sims.len().min(reals.len()),
         rmse_after_with_noise: round_sig(after.rmse, 6),
-        tests: tests
-            .iter()
-            .map(|s| TestRow {
-                effect: s.effect.to_string(),
-                z: round_sig(s.z, 4),
-                detected: s.detected,
-                size: round_sig(s.size, 5),
-                size_unit: s.size_unit.to_string(),
-                where_: s.where_.clone(),
-                evidence: s.evidence.clone(),
-            })
-            .collect(),
+        tests: tests.iter().map(TestRow::of).collect(),
         selection: Vec::new(),
         dropped: Vec::new(),
         notes: {
