@@ -1,11 +1,13 @@
 //! CLI tests: the real `faultcam` binary on inputs generated in temporary folders.
 
+#[path = "support/files.rs"]
+mod files;
 use assert_cmd::Command;
 use faultcam::faults::registry;
 use faultcam::sink::{Sink, files::FilesSink};
 use faultcam::source::Source;
 use faultcam::source::synth::SynthSource;
-use std::collections::BTreeMap;
+use files::pngs;
 use std::path::Path;
 
 fn faultcam() -> Command {
@@ -21,16 +23,6 @@ fn make_inputs(dir: &Path, n: usize, opts: &str) {
         sink.write_frame(&f, Some(&format!("img_{i:03}.png"))).unwrap();
         i += 1;
     }
-}
-
-/// File name → bytes of every image file (not logs) in `dir`.
-fn images(dir: &Path) -> BTreeMap<String, Vec<u8>> {
-    std::fs::read_dir(dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "png"))
-        .map(|p| (p.file_name().unwrap().to_string_lossy().into_owned(), std::fs::read(&p).unwrap()))
-        .collect()
 }
 
 fn log_records(path: &Path) -> Vec<serde_json::Value> {
@@ -136,7 +128,7 @@ fn run_synth_to_files_writes_n_frames_and_n_records() {
         .arg(&log)
         .assert()
         .success();
-    let imgs = images(&out);
+    let imgs = pngs(&out);
     assert_eq!(
         imgs.keys().cloned().collect::<Vec<_>>(),
         (0..5).map(|i| format!("frame_{i:06}.png")).collect::<Vec<_>>()
@@ -167,7 +159,7 @@ fn run_synth_to_files_writes_n_frames_and_n_records() {
         .arg(&cfg)
         .assert()
         .success();
-    assert_eq!(images(&out2).len(), 3);
+    assert_eq!(pngs(&out2).len(), 3);
     assert_eq!(count(&log_records(&out2.join("groundtruth.jsonl")), "frame"), 3);
 }
 
@@ -190,7 +182,7 @@ fn run_files_logs_skipped_inputs_and_keeps_names() {
         .arg(&cfg)
         .assert()
         .success();
-    assert_eq!(images(&out).keys().cloned().collect::<Vec<_>>(), ["img_000.png", "img_002.png"]);
+    assert_eq!(pngs(&out).keys().cloned().collect::<Vec<_>>(), ["img_000.png", "img_002.png"]);
     let recs = log_records(&out.join("groundtruth.jsonl"));
     assert_eq!(count(&recs, "frame"), 2);
     let skip = recs.iter().find(|r| r["record"] == "skip").unwrap();
@@ -230,7 +222,7 @@ fn apply_shards_reproduce_the_unsharded_output_exactly() {
 
     let whole = dir.path().join("whole");
     apply(&inp, &whole, &cfg, &["--threads", "2"]);
-    let expected = images(&whole);
+    let expected = pngs(&whole);
     assert_eq!(expected.len(), 8, "10 inputs, one corrupt, one wrong size: {:?}", expected.keys());
     assert!(!expected.contains_key("img_004.png") && !expected.contains_key("img_007.png"));
     let recs = log_records(&whole.join("groundtruth.jsonl"));
@@ -249,7 +241,7 @@ fn apply_shards_reproduce_the_unsharded_output_exactly() {
         frames += count(&log_records(&log), "frame");
     }
     assert_eq!(frames, 8);
-    let got = images(&sharded);
+    let got = pngs(&sharded);
     assert_eq!(got.keys().collect::<Vec<_>>(), expected.keys().collect::<Vec<_>>());
     for (name, bytes) in &expected {
         assert!(got[name] == *bytes, "{name}: sharded output differs from the unsharded one");
@@ -270,7 +262,7 @@ fn apply_same_seed_same_bytes_on_1_and_2_threads_and_seed_matters() {
     apply(&inp, &a, &cfg, &["--threads", "1", "--seed", "11"]);
     apply(&inp, &b, &cfg, &["--threads", "2", "--seed", "11"]);
     apply(&inp, &c, &cfg, &["--threads", "2", "--seed", "12"]);
-    let (ia, ib, ic) = (images(&a), images(&b), images(&c));
+    let (ia, ib, ic) = (pngs(&a), pngs(&b), pngs(&c));
     assert_eq!(ia.len(), 5);
     assert!(ia == ib, "--threads 1 and --threads 2 differ");
     for (name, bytes) in &ia {
@@ -329,7 +321,7 @@ fn apply_masks_label_exactly_the_changed_pixels_and_name_the_files_in_the_log() 
     apply(&inp, &plain, &cfg, &["--threads", "2"]);
     let out = dir.path().join("out");
     apply(&inp, &out, &cfg, &["--threads", "2", "--mask-deltas"]);
-    assert_eq!(images(&plain), images(&out), "masks do not change the output");
+    assert_eq!(pngs(&plain), pngs(&out), "masks do not change the output");
     let recs = log_records(&out.join("groundtruth.jsonl"));
     let frames: Vec<_> = recs.iter().filter(|r| r["record"] == "frame").collect();
     assert_eq!(frames.len(), 3);

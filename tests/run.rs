@@ -3,8 +3,11 @@
 //! of folders, the overrun policy, SIGINT, and every example campaign. Frame counts, order,
 //! content (against the chain applied in-process) and the ground-truth log are checked.
 
+#[path = "support/files.rs"]
+mod files;
 use faultcam::faults::chain::{Chain, FrameReport};
 use faultcam::{FaultConfig, Outcome};
+use files::png_folder;
 use serde_json::Value;
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -168,15 +171,6 @@ fn fake_camera_through_faultcam_into_files() {
     let s = summary(&recs);
     assert_eq!((s["frames_in"].as_u64(), s["unaccounted"].as_i64()), (Some(10), Some(0)));
     assert_eq!(s["skipped"].as_u64().unwrap() as usize, recs.iter().filter(|r| r["record"] == "skip").count());
-}
-
-fn png_folder(n: usize) -> tempfile::TempDir {
-    let dir = tempfile::tempdir().unwrap();
-    for i in 0..n {
-        let img = image::GrayImage::from_fn(16, 8, |x, y| image::Luma([(x * 10 + y + i as u32 * 20) as u8]));
-        img.save(dir.path().join(format!("img_{i:03}.png"))).unwrap();
-    }
-    dir
 }
 
 #[test]

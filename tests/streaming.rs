@@ -4,6 +4,8 @@
 //! once in the ground-truth log and that the log agrees with the summary. No test asserts an
 //! upper bound on time; the few lower bounds follow from the pipeline's own sleeps.
 
+#[path = "support/files.rs"]
+mod files;
 use faultcam::control::{Controller, LogEvent};
 use faultcam::faults::chain::{Chain, FrameReport};
 use faultcam::faults::{Outcome, default_params};
@@ -14,6 +16,7 @@ use faultcam::sink::null::NullSink;
 use faultcam::sink::{Sink, SinkError};
 use faultcam::source::Source;
 use faultcam::source::synth::SynthSource;
+use files::png_folder;
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -165,18 +168,9 @@ fn paced_replay_captures_on_the_frame_clock() {
     }
 }
 
-fn small_png_folder(n: usize) -> tempfile::TempDir {
-    let dir = tempfile::tempdir().unwrap();
-    for i in 0..n {
-        let img = image::GrayImage::from_fn(16, 8, |x, y| image::Luma([(x * 10 + y + i as u32 * 20) as u8]));
-        img.save(dir.path().join(format!("img_{i:03}.png"))).unwrap();
-    }
-    dir
-}
-
 #[test]
 fn files_loop_and_skip_are_accounted() {
-    let dir = small_png_folder(3);
+    let dir = png_folder(3);
     std::fs::write(dir.path().join("img_001b.png"), b"not a png").unwrap();
     let source = faultcam::source::open(&format!("files:{}?loop=true&fps=50", dir.path().display())).unwrap();
     let opts = PipelineOptions { pacing: Pacing::Timestamps, max_frames: Some(8), ..Default::default() };

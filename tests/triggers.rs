@@ -5,9 +5,11 @@
 //! that the stream never stops, and that replaying the recorded triggers from the ground-truth
 //! log reproduces the output bytes exactly.
 
+#[path = "support/files.rs"]
+mod files;
+use files::pngs;
 use serde_json::Value;
 use serialport::{SerialPort, TTYPort};
-use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -58,15 +60,6 @@ fn log_of(out: &Path) -> Vec<Value> {
         .unwrap()
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
-        .collect()
-}
-
-fn pngs(dir: &Path) -> BTreeMap<String, Vec<u8>> {
-    std::fs::read_dir(dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "png"))
-        .map(|p| (p.file_name().unwrap().to_string_lossy().into_owned(), std::fs::read(&p).unwrap()))
         .collect()
 }
 
