@@ -12,7 +12,7 @@
 //! exact (up to f64 rounding of the CDF), not an approximation.
 
 use super::kit::RngLanes;
-use super::noise::add_table_noise;
+use super::noise::{NoiseTable, add_table_noise};
 use super::util::ROWS_PER_TASK;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, ImageMut, Sample};
@@ -114,6 +114,12 @@ const AMBIGUOUS: i32 = super::noise::RESOLVE;
 const SMALL_BITS: u32 = 12;
 const LARGE_BITS: u32 = 16;
 
+/// DN offset of `k` electrons.
+#[inline]
+fn offset(k: u64, dn_per_e: f64) -> i32 {
+    (k as f64 * dn_per_e + 0.5).floor().min(1e9) as i32
+}
+
 /// Exact Poisson sampler for one mean, producing quantised DN offsets.
 #[derive(Default)]
 pub struct PoissonTable {
@@ -122,7 +128,7 @@ pub struct PoissonTable {
     // allocation: once per parameter change
     cdf: Vec<f64>,
     /// Per bucket: the DN offset, or AMBIGUOUS.
-    quant: Vec<i32>,
+    quant: NoiseTable,
     /// Per bucket: the first k with cdf[k] > the bucket's lower edge (where `resolve` starts).
     // allocation: once per parameter change
     start: Vec<u32>,
@@ -154,7 +160,7 @@ impl PoissonTable {
             *last = 1.0;
         }
         self.fill_buckets(SMALL_BITS);
-        if self.ambiguous_buckets() * 200 > self.quant.len() {
+        if self.ambiguous_buckets() * 200 > self.quant.entries().len() {
             self.fill_buckets(LARGE_BITS);
         }
     }
@@ -162,19 +168,19 @@ impl PoissonTable {
     fn fill_buckets(&mut self, bits: u32) {
         let buckets = 1usize << bits;
         self.bits = bits;
-        self.quant.clear();
         self.start.clear();
+        let (cdf, start, dn_per_e) = (&self.cdf, &mut self.start, self.dn_per_e);
         let mut k = 0usize;
-        for u in 0..buckets {
+        let entries = (0..buckets).map(|u| {
             let a = u as f64 / buckets as f64;
             let b = (u + 1) as f64 / buckets as f64;
-            while self.cdf[k] <= a {
+            while cdf[k] <= a {
                 k += 1;
             }
-            let q = if self.cdf[k] >= b { self.offset(k as u64) } else { AMBIGUOUS };
-            self.quant.push(q);
-            self.start.push(k as u32);
-        }
+            start.push(k as u32);
+            if cdf[k] >= b { offset(k as u64, dn_per_e) } else { AMBIGUOUS }
+        });
+        self.quant.rebuild(bits, entries);
     }
 
     /// Index bits of the bucket table.
@@ -182,15 +188,20 @@ impl PoissonTable {
         self.bits
     }
 
+    /// The bucket table as the noise kernel uses it.
+    pub fn noise_table(&self) -> &NoiseTable {
+        &self.quant
+    }
+
     #[inline]
     fn offset(&self, k: u64) -> i32 {
-        (k as f64 * self.dn_per_e + 0.5).floor().min(1e9) as i32
+        offset(k, self.dn_per_e)
     }
 
     /// Exact count for a straddling bucket `u`.
     #[cold]
     fn resolve(&self, u: usize, rng: &mut Rng) -> i32 {
-        let x = (u as f64 + rng.uniform()) / self.quant.len() as f64;
+        let x = (u as f64 + rng.uniform()) / self.quant.entries().len() as f64;
         // The first k with cdf[k] > x: every k below the bucket's start has cdf[k] <= its lower
         // edge <= x, so the search starts there (the same k as a search of the whole CDF).
         let mut k = self.start[u] as usize;
@@ -203,14 +214,14 @@ impl PoissonTable {
     /// One quantised sample (DN offset) from a 16-bit uniform and the generator.
     #[inline(always)]
     pub fn sample(&self, u16_uniform: usize, rng: &mut Rng) -> i32 {
-        let u = u16_uniform & (self.quant.len() - 1);
-        let q = self.quant[u];
+        let u = u16_uniform & (self.quant.entries().len() - 1);
+        let q = self.quant.entries()[u];
         if q == AMBIGUOUS { self.resolve(u, rng) } else { q }
     }
 
     /// Number of straddling buckets (diagnostics and tests).
     pub fn ambiguous_buckets(&self) -> usize {
-        self.quant.iter().filter(|&&q| q == AMBIGUOUS).count()
+        self.quant.entries().iter().filter(|&&q| q == AMBIGUOUS).count()
     }
 }
 
@@ -305,9 +316,7 @@ fn add_dark<T: Sample>(
         let mut lanes = RngLanes::new(&base.derive(0));
         let mut exact = base.derive(1);
         for row in chunk.chunks_mut(stride) {
-            add_table_noise(&mut row[..row_len], &mut lanes, &table.quant, table.bits, &mut |u| {
-                table.resolve(u, &mut exact)
-            });
+            add_table_noise(&mut row[..row_len], &mut lanes, &table.quant, &mut |u| table.resolve(u, &mut exact));
         }
     });
     // Hot pixels: extra Poisson(lambda * (m - 1)) electrons, drawn serially from their own stream.
@@ -394,13 +403,13 @@ mod tests {
             t.prepare(lambda, dn_per_e);
             let (mut r1, mut r2) = (Rng::new(11), Rng::new(11));
             let mut checked = 0;
-            for u in 0..t.quant.len() {
-                if t.quant[u] != AMBIGUOUS {
+            for u in 0..t.quant.entries().len() {
+                if t.quant.entries()[u] != AMBIGUOUS {
                     continue;
                 }
                 for _ in 0..20 {
                     let got = t.resolve(u, &mut r1);
-                    let x = (u as f64 + r2.uniform()) / t.quant.len() as f64;
+                    let x = (u as f64 + r2.uniform()) / t.quant.entries().len() as f64;
                     let want = t.offset(t.cdf.partition_point(|&c| c <= x) as u64);
                     assert_eq!(got, want, "lambda {lambda}, bucket {u}");
                     checked += 1;

@@ -9,7 +9,7 @@
 //! `v + floor(n + 0.5)`, so the table holds integer DN offsets.
 
 use super::kit::RngLanes;
-use super::noise::{RESOLVE, add_table_noise};
+use super::noise::{NoiseTable, RESOLVE, add_table_noise};
 use super::util::ROWS_PER_TASK;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, Sample};
@@ -211,8 +211,7 @@ impl NormalTable {
 pub struct GaussianNoise {
     normal: Option<NormalTable>,
     key: Option<u64>,
-    // allocation: once per parameter change (4096 entries)
-    quant: Vec<i32>,
+    quant: NoiseTable,
 }
 
 impl Effect for GaussianNoise {
@@ -227,11 +226,11 @@ impl Effect for GaussianNoise {
         }
         let normal = self.normal.get_or_insert_with(NormalTable::default);
         if self.key != Some(sigma.to_bits()) {
-            self.quant.clear();
-            self.quant.extend(normal.mean.iter().map(|m| (sigma * m + 0.5).floor() as i32));
             // The two extreme buckets are drawn exactly (tail_q).
-            self.quant[0] = RESOLVE;
-            self.quant[TABLE_SIZE - 1] = RESOLVE;
+            let entry = |(i, m): (usize, &f64)| {
+                if i == 0 || i == TABLE_SIZE - 1 { RESOLVE } else { (sigma * m + 0.5).floor() as i32 }
+            };
+            self.quant.rebuild(TABLE_BITS, normal.mean.iter().enumerate().map(entry));
             self.key = Some(sigma.to_bits());
         }
         let table = Table { normal, quant: &self.quant, sigma };
@@ -243,7 +242,7 @@ impl Effect for GaussianNoise {
 
 struct Table<'a> {
     normal: &'a NormalTable,
-    quant: &'a [i32],
+    quant: &'a NoiseTable,
     sigma: f64,
 }
 
@@ -257,7 +256,7 @@ fn add_noise<T: Sample>(img: &mut crate::frame::ImageMut<'_, T>, t: &Table<'_>, 
         let mut exact = base.derive(1);
         for row in chunk.chunks_mut(stride) {
             let row = &mut row[..row_len];
-            add_table_noise(row, &mut lanes, t.quant, TABLE_BITS, &mut |idx| tail_q(t, idx, &mut exact));
+            add_table_noise(row, &mut lanes, t.quant, &mut |idx| tail_q(t, idx, &mut exact));
         }
     });
 }

@@ -7,9 +7,12 @@
 //! bucket that straddles a CDF step): the caller's `resolve(index)` draws it exactly, in sample
 //! order, from its own generator.
 //!
-//! [`add_table_noise`] dispatches to an AVX2 version (eight-lane xoshiro256++ state in registers,
-//! gathered table lookups) when the CPU has it; the scalar reference below defines the bytes and
-//! the tests check that both agree.
+//! [`add_table_noise`] dispatches to the fastest exact version the CPU has; the scalar reference
+//! below defines the bytes and the tests check that every version agrees:
+//! - AVX-512 (BW/VL), 8-bit samples, for tables with the two-level form of [`TwoLevel`] (the
+//!   monotone inverse-CDF tables of both effects have it): the offset is computed in registers
+//!   from 64-entry word tables (`vpermi2w`), 32 samples per step, with no memory lookups;
+//! - AVX2: eight-lane xoshiro256++ state in registers, gathered table lookups.
 
 use super::kit::RngLanes;
 use crate::frame::Sample;
@@ -17,25 +20,197 @@ use crate::frame::Sample;
 /// Table entry meaning "ask `resolve`".
 pub const RESOLVE: i32 = i32::MIN;
 
-/// Add table noise to `row` (see the module documentation). `table.len()` must be `1 << bits`,
-/// `bits <= 16`.
+/// Coarse index bits of the two-level form (64 coarse buckets: one `vpermi2w` table).
+const COARSE_BITS: u32 = 6;
+/// Most coarse buckets that may need an exact 64-entry table.
+const MAX_EXACT: usize = 4;
+/// Largest offset magnitude of the two-level form (16-bit lanes, headroom for v + offset).
+const MAX_FAST_OFFSET: i32 = 16384;
+/// Word-table entry for "resolve" in an exact bucket table.
+const EXACT_RESOLVE: i16 = i16::MIN;
+/// "Never" for thresholds and resolve positions (fine indices are below 2^10).
+const NEVER: u16 = u16::MAX;
+
+/// The two-level form of a table with `bits` = 12: index i = 64·c + f (coarse c, fine f).
+/// Coarse bucket c is either *simple*, `table[i] = base[c] + (f >= thr[c] ? delta[c] : 0)`
+/// with at most one entry to resolve (at `f == res[c]`), or one of at most [`MAX_EXACT`]
+/// *exact* buckets with its own 64-entry word table ([`EXACT_RESOLVE`] marking entries to
+/// resolve). [`TwoLevel::compile`] builds it only when it reproduces every entry.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TwoLevel {
+    base: [i16; 64],
+    thr: [u16; 64],
+    delta: [i16; 64],
+    res: [u16; 64],
+    exact_c: [u16; MAX_EXACT],
+    exact: [[i16; 64]; MAX_EXACT],
+    n_exact: usize,
+}
+
+impl TwoLevel {
+    /// The two-level form of `table` (`1 << bits` entries), if it has one.
+    pub fn compile(table: &[i32], bits: u32) -> Option<TwoLevel> {
+        if bits != 2 * COARSE_BITS || table.len() != 1 << bits {
+            return None;
+        }
+        let fine = 1usize << (bits - COARSE_BITS);
+        let mut t = TwoLevel {
+            base: [0; 64],
+            thr: [NEVER; 64],
+            delta: [0; 64],
+            res: [NEVER; 64],
+            exact_c: [NEVER; MAX_EXACT],
+            exact: [[0; 64]; MAX_EXACT],
+            n_exact: 0,
+        };
+        for (c, bucket) in table.chunks(fine).enumerate() {
+            if bucket.iter().any(|&q| q != RESOLVE && !(-MAX_FAST_OFFSET..=MAX_FAST_OFFSET).contains(&q)) {
+                return None;
+            }
+            if !t.simple(c, bucket) {
+                if t.n_exact == MAX_EXACT {
+                    return None;
+                }
+                let k = t.n_exact;
+                t.exact_c[k] = c as u16;
+                for (e, &q) in t.exact[k].iter_mut().zip(bucket) {
+                    *e = if q == RESOLVE { EXACT_RESOLVE } else { q as i16 };
+                }
+                t.n_exact += 1;
+            }
+        }
+        // Belt and braces: the form must give back every entry.
+        (0..table.len()).all(|i| t.lookup(i) == table[i]).then_some(t)
+    }
+
+    /// Fill the simple description of bucket `c`; false when it has none.
+    fn simple(&mut self, c: usize, bucket: &[i32]) -> bool {
+        let resolve: Vec<usize> = (0..bucket.len()).filter(|&f| bucket[f] == RESOLVE).collect();
+        if resolve.len() > 1 {
+            return false;
+        }
+        let vals: Vec<(usize, i32)> = bucket.iter().copied().enumerate().filter(|&(_, q)| q != RESOLVE).collect();
+        let Some(&(_, first)) = vals.first() else { return false };
+        // At most one change of value, at `thr`.
+        let mut thr = None;
+        let mut second = first;
+        for &(f, q) in &vals {
+            if q != second {
+                if thr.is_some() {
+                    return false;
+                }
+                thr = Some(f);
+                second = q;
+            }
+        }
+        self.base[c] = first as i16;
+        self.thr[c] = thr.map_or(NEVER, |f| f as u16);
+        self.delta[c] = (second - first) as i16;
+        self.res[c] = resolve.first().map_or(NEVER, |&f| f as u16);
+        true
+    }
+
+    /// The entry of index `i` as the registers compute it (RESOLVE for entries to resolve).
+    fn lookup(&self, i: usize) -> i32 {
+        let (c, f) = (i >> COARSE_BITS, (i & 63) as u16);
+        if let Some(k) = self.exact_c[..self.n_exact].iter().position(|&e| e as usize == c) {
+            let q = self.exact[k][f as usize];
+            return if q == EXACT_RESOLVE { RESOLVE } else { q as i32 };
+        }
+        if f == self.res[c] {
+            return RESOLVE;
+        }
+        self.base[c] as i32 + if f >= self.thr[c] { self.delta[c] as i32 } else { 0 }
+    }
+
+    /// Number of coarse buckets that need an exact table.
+    pub fn exact_buckets(&self) -> usize {
+        self.n_exact
+    }
+}
+
+/// A noise table (`1 << bits` integer DN offsets, [`RESOLVE`] entries) with its two-level
+/// form, built once per parameter change.
+#[derive(Default)]
+pub struct NoiseTable {
+    // allocation: once per parameter change
+    entries: Vec<i32>,
+    bits: u32,
+    two_level: Option<Box<TwoLevel>>,
+}
+
+impl NoiseTable {
+    /// Rebuild from `1 << bits` entries (`bits <= 16`).
+    pub fn rebuild(&mut self, bits: u32, entries: impl IntoIterator<Item = i32>) {
+        self.entries.clear();
+        self.entries.extend(entries);
+        self.bits = bits;
+        assert!(
+            bits <= 16 && self.entries.len() == 1 << bits,
+            "noise table: {} entries for {bits} bits",
+            self.entries.len()
+        );
+        self.two_level = TwoLevel::compile(&self.entries, bits).map(Box::new);
+    }
+    /// The entries.
+    pub fn entries(&self) -> &[i32] {
+        &self.entries
+    }
+    /// Index bits.
+    pub fn bits(&self) -> u32 {
+        self.bits
+    }
+    /// The two-level form, when the table has one.
+    pub fn two_level(&self) -> Option<&TwoLevel> {
+        self.two_level.as_deref()
+    }
+}
+
+/// Add table noise to `row` (see the module documentation).
 pub fn add_table_noise<T: Sample>(
     row: &mut [T],
     lanes: &mut RngLanes,
-    table: &[i32],
-    bits: u32,
+    table: &NoiseTable,
     resolve: &mut dyn FnMut(usize) -> i32,
 ) {
-    if table.len() != 1 << bits || bits > 16 {
+    let bits = table.bits;
+    let entries = &table.entries[..];
+    if entries.len() != 1 << bits || bits > 16 {
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked just above); the table length was checked.
-        unsafe { avx2::add_table_noise(row, lanes, table, bits, resolve) };
-        return;
+    {
+        if let Some(t) = table.two_level.as_deref()
+            && size_of::<T>() == 1
+            && has_avx512()
+        {
+            // SAFETY: T is one byte wide (u8, the only such Sample), so the row is a byte slice.
+            let bytes = unsafe { std::slice::from_raw_parts_mut(row.as_mut_ptr() as *mut u8, row.len()) };
+            // SAFETY: the CPU supports AVX-512 F/BW/VL (checked just above).
+            unsafe { avx512::add_two_level(bytes, lanes, t, entries, bits, resolve) };
+            return;
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above); the table length was checked.
+            unsafe { avx2::add_table_noise(row, lanes, entries, bits, resolve) };
+            return;
+        }
     }
-    add_table_noise_scalar(row, lanes, table, bits, resolve)
+    add_table_noise_scalar(row, lanes, entries, bits, resolve)
+}
+
+/// Whether the AVX-512 kernels can run (F, BW and VL), unless `FAULTCAM_NO_AVX512` is set
+/// (to time or test the AVX2 versions on the same machine).
+#[cfg(target_arch = "x86_64")]
+pub fn has_avx512() -> bool {
+    use std::sync::OnceLock;
+    static HAS: OnceLock<bool> = OnceLock::new();
+    *HAS.get_or_init(|| {
+        std::env::var_os("FAULTCAM_NO_AVX512").is_none()
+            && std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512bw")
+            && std::arch::is_x86_feature_detected!("avx512vl")
+    })
 }
 
 /// Scalar reference of [`add_table_noise`].
@@ -246,10 +421,171 @@ pub(crate) mod avx2 {
     }
 }
 
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use super::avx2::{load_state, store_state};
+    use super::{EXACT_RESOLVE, MAX_EXACT, RngLanes, TwoLevel};
+    use std::arch::x86_64::*;
+
+    /// One xoshiro256++ step of the four lanes (as `RngLanes::next4`), with AVX-512VL rotates.
+    #[inline(always)]
+    fn next4(s: &mut [__m256i; 4]) -> __m256i {
+        // SAFETY: only inlined into `add_two_level`, which enables AVX-512 F/VL.
+        unsafe {
+            let out = _mm256_add_epi64(_mm256_rol_epi64::<23>(_mm256_add_epi64(s[0], s[3])), s[0]);
+            let t = _mm256_slli_epi64::<17>(s[1]);
+            s[2] = _mm256_xor_si256(s[2], s[0]);
+            s[3] = _mm256_xor_si256(s[3], s[1]);
+            s[1] = _mm256_xor_si256(s[1], s[2]);
+            s[0] = _mm256_xor_si256(s[0], s[3]);
+            s[2] = _mm256_xor_si256(s[2], t);
+            s[3] = _mm256_rol_epi64::<45>(s[3]);
+            out
+        }
+    }
+
+    /// Samples still to resolve (position in the row, table index), in sample order; fixed
+    /// capacity (no allocation).
+    struct Lanes {
+        pos: [u32; 64],
+        idx: [u16; 64],
+        len: usize,
+    }
+
+    impl Lanes {
+        /// Resolve the listed samples in order (they still hold their input value).
+        #[cold]
+        fn flush(&mut self, row: &mut [u8], resolve: &mut dyn FnMut(usize) -> i32) {
+            for (&p, &i) in self.pos[..self.len].iter().zip(&self.idx[..self.len]) {
+                let v = &mut row[p as usize];
+                *v = (*v as i32).saturating_add(resolve(i as usize)).clamp(0, 255) as u8;
+            }
+            self.len = 0;
+        }
+    }
+
+    /// A 64-entry word table as two registers (the operands of `vpermi2w`).
+    #[inline(always)]
+    fn pair<E>(t: &[E; 64]) -> (__m512i, __m512i) {
+        assert_eq!(size_of::<E>(), 2);
+        // SAFETY: 64 two-byte entries = 128 bytes; unaligned loads (AVX-512F context only).
+        unsafe {
+            let p = t.as_ptr() as *const __m512i;
+            (_mm512_loadu_si512(p), _mm512_loadu_si512(p.add(1)))
+        }
+    }
+
+    /// [`super::add_table_noise`] for 8-bit samples and a table with a two-level form
+    /// (`bits` = 12): 32 samples per step, offsets computed in registers.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl")]
+    pub unsafe fn add_two_level(
+        row: &mut [u8],
+        lanes: &mut RngLanes,
+        t: &TwoLevel,
+        entries: &[i32],
+        bits: u32,
+        resolve: &mut dyn FnMut(usize) -> i32,
+    ) {
+        debug_assert_eq!(bits, 12);
+        let mut s = load_state(lanes);
+        let (base_lo, base_hi) = pair(&t.base);
+        let (thr_lo, thr_hi) = pair(&t.thr);
+        let (delta_lo, delta_hi) = pair(&t.delta);
+        let (res_lo, res_hi) = pair(&t.res);
+        let n_exact = t.n_exact.min(MAX_EXACT);
+        let exact: [(__m512i, __m512i, __m512i); MAX_EXACT] = std::array::from_fn(|k| {
+            let (lo, hi) = pair(&t.exact[k]);
+            (_mm512_set1_epi16(t.exact_c[k] as i16), lo, hi)
+        });
+        let idx_mask = _mm512_set1_epi16(0x0fff);
+        let fine_mask = _mm512_set1_epi16(0x003f);
+        let sentinel = _mm512_set1_epi16(EXACT_RESOLVE);
+        let zero = _mm512_setzero_si512();
+        let mut pending = Lanes { pos: [0; 64], idx: [0; 64], len: 0 };
+        let n32 = row.len() / 32 * 32;
+        for bi in 0..n32 / 32 {
+            let r0 = next4(&mut s);
+            let r1 = next4(&mut s);
+            // Sample j of the 32 is 16-bit element j (the scalar order: r0 then r1).
+            let u = _mm512_inserti64x4::<1>(_mm512_castsi256_si512(r0), r1);
+            let idx = _mm512_and_si512(u, idx_mask);
+            let c = _mm512_srli_epi16::<6>(idx);
+            let f = _mm512_and_si512(idx, fine_mask);
+            let mut val = _mm512_permutex2var_epi16(base_lo, c, base_hi);
+            let step = _mm512_cmpge_epu16_mask(f, _mm512_permutex2var_epi16(thr_lo, c, thr_hi));
+            val = _mm512_mask_add_epi16(val, step, val, _mm512_permutex2var_epi16(delta_lo, c, delta_hi));
+            let mut m_res = _mm512_cmpeq_epi16_mask(f, _mm512_permutex2var_epi16(res_lo, c, res_hi));
+            for &(ec, lo, hi) in &exact[..n_exact] {
+                let mk = _mm512_cmpeq_epi16_mask(c, ec);
+                val = _mm512_mask_mov_epi16(val, mk, _mm512_permutex2var_epi16(lo, f, hi));
+            }
+            m_res |= _mm512_cmpeq_epi16_mask(val, sentinel);
+            if m_res != 0 {
+                // Lanes to resolve: left unchanged now (offset 0), resolved in sample order
+                // after the loop (or when the list is full), from the sample itself.
+                let mut ix = [0u16; 32];
+                // SAFETY: 32 u16 = 64 bytes; unaligned store.
+                unsafe { _mm512_storeu_si512(ix.as_mut_ptr() as *mut __m512i, idx) };
+                let mut m = m_res;
+                while m != 0 {
+                    let j = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    if pending.len == pending.pos.len() {
+                        pending.flush(row, resolve);
+                    }
+                    pending.pos[pending.len] = (bi * 32 + j) as u32;
+                    pending.idx[pending.len] = ix[j];
+                    pending.len += 1;
+                }
+                val = _mm512_maskz_mov_epi16(!m_res, val);
+            }
+            // SAFETY: 32 bytes at 32·bi lie inside the row (bi < n32 / 32); unaligned access.
+            unsafe {
+                let p = row.as_mut_ptr().add(bi * 32) as *mut __m256i;
+                let v = _mm512_cvtepu8_epi16(_mm256_loadu_si256(p));
+                // |val| <= 16384: no saturation; clip to [0, 255] as the reference.
+                let sum = _mm512_max_epi16(_mm512_adds_epi16(v, val), zero);
+                _mm256_storeu_si256(p, _mm512_cvtusepi16_epi8(sum));
+            }
+        }
+        pending.flush(row, resolve);
+        store_state(lanes, &s);
+        if n32 < row.len() {
+            super::add_table_noise_scalar(&mut row[n32..], lanes, entries, bits, resolve);
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::rng::Rng;
+
+    /// The dispatched kernel (whatever this CPU runs) against the scalar reference on rows of
+    /// every length class, with the resolve calls in the same order.
+    fn compare<T: Sample + std::fmt::Debug + PartialEq>(table: &NoiseTable, max: u32, r: &mut Rng) {
+        let bits = table.bits();
+        for n in [0usize, 1, 15, 16, 17, 31, 32, 33, 100, 1921, 5760] {
+            let row: Vec<T> = (0..n).map(|_| T::from_u32_sat(r.below(max as u64 + 1) as u32)).collect();
+            let seed = Rng::new(n as u64 + bits as u64);
+            let (mut a, mut b) = (row.clone(), row.clone());
+            let (mut la, mut lb) = (RngLanes::new(&seed), RngLanes::new(&seed));
+            let (mut ra, mut rb) = (Rng::new(9), Rng::new(9));
+            let (mut ca, mut cb) = (Vec::new(), Vec::new());
+            add_table_noise_scalar(&mut a, &mut la, table.entries(), bits, &mut |i| {
+                ca.push(i);
+                ra.below(41) as i32 - 20
+            });
+            add_table_noise(&mut b, &mut lb, table, &mut |i| {
+                cb.push(i);
+                rb.below(41) as i32 - 20
+            });
+            assert_eq!(a, b, "bits {bits}, {n} samples");
+            assert_eq!(ca, cb, "resolve calls in the same order");
+            // Both continue the same stream.
+            assert_eq!(la.next4(), lb.next4());
+        }
+    }
 
     fn check<T: Sample + std::fmt::Debug + PartialEq>(max: u32) {
         let mut r = Rng::new(3);
@@ -257,31 +593,15 @@ mod tests {
         // so the fix-up list fills and flushes mid-row).
         for (bits, every) in [(12u32, 997usize), (16, 997), (12, 7)] {
             // Offsets of either sign and size (clipping at both ends), some entries to resolve.
-            let table: Vec<i32> = (0..1usize << bits)
+            let entries: Vec<i32> = (0..1usize << bits)
                 .map(|i| {
                     if i % every == 5 { RESOLVE } else { (r.below(2 * max as u64 + 1) as i64 - max as i64) as i32 / 3 }
                 })
                 .collect();
-            for n in [0usize, 1, 15, 16, 17, 100, 1921] {
-                let row: Vec<T> = (0..n).map(|_| T::from_u32_sat(r.below(max as u64 + 1) as u32)).collect();
-                let seed = Rng::new(n as u64 + bits as u64);
-                let (mut a, mut b) = (row.clone(), row.clone());
-                let (mut la, mut lb) = (RngLanes::new(&seed), RngLanes::new(&seed));
-                let (mut ra, mut rb) = (Rng::new(9), Rng::new(9));
-                let (mut ca, mut cb) = (Vec::new(), Vec::new());
-                add_table_noise_scalar(&mut a, &mut la, &table, bits, &mut |i| {
-                    ca.push(i);
-                    ra.below(41) as i32 - 20
-                });
-                add_table_noise(&mut b, &mut lb, &table, bits, &mut |i| {
-                    cb.push(i);
-                    rb.below(41) as i32 - 20
-                });
-                assert_eq!(a, b, "bits {bits}, {n} samples");
-                assert_eq!(ca, cb, "resolve calls in the same order");
-                // Both continue the same stream.
-                assert_eq!(la.next4(), lb.next4());
-            }
+            let mut table = NoiseTable::default();
+            table.rebuild(bits, entries);
+            assert!(table.two_level().is_none(), "a random table has no two-level form");
+            compare::<T>(&table, max, &mut r);
         }
     }
 
@@ -291,12 +611,56 @@ mod tests {
         check::<u16>(65535);
     }
 
+    /// The tables of `gaussian_noise` and `dark_current` at typical settings have the two-level
+    /// form (so the AVX-512 kernel runs them), and every kernel gives the reference's bytes.
+    #[test]
+    fn two_level_form_is_exact_for_the_effect_tables() {
+        let mut r = Rng::new(11);
+        let normal = crate::faults::gaussian_noise::conditional_mean_table();
+        // Up to sigma 7 DN the form exists; at 20 DN the tails step too often (AVX2 gathers).
+        for sigma in [0.3, 1.0, 3.0, 4.0, 5.0, 6.0, 7.0, 20.0] {
+            let mut t = NoiseTable::default();
+            let last = normal.len() - 1;
+            t.rebuild(
+                12,
+                normal
+                    .iter()
+                    .enumerate()
+                    .map(|(i, m)| if i == 0 || i == last { RESOLVE } else { (sigma * m + 0.5).floor() as i32 }),
+            );
+            match t.two_level() {
+                Some(tl) => assert!(sigma <= 7.0 && tl.exact_buckets() <= MAX_EXACT),
+                None => assert!(sigma > 7.0, "gaussian sigma {sigma}: no two-level form"),
+            }
+            compare::<u8>(&t, 255, &mut r);
+            compare::<u16>(&t, 65535, &mut r);
+        }
+        let mut poisson = crate::faults::dark_current::PoissonTable::default();
+        for (lambda, dn_per_e) in [(0.5, 1.0), (4.95, 1.0), (10.0, 1.0), (5.0, 2.5), (20.0, 0.4)] {
+            poisson.prepare(lambda, dn_per_e);
+            let t = poisson.noise_table();
+            if t.bits() == 12 {
+                assert!(t.two_level().is_some(), "poisson lambda {lambda}: no two-level form");
+            }
+            compare::<u8>(t, 255, &mut r);
+        }
+        // Every entry of the form is checked when it is built; a table whose buckets change value
+        // more than once (and too often to be exact buckets) has none.
+        let zigzag: Vec<i32> = (0..4096).map(|i| (i % 3) as i32).collect();
+        assert!(TwoLevel::compile(&zigzag, 12).is_none());
+        // Monotone with many steps per bucket in the middle: none either.
+        let steep: Vec<i32> = (0..4096).map(|i| i as i32 / 8).collect();
+        assert!(TwoLevel::compile(&steep, 12).is_none());
+    }
+
     #[test]
     fn offsets_come_from_the_table_with_clipping() {
         // A table with one value: every sample moves by it, clipped.
-        let table = vec![7i32; 1 << 12];
+        let mut table = NoiseTable::default();
+        table.rebuild(12, vec![7i32; 1 << 12]);
+        assert!(table.two_level().is_some());
         let mut row: Vec<u8> = (0..=255).collect();
-        add_table_noise(&mut row, &mut RngLanes::new(&Rng::new(1)), &table, 12, &mut |_| 0);
+        add_table_noise(&mut row, &mut RngLanes::new(&Rng::new(1)), &table, &mut |_| 0);
         for (v, out) in (0..=255u32).zip(&row) {
             assert_eq!(*out as u32, (v + 7).min(255));
         }
