@@ -646,10 +646,10 @@ mod tests {
         }
         // Every entry of the form is checked when it is built; a table whose buckets change value
         // more than once (and too often to be exact buckets) has none.
-        let zigzag: Vec<i32> = (0..4096).map(|i| (i % 3) as i32).collect();
+        let zigzag: Vec<i32> = (0..4096).map(|i: i32| i % 3).collect();
         assert!(TwoLevel::compile(&zigzag, 12).is_none());
         // Monotone with many steps per bucket in the middle: none either.
-        let steep: Vec<i32> = (0..4096).map(|i| i as i32 / 8).collect();
+        let steep: Vec<i32> = (0..4096).map(|i: i32| i / 8).collect();
         assert!(TwoLevel::compile(&steep, 12).is_none());
     }
 
