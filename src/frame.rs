@@ -120,11 +120,27 @@ pub trait Sample: Copy + Send + Sync + Default + PartialOrd + 'static {
     fn from_f32(v: f32) -> Self;
     /// Saturating conversion.
     fn from_u32_sat(v: u32) -> Self;
+    /// The samples as bytes, when they are bytes (8-bit kernels).
+    fn bytes(s: &[Self]) -> Option<&[u8]> {
+        let _ = s;
+        None
+    }
+    /// The samples as mutable bytes, when they are bytes (8-bit kernels).
+    fn bytes_mut(s: &mut [Self]) -> Option<&mut [u8]> {
+        let _ = s;
+        None
+    }
 }
 
 impl Sample for u8 {
     const MAX_F32: f32 = 255.0;
     const MAX_U32: u32 = 255;
+    fn bytes(s: &[u8]) -> Option<&[u8]> {
+        Some(s)
+    }
+    fn bytes_mut(s: &mut [u8]) -> Option<&mut [u8]> {
+        Some(s)
+    }
     #[inline(always)]
     fn to_f32(self) -> f32 {
         self as f32

@@ -6,7 +6,7 @@
 //! loaded into a floating-point pool; everything else is never touched (or, with an exposure
 //! gain, only rescaled).
 
-use super::kit::{max_of_row, multiversion, scale_q16_row};
+use super::kit::{ge_mask_u8, lut_u8_row, max_of_row, multiversion, scale_q16_row};
 use super::util::gaussian_kernel;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, ImageMut, ImageRef, Sample};
@@ -100,12 +100,12 @@ pub struct Blooming {
     streaks: Vec<(u32, u32, u32)>,
     /// Streaks of every channel: (channel, column, first row, end row), added at the end.
     streak_list: Vec<(u32, u32, u32, u32)>,
-    // allocation: once per frame size: per (tile, channel) "holds a sample over W" and
-    // "written by the tile pass"
+    // allocation: once per frame size: per (tile, channel) "holds a sample over W"
     tile_flags: Vec<bool>,
-    tile_written: Vec<bool>,
     // allocation: once per gain and sample width: round(v * exposure_gain)
     lut: Vec<u32>,
+    /// `lut` for 8-bit samples (256 entries).
+    lut8: Vec<u8>,
     lut_gain: Option<u32>,
     /// The gain in Q16 when `(v * g + 2^15) >> 16` equals the table for every v.
     fixed_gain: Option<u32>,
@@ -220,24 +220,16 @@ impl Blooming {
             self.exc[r].fill(0.0);
         }
         let mut any = false;
+        let mut sig = [0f32; TILE];
         for ly in 0..TILE.min(h - ty * TILE) {
             let row = &v.img.row(ty * TILE + ly)[x0 * ch..(x0 + xn) * ch];
             let base = s * TT + ly * TILE;
             let (cur, exc) = (&mut self.cur[base..base + xn], &mut self.exc[base..base + xn]);
-            for ((c, e), px) in cur.iter_mut().zip(exc.iter_mut()).zip(row.chunks_exact(ch)) {
-                let sig = px[v.c].to_f32() * v.gain;
-                match v.glow {
-                    None => {
-                        *c = sig.min(v.well);
-                        *e = (sig - v.well).max(0.0);
-                    }
-                    Some(_) => {
-                        *c = sig;
-                        *e = if sig >= v.well { 1.0 } else { 0.0 };
-                    }
-                }
-                any |= *e > 0.0;
+            // Gather the channel (scalar), then the arithmetic in vectors.
+            for (o, px) in sig[..xn].iter_mut().zip(row.chunks_exact(ch)) {
+                *o = px[v.c].to_f32();
             }
+            load_span(&sig[..xn], v.gain, v.well, v.glow.is_some(), cur, exc, &mut any, 0u8);
         }
         self.has_exc[s] = any;
         s
@@ -644,11 +636,140 @@ multiversion! {
 }
 
 multiversion! {
+    /// Load samples `src` of a tile row with the exposure gain: charge mode `cur = min(s, W)`,
+    /// `exc = max(s - W, 0)`; glow mode `cur = s`, `exc = [s >= W]` (s = src * gain). Sets `any`
+    /// when some `exc` is positive.
+    fn load_span<T: Copy>(
+        src: &[f32],
+        gain: f32,
+        well: f32,
+        glow: bool,
+        cur: &mut [f32],
+        exc: &mut [f32],
+        any: &mut bool,
+        _t: T,
+    ) {
+        let mut flag = 0u32;
+        if glow {
+            for ((c, e), &x) in cur.iter_mut().zip(exc.iter_mut()).zip(src) {
+                let sig = x * gain;
+                *c = sig;
+                *e = if sig >= well { 1.0 } else { 0.0 };
+                flag |= (sig >= well) as u32;
+            }
+        } else {
+            for ((c, e), &x) in cur.iter_mut().zip(exc.iter_mut()).zip(src) {
+                let sig = x * gain;
+                *c = sig.min(well);
+                let over = (sig - well).max(0.0);
+                *e = over;
+                flag |= (over > 0.0) as u32;
+            }
+        }
+        *any |= flag != 0;
+    }
+}
+
+multiversion! {
+    /// Whether each channel of `seg` (interleaved, `ch` channels) holds a sample >= `thr`
+    /// (`out[c] |= ...`).
+    fn channels_reach<T: Sample>(seg: &[T], ch: usize, thr: T, out: &mut [bool]) {
+        if ch == 3 {
+            // Element-wise maxima over 16-pixel blocks keep the channels apart (48 = 16 * 3).
+            let mut m = [T::default(); 48];
+            let mut it = seg.chunks_exact(48);
+            for b in &mut it {
+                for k in 0..48 {
+                    m[k] = if b[k] > m[k] { b[k] } else { m[k] };
+                }
+            }
+            for (k, &v) in it.remainder().iter().enumerate() {
+                m[k] = if v > m[k] { v } else { m[k] };
+            }
+            for (k, &v) in m.iter().enumerate() {
+                out[k % 3] |= v >= thr;
+            }
+        } else {
+            for (c, o) in out.iter_mut().enumerate().take(ch) {
+                *o |= seg.iter().skip(c).step_by(ch).any(|&v| v >= thr);
+            }
+        }
+    }
+}
+
+multiversion! {
     /// Maximum of each `seg`-sample segment of `row` into `out` (one per segment, the last one
     /// possibly shorter).
     fn segment_max<T: Sample>(row: &[T], seg: usize, out: &mut [T]) {
         for (o, s) in out.iter_mut().zip(row.chunks(seg)) {
             *o = s.iter().fold(T::default(), |m, &v| if v > m { v } else { m });
+        }
+    }
+}
+
+/// Flag (tile, channel) pairs of one row from its comparison bits (`bits`: sample i of the row
+/// is bit i; `flags`: `ch` entries per tile).
+fn flag_tiles_from_bits(bits: &[u64], w: usize, ch: usize, flags: &mut [bool]) {
+    // CHANNEL[r][c]: the bits j of a 64-bit word whose samples are in channel c when the word
+    // starts r samples (mod 3) after a pixel boundary.
+    const fn pattern(r: usize, c: usize) -> u64 {
+        let mut m = 0u64;
+        let mut j = 0;
+        while j < 64 {
+            if (r + j) % 3 == c {
+                m |= 1 << j;
+            }
+            j += 1;
+        }
+        m
+    }
+    const CHANNEL: [[u64; 3]; 3] = {
+        let mut t = [[0u64; 3]; 3];
+        let mut r = 0;
+        while r < 3 {
+            let mut c = 0;
+            while c < 3 {
+                t[r][c] = pattern(r, c);
+                c += 1;
+            }
+            r += 1;
+        }
+        t
+    };
+    let span = TILE * ch;
+    let len = w * ch;
+    // Only the words holding a set bit matter; each covers at most three tiles' samples.
+    for (k, &word) in bits.iter().enumerate() {
+        if word == 0 {
+            continue;
+        }
+        let (w0, w1) = (k * 64, (k * 64 + 64).min(len));
+        let mut tx = w0 / span;
+        while tx * span < w1 {
+            // Bits of this word inside tile tx.
+            let (a, b) = ((tx * span).max(w0), ((tx + 1) * span).min(w1));
+            let part = (word >> (a - w0)) & if b - a >= 64 { u64::MAX } else { (1u64 << (b - a)) - 1 };
+            if part != 0 {
+                let f = &mut flags[tx * ch..(tx + 1) * ch];
+                match ch {
+                    1 => f[0] = true,
+                    3 => {
+                        // Bit 0 of `part` is sample a, whose channel is (a - tile start) % 3.
+                        let r = (a - tx * span) % 3;
+                        for (c, fc) in f.iter_mut().enumerate() {
+                            *fc |= part & CHANNEL[r][c] != 0;
+                        }
+                    }
+                    _ => {
+                        for j in 0..b - a {
+                            if part >> j & 1 != 0 {
+                                f[(a + j - tx * span) % ch] = true;
+                            }
+                        }
+                    }
+                }
+            }
+            tx += 1;
         }
     }
 }
@@ -749,8 +870,16 @@ impl Blooming {
             let thr_t = T::from_u32_sat(thr);
             self.tile_flags.par_chunks_mut(ntx * ch).enumerate().for_each(|(ty, flags)| {
                 let mut maxes = [T::default(); 512];
+                // 8-bit: one comparison bit per sample (a row of up to 32768 samples).
+                let mut bits = [0u64; 512];
                 for y in ty * TILE..((ty + 1) * TILE).min(h) {
                     let row = view.row(y);
+                    if let Some(bytes) = T::bytes(row).filter(|b| b.len() <= 512 * 64) {
+                        let bits = &mut bits[..bytes.len().div_ceil(64)];
+                        ge_mask_u8(bytes, thr as u8, bits);
+                        flag_tiles_from_bits(bits, w, ch, flags);
+                        continue;
+                    }
                     // Per-tile maxima of the row in one vectorised call: most tiles are rejected.
                     let maxes = &mut maxes[..ntx.min(512)];
                     segment_max(row, TILE * ch, maxes);
@@ -763,17 +892,12 @@ impl Blooming {
                         if ch == 1 {
                             f[0] = true;
                         } else {
-                            for (c, fc) in f.iter_mut().enumerate() {
-                                *fc |= seg.iter().skip(c).step_by(ch).any(|&v| v >= thr_t);
-                            }
+                            channels_reach(seg, ch, thr_t, f);
                         }
                     }
                 }
             });
         }
-        // Which (tile, channel) the tile pass wrote; the rest is rescaled by the exposure gain.
-        self.tile_written.clear();
-        self.tile_written.resize(ntiles * ch, false);
         // One worker (its own pool) per channel; the channels are independent, so they run in
         // parallel and their results are combined in channel order (the same bytes and totals on
         // any thread count).
@@ -789,6 +913,11 @@ impl Blooming {
         }
         let (flags, view) = (&self.tile_flags, img.as_ref());
         self.chans[..ch].par_iter_mut().enumerate().for_each(|(c, b)| b.run_channel(view, c, flags, o));
+        // The tile pass read the frame; now every sample is rescaled by the exposure gain and the
+        // samples of the tiles the pass worked on are then overwritten with its results.
+        if o.gain != 1.0 {
+            self.rescale(img, o.gain);
+        }
         for c in 0..ch {
             let b = &mut self.chans[c];
             if !b.ran {
@@ -797,10 +926,7 @@ impl Blooming {
             self.lost += b.lost;
             self.rounds = self.rounds.max(b.rounds);
             self.fallback_dn += b.fallback_dn;
-            b.write_back(img, c, &mut self.tile_written, &mut self.streak_list, &mut self.streak_buf);
-        }
-        if o.gain != 1.0 {
-            self.rescale(img, o.gain);
+            b.write_back(img, c, &mut self.streak_list, &mut self.streak_buf);
         }
         // Streaks (glow mode) were collected per channel into `streak_list`.
         let (stride, mut off) = (img.stride, 0);
@@ -845,20 +971,18 @@ impl Blooming {
         }
     }
 
-    /// Write channel `c` of the worker's active tiles into the frame, mark them in
-    /// `tile_written` and hand its glow streaks to `streak_list` / `streak_buf`.
+    /// Write channel `c` of the worker's active tiles into the frame and hand its glow streaks
+    /// to `streak_list` / `streak_buf`.
     fn write_back<T: Sample>(
         &mut self,
         img: &mut ImageMut<'_, T>,
         c: usize,
-        tile_written: &mut [bool],
         streak_list: &mut Vec<(u32, u32, u32, u32)>,
         streak_buf: &mut Vec<f32>,
     ) {
         let (w, h, ch, stride) = (img.width, img.height, img.channels, img.stride);
         for s in 0..self.active.len() {
             let tid = self.active[s] as usize;
-            tile_written[tid * ch + c] = true;
             let (tx, ty) = (tid % self.ntx, tid / self.ntx);
             for ly in 0..TILE.min(h - ty * TILE) {
                 let y = ty * TILE + ly;
@@ -875,8 +999,9 @@ impl Blooming {
         streak_buf.extend_from_slice(&self.streak_buf);
     }
 
-    /// Rescale every sample the tile pass did not write by the exposure gain,
-    /// `v' = round_half_up(v * gain)` in f32 as the tiles compute it, through a lookup table.
+    /// Rescale every sample by the exposure gain, `v' = round_half_up(v * gain)` in f32 as the
+    /// tiles compute it, through a lookup table (8-bit: byte table lookups; 16-bit: a Q16
+    /// multiply when it reproduces the table).
     fn rescale<T: Sample>(&mut self, img: &mut ImageMut<'_, T>, gain: f32) {
         let n = T::MAX_U32 as usize + 1;
         if self.lut_gain != Some(gain.to_bits()) || self.lut.len() != n {
@@ -888,44 +1013,25 @@ impl Blooming {
             let gq = (gain as f64 * 65536.0).round() as u64;
             let fixed = |v: u64| ((v * gq + 32768) >> 16).min(T::MAX_U32 as u64) as u32;
             self.fixed_gain = self.lut.iter().enumerate().all(|(v, &l)| fixed(v as u64) == l).then_some(gq as u32);
+            self.lut8.clear();
+            self.lut8.extend((0..256).map(|v| self.lut.get(v).map_or(0, |&l| l.min(255) as u8)));
         }
-        let fixed = self.fixed_gain;
+        let (fixed, lut) = (self.fixed_gain, &self.lut);
+        let lut8: &[u8; 256] = self.lut8.as_slice().try_into().expect("256 entries");
         let (w, h, ch, stride) = (img.width, img.height, img.channels, img.stride);
         let used = stride * (h - 1) + w * ch;
-        let (ntx, written, lut) = (w.div_ceil(TILE), &self.tile_written, &self.lut);
-        img.data[..used].par_chunks_mut(stride * TILE).enumerate().for_each(|(ty, chunk)| {
-            let untouched = |tx: usize| written[(ty * ntx + tx) * ch..][..ch].iter().all(|&b| !b);
+        img.data[..used].par_chunks_mut(stride * TILE).for_each(|chunk| {
             for row in chunk.chunks_mut(stride) {
-                let mut tx = 0;
-                while tx < ntx {
-                    let wr = &written[(ty * ntx + tx) * ch..][..ch];
-                    if untouched(tx) {
-                        // A run of tiles the tile pass did not write: one call for the run.
-                        let mut end = tx + 1;
-                        while end < ntx && untouched(end) {
-                            end += 1;
-                        }
-                        let seg = &mut row[tx * TILE * ch..(end * TILE).min(w) * ch];
-                        match fixed {
-                            Some(gq) => scale_q16_row(seg, gq),
-                            None => {
-                                for v in seg.iter_mut() {
-                                    *v = T::from_u32_sat(lut[v.to_u32() as usize]);
-                                }
-                            }
-                        }
-                        tx = end;
-                        continue;
-                    }
-                    let seg = &mut row[tx * TILE * ch..((tx + 1) * TILE).min(w) * ch];
-                    tx += 1;
-                    {
-                        for px in seg.chunks_exact_mut(ch) {
-                            for (v, &done) in px.iter_mut().zip(wr) {
-                                if !done {
-                                    *v = T::from_u32_sat(lut[v.to_u32() as usize]);
-                                }
-                            }
+                let row = &mut row[..w * ch];
+                if let Some(bytes) = T::bytes_mut(row) {
+                    lut_u8_row(bytes, lut8);
+                    continue;
+                }
+                match fixed {
+                    Some(gq) => scale_q16_row(row, gq),
+                    None => {
+                        for v in row.iter_mut() {
+                            *v = T::from_u32_sat(lut[v.to_u32() as usize]);
                         }
                     }
                 }
@@ -1020,6 +1126,32 @@ mod tests {
     fn charge_is_conserved_and_saturated_pixels_read_the_well() {
         for fmt in [PixelFormat::Mono8, PixelFormat::Mono16, PixelFormat::Rgb8] {
             check_charge(fmt, &[("full_well_fraction", 0.8), ("spread_px", 1.5)], &[(40, 40, 6, 4), (100, 70, 3, 3)]);
+        }
+    }
+
+    /// The 8-bit tile flags from comparison bits equal "some sample of the channel in the tile's
+    /// columns is >= thr".
+    #[test]
+    fn tile_flags_from_bits_match_a_direct_scan() {
+        let mut r = Rng::new(8);
+        for (w, ch) in [(1000usize, 3usize), (1000, 1), (64, 3), (33, 1), (97, 3), (50, 2)] {
+            for density in [0u64, 1, 20, 500] {
+                let row: Vec<u8> =
+                    (0..w * ch).map(|_| if r.below(1000) < density { 230 } else { r.below(200) as u8 }).collect();
+                let thr = 202u8;
+                let ntx = w.div_ceil(TILE);
+                let mut bits = vec![0u64; (w * ch).div_ceil(64)];
+                crate::faults::kit::ge_mask_u8(&row, thr, &mut bits);
+                let mut got = vec![false; ntx * ch];
+                flag_tiles_from_bits(&bits, w, ch, &mut got);
+                let want: Vec<bool> = (0..ntx * ch)
+                    .map(|k| {
+                        let (tx, c) = (k / ch, k % ch);
+                        (tx * TILE..((tx + 1) * TILE).min(w)).any(|x| row[x * ch + c] >= thr)
+                    })
+                    .collect();
+                assert_eq!(got, want, "w {w}, ch {ch}, density {density}");
+            }
         }
     }
 

@@ -79,6 +79,115 @@ macro_rules! multiversion {
 
 pub(crate) use multiversion;
 
+/// Whether the AVX-512 kernels can run (F, BW and VL), unless `FAULTCAM_NO_AVX512` is set
+/// (to time or test the AVX2 and scalar versions on the same machine).
+#[cfg(target_arch = "x86_64")]
+pub fn has_avx512() -> bool {
+    use std::sync::OnceLock;
+    static HAS: OnceLock<bool> = OnceLock::new();
+    *HAS.get_or_init(|| {
+        std::env::var_os("FAULTCAM_NO_AVX512").is_none()
+            && std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512bw")
+            && std::arch::is_x86_feature_detected!("avx512vl")
+    })
+}
+
+/// [`has_avx512`] and VBMI (byte permutes).
+#[cfg(target_arch = "x86_64")]
+pub fn has_avx512_vbmi() -> bool {
+    use std::sync::OnceLock;
+    static HAS: OnceLock<bool> = OnceLock::new();
+    *HAS.get_or_init(|| has_avx512() && std::arch::is_x86_feature_detected!("avx512vbmi"))
+}
+
+/// `v = lut[v]` for every byte of `row`.
+pub fn lut_u8_row(row: &mut [u8], lut: &[u8; 256]) {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx512_vbmi() {
+        // SAFETY: the CPU supports AVX-512 F/BW/VL/VBMI (checked just above).
+        unsafe { simd512::lut_u8_row(row, lut) };
+        return;
+    }
+    for v in row.iter_mut() {
+        *v = lut[*v as usize];
+    }
+}
+
+/// Bit i of `out` (64 per word, least significant first) = `row[i] >= thr`; `out` needs
+/// `row.len().div_ceil(64)` words.
+pub fn ge_mask_u8(row: &[u8], thr: u8, out: &mut [u64]) {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx512() {
+        // SAFETY: the CPU supports AVX-512 F/BW/VL (checked just above).
+        unsafe { simd512::ge_mask_u8(row, thr, out) };
+        return;
+    }
+    ge_mask_u8_scalar(row, thr, out)
+}
+
+/// Scalar reference of [`ge_mask_u8`].
+pub fn ge_mask_u8_scalar(row: &[u8], thr: u8, out: &mut [u64]) {
+    for (o, chunk) in out.iter_mut().zip(row.chunks(64)) {
+        *o = chunk.iter().enumerate().fold(0u64, |m, (k, &v)| m | ((v >= thr) as u64) << k);
+    }
+}
+
+/// `n <= 64` bits of `mask` from bit `pos` (bits beyond the mask read 0).
+#[inline]
+pub fn mask_bits(mask: &[u64], pos: usize, n: usize) -> u64 {
+    let (w, b) = (pos / 64, pos % 64);
+    let lo = mask.get(w).copied().unwrap_or(0) >> b;
+    let hi = if b == 0 { 0 } else { mask.get(w + 1).copied().unwrap_or(0) << (64 - b) };
+    let keep = if n >= 64 { u64::MAX } else { (1u64 << n) - 1 };
+    (lo | hi) & keep
+}
+
+#[cfg(target_arch = "x86_64")]
+mod simd512 {
+    use std::arch::x86_64::*;
+
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vbmi")]
+    pub unsafe fn lut_u8_row(row: &mut [u8], lut: &[u8; 256]) {
+        // SAFETY (whole function): 64-byte loads from the 256-byte table; row accesses are
+        // masked to the row's length.
+        unsafe {
+            let t = lut.as_ptr() as *const __m512i;
+            let (t0, t1, t2, t3) = (
+                _mm512_loadu_si512(t),
+                _mm512_loadu_si512(t.add(1)),
+                _mm512_loadu_si512(t.add(2)),
+                _mm512_loadu_si512(t.add(3)),
+            );
+            let mut i = 0;
+            while i < row.len() {
+                let n = (row.len() - i).min(64);
+                let m: __mmask64 = if n == 64 { !0 } else { (1u64 << n) - 1 };
+                let p = row.as_mut_ptr().add(i);
+                let v = _mm512_maskz_loadu_epi8(m, p as *const i8);
+                let lo = _mm512_permutex2var_epi8(t0, v, t1);
+                let hi = _mm512_permutex2var_epi8(t2, v, t3);
+                let r = _mm512_mask_blend_epi8(_mm512_movepi8_mask(v), lo, hi);
+                _mm512_mask_storeu_epi8(p as *mut i8, m, r);
+                i += 64;
+            }
+        }
+    }
+
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl")]
+    pub unsafe fn ge_mask_u8(row: &[u8], thr: u8, out: &mut [u64]) {
+        let t = _mm512_set1_epi8(thr as i8);
+        for (k, o) in out.iter_mut().enumerate().take(row.len().div_ceil(64)) {
+            let i = k * 64;
+            let n = (row.len() - i).min(64);
+            let m: __mmask64 = if n == 64 { !0 } else { (1u64 << n) - 1 };
+            // SAFETY: the load is masked to the row's length.
+            let v = unsafe { _mm512_maskz_loadu_epi8(m, row.as_ptr().add(i) as *const i8) };
+            *o = _mm512_mask_cmpge_epu8_mask(m, v, t);
+        }
+    }
+}
+
 multiversion! {
     /// `v = round(v * g)` (f32, half up, clipped to the sample range) with one gain per sample.
     pub fn mul_round_row<T: Sample>(row: &mut [T], gains: &[f32]) {
@@ -509,6 +618,29 @@ pub fn bench_scene(width: u32, height: u32, format: PixelFormat, seed: u64) -> R
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn byte_lookup_and_threshold_masks_equal_their_references() {
+        let mut r = Rng::new(5);
+        let lut: [u8; 256] = std::array::from_fn(|v| ((v * 37 + 11) % 256) as u8);
+        for n in [0usize, 1, 63, 64, 65, 127, 200, 1920, 5761] {
+            let row: Vec<u8> = (0..n).map(|_| r.below(256) as u8).collect();
+            let mut a = row.clone();
+            lut_u8_row(&mut a, &lut);
+            assert!(a.iter().zip(&row).all(|(&o, &v)| o == lut[v as usize]), "lut, {n} bytes");
+            for thr in [0u8, 1, 128, 202, 255] {
+                let words = n.div_ceil(64);
+                let (mut fast, mut slow) = (vec![!0u64; words], vec![!0u64; words]);
+                ge_mask_u8(&row, thr, &mut fast);
+                ge_mask_u8_scalar(&row, thr, &mut slow);
+                assert_eq!(fast, slow, "mask, {n} bytes, thr {thr}");
+                for i in 0..n {
+                    assert_eq!(mask_bits(&fast, i, 1) == 1, row[i] >= thr);
+                }
+            }
+        }
+        assert_eq!(mask_bits(&[0xf0, 0x1], 4, 64), 0xf | 1 << 60);
+    }
 
     #[test]
     fn lanes_are_reproducible_and_uniform() {

@@ -199,19 +199,8 @@ pub fn add_table_noise<T: Sample>(
     add_table_noise_scalar(row, lanes, entries, bits, resolve)
 }
 
-/// Whether the AVX-512 kernels can run (F, BW and VL), unless `FAULTCAM_NO_AVX512` is set
-/// (to time or test the AVX2 versions on the same machine).
 #[cfg(target_arch = "x86_64")]
-pub fn has_avx512() -> bool {
-    use std::sync::OnceLock;
-    static HAS: OnceLock<bool> = OnceLock::new();
-    *HAS.get_or_init(|| {
-        std::env::var_os("FAULTCAM_NO_AVX512").is_none()
-            && std::arch::is_x86_feature_detected!("avx512f")
-            && std::arch::is_x86_feature_detected!("avx512bw")
-            && std::arch::is_x86_feature_detected!("avx512vl")
-    })
-}
+pub use super::kit::has_avx512;
 
 /// Scalar reference of [`add_table_noise`].
 pub fn add_table_noise_scalar<T: Sample>(
