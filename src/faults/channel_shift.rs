@@ -83,7 +83,7 @@ impl Effect for ChannelShift {
         let (pr, pb) = self.planes.split_at_mut(w * h);
         data[..used].par_chunks(stride).zip(pr.par_chunks_mut(w).zip(pb.par_chunks_mut(w))).for_each(
             |(row, (r, b))| {
-                split_rb(&row[..row_len], r, b, 0u8);
+                split_rb(&row[..row_len], r, b);
             },
         );
         let planes = &self.planes;
@@ -96,7 +96,7 @@ impl Effect for ChannelShift {
                     for &(c, tx, ty) in active.iter().flatten() {
                         let plane = &planes[if c == 0 { 0 } else { w * h }..][..w * h];
                         shift_row(buf, plane, w, h, y, tx, ty);
-                        put_channel(&mut row[..row_len], buf, c, 0u8);
+                        put_channel(&mut row[..row_len], buf, c);
                     }
                 }
             },
@@ -105,9 +105,153 @@ impl Effect for ChannelShift {
     }
 }
 
+/// De-interleave the red and blue samples of an RGB row (AVX-512 VBMI byte permutes for 64
+/// pixels at a time when the CPU has them).
+fn split_rb(rgb: &[u8], r: &mut [u8], b: &mut [u8]) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx512_vbmi() {
+        // SAFETY: the CPU supports AVX-512 F/BW/VL/VBMI (checked just above).
+        done = unsafe { vbmi::split_rb(rgb, r, b) };
+    }
+    split_rb_mv(&rgb[3 * done..], &mut r[done..], &mut b[done..], 0u8);
+}
+
+/// Write `plane` into channel `c` of an RGB row (AVX-512 VBMI when the CPU has it).
+fn put_channel(rgb: &mut [u8], plane: &[u8], c: usize) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx512_vbmi() {
+        // SAFETY: the CPU supports AVX-512 F/BW/VL/VBMI (checked just above).
+        done = unsafe { vbmi::put_channel(rgb, plane, c) };
+    }
+    put_channel_mv(&mut rgb[3 * done..], &plane[done..], c, 0u8);
+}
+
+#[cfg(target_arch = "x86_64")]
+mod vbmi {
+    use std::arch::x86_64::*;
+
+    /// Byte j of `IDX[k]`: the plane index (pixel) of byte 64k + j of 64 RGB pixels.
+    const PIXEL: [[u8; 64]; 3] = {
+        let mut t = [[0u8; 64]; 3];
+        let mut k = 0;
+        while k < 3 {
+            let mut j = 0;
+            while j < 64 {
+                t[k][j] = ((64 * k + j) / 3) as u8;
+                j += 1;
+            }
+            k += 1;
+        }
+        t
+    };
+
+    /// Bits j of `CHANNEL[k][c]`: byte 64k + j of 64 RGB pixels is channel c.
+    const CHANNEL: [[u64; 3]; 3] = {
+        let mut t = [[0u64; 3]; 3];
+        let mut k = 0;
+        while k < 3 {
+            let mut j = 0;
+            while j < 64 {
+                t[k][(64 * k + j) % 3] |= 1 << j;
+                j += 1;
+            }
+            k += 1;
+        }
+        t
+    };
+
+    /// Byte p: the position of channel c of pixel p in 192 bytes, as `vpermi2b` indices into
+    /// bytes 0..128 (`lo`) and 64..192 (`hi`, offset by 64).
+    const fn gather_idx(c: usize, hi: bool) -> [u8; 64] {
+        let mut t = [0u8; 64];
+        let mut p = 0;
+        while p < 64 {
+            let pos = 3 * p + c;
+            t[p] = if hi { (pos.saturating_sub(64) & 127) as u8 } else { (pos & 127) as u8 };
+            p += 1;
+        }
+        t
+    }
+    const R_LO: [u8; 64] = gather_idx(0, false);
+    const R_HI: [u8; 64] = gather_idx(0, true);
+    const B_LO: [u8; 64] = gather_idx(2, false);
+    const B_HI: [u8; 64] = gather_idx(2, true);
+
+    #[inline(always)]
+    fn load(a: &[u8; 64]) -> __m512i {
+        // SAFETY: 64 bytes; unaligned load (AVX-512F context only).
+        unsafe { _mm512_loadu_si512(a.as_ptr() as *const __m512i) }
+    }
+
+    /// Pixels taken from bytes >= 128 (3p + c >= 128).
+    const fn upper(c: usize) -> u64 {
+        let mut m = 0u64;
+        let mut p = 0;
+        while p < 64 {
+            if 3 * p + c >= 128 {
+                m |= 1 << p;
+            }
+            p += 1;
+        }
+        m
+    }
+
+    /// Split whole groups of 64 pixels; returns the pixels done.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vbmi")]
+    pub unsafe fn split_rb(rgb: &[u8], r: &mut [u8], b: &mut [u8]) -> usize {
+        let n = (rgb.len() / 3).min(r.len()).min(b.len()) / 64 * 64;
+        let (rl, rh, bl, bh) = (load(&R_LO), load(&R_HI), load(&B_LO), load(&B_HI));
+        for i in (0..n).step_by(64) {
+            // SAFETY: bytes 3i .. 3i + 192 of `rgb` and i .. i + 64 of `r`, `b` exist (i + 64 <= n).
+            unsafe {
+                let p = rgb.as_ptr().add(3 * i) as *const __m512i;
+                let (x0, x1, x2) = (_mm512_loadu_si512(p), _mm512_loadu_si512(p.add(1)), _mm512_loadu_si512(p.add(2)));
+                let rv = _mm512_mask_blend_epi8(
+                    upper(0),
+                    _mm512_permutex2var_epi8(x0, rl, x1),
+                    _mm512_permutex2var_epi8(x1, rh, x2),
+                );
+                let bv = _mm512_mask_blend_epi8(
+                    upper(2),
+                    _mm512_permutex2var_epi8(x0, bl, x1),
+                    _mm512_permutex2var_epi8(x1, bh, x2),
+                );
+                _mm512_storeu_si512(r.as_mut_ptr().add(i) as *mut __m512i, rv);
+                _mm512_storeu_si512(b.as_mut_ptr().add(i) as *mut __m512i, bv);
+            }
+        }
+        n
+    }
+
+    /// Put whole groups of 64 pixels; returns the pixels done.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vbmi")]
+    pub unsafe fn put_channel(rgb: &mut [u8], plane: &[u8], c: usize) -> usize {
+        let n = (rgb.len() / 3).min(plane.len()) / 64 * 64;
+        if c > 2 {
+            return 0;
+        }
+        let idx = [load(&PIXEL[0]), load(&PIXEL[1]), load(&PIXEL[2])];
+        let masks = [CHANNEL[0][c], CHANNEL[1][c], CHANNEL[2][c]];
+        for i in (0..n).step_by(64) {
+            // SAFETY: bytes i .. i + 64 of `plane` and 3i .. 3i + 192 of `rgb` exist.
+            unsafe {
+                let v = _mm512_loadu_si512(plane.as_ptr().add(i) as *const __m512i);
+                let p = rgb.as_mut_ptr().add(3 * i) as *mut __m512i;
+                for k in 0..3 {
+                    let spread = _mm512_permutexvar_epi8(idx[k], v);
+                    _mm512_mask_storeu_epi8(p.add(k) as *mut i8, masks[k], spread);
+                }
+            }
+        }
+        n
+    }
+}
+
 multiversion! {
     /// De-interleave the red and blue samples of an RGB row.
-    fn split_rb<T: Copy>(rgb: &[u8], r: &mut [u8], b: &mut [u8], _t: T) {
+    fn split_rb_mv<T: Copy>(rgb: &[u8], r: &mut [u8], b: &mut [u8], _t: T) {
         for ((px, r), b) in rgb.chunks_exact(3).zip(r.iter_mut()).zip(b.iter_mut()) {
             *r = px[0];
             *b = px[2];
@@ -117,7 +261,7 @@ multiversion! {
 
 multiversion! {
     /// Write `plane` into channel `c` of an RGB row.
-    fn put_channel<T: Copy>(rgb: &mut [u8], plane: &[u8], c: usize, _t: T) {
+    fn put_channel_mv<T: Copy>(rgb: &mut [u8], plane: &[u8], c: usize, _t: T) {
         for (px, &v) in rgb.chunks_exact_mut(3).zip(plane) {
             px[c] = v;
         }
@@ -236,6 +380,25 @@ mod tests {
                 assert_eq!(f.get(x, y, 0), orig.get(cl(x as i64 - 3, 40), cl(y as i64 + 2, 30), 0));
                 assert_eq!(f.get(x, y, 1), orig.get(x, y, 1));
                 assert_eq!(f.get(x, y, 2), orig.get(cl(x as i64 + 1, 40), cl(y as i64 - 4, 30), 2));
+            }
+        }
+    }
+
+    #[test]
+    fn channel_split_and_put_equal_their_references() {
+        let mut r = crate::rng::Rng::new(4);
+        for n in [0usize, 1, 63, 64, 65, 200, 1920] {
+            let rgb: Vec<u8> = (0..3 * n).map(|_| r.below(256) as u8).collect();
+            let (mut pr, mut pb) = (vec![0u8; n], vec![0u8; n]);
+            split_rb(&rgb, &mut pr, &mut pb);
+            assert!((0..n).all(|i| pr[i] == rgb[3 * i] && pb[i] == rgb[3 * i + 2]), "split, {n} px");
+            for c in 0..3 {
+                let mut out = rgb.clone();
+                put_channel(&mut out, &pr, c);
+                for i in 0..3 * n {
+                    let want = if i % 3 == c { pr[i / 3] } else { rgb[i] };
+                    assert_eq!(out[i], want, "put channel {c}, {n} px, byte {i}");
+                }
             }
         }
     }
