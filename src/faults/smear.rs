@@ -2,6 +2,7 @@
 //! pixel of a column passes under the bright (saturated) pixels of that column and collects a
 //! little extra charge; the result is a uniform streak along the readout direction.
 
+use super::kit::multiversion;
 use super::util::ROWS_PER_TASK;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, ImageMut, Sample};
@@ -52,7 +53,27 @@ pub fn create() -> Box<dyn Effect> {
 pub struct Smear {
     // allocation: once per stream (bands x row length)
     partial: Vec<u32>,
+    counts8: Vec<u8>,
     offsets: Vec<u32>,
+    offsets8: Vec<u8>,
+}
+
+multiversion! {
+    /// `cnt[i] += (row[i] >= thr)` (wrapping byte counters).
+    fn count_ge_u8<T: Copy>(row: &[u8], thr: u8, cnt: &mut [u8], _t: T) {
+        for (c, &v) in cnt.iter_mut().zip(row) {
+            *c = c.wrapping_add((v >= thr) as u8);
+        }
+    }
+}
+
+multiversion! {
+    /// `row[i] = row[i] + offs[i]`, saturating.
+    fn add_sat_u8<T: Copy>(row: &mut [u8], offs: &[u8], _t: T) {
+        for (v, &o) in row.iter_mut().zip(offs) {
+            *v = v.saturating_add(o);
+        }
+    }
 }
 
 /// Offset added to every sample of a line holding `n` saturated samples.
@@ -96,13 +117,27 @@ impl Smear {
         self.partial.resize(bands * row_len, 0);
         let thr_t = T::from_u32_sat(thr);
         let data = &mut img.data[..used];
-        data.par_chunks(stride * ROWS_PER_TASK).zip(self.partial.par_chunks_mut(row_len)).for_each(|(chunk, cnt)| {
-            for row in chunk.chunks(stride) {
-                for (c, v) in cnt.iter_mut().zip(&row[..row_len]) {
-                    *c += (*v >= thr_t) as u32;
+        const _: () = assert!(ROWS_PER_TASK <= 255, "8-bit counters per band");
+        self.counts8.clear();
+        self.counts8.resize(bands * row_len, 0);
+        data.par_chunks(stride * ROWS_PER_TASK)
+            .zip(self.partial.par_chunks_mut(row_len).zip(self.counts8.par_chunks_mut(row_len)))
+            .for_each(|(chunk, (cnt, cnt8))| {
+                for row in chunk.chunks(stride) {
+                    match T::bytes(&row[..row_len]) {
+                        // 8-bit: byte counters (a band has at most 255 rows), widened once.
+                        Some(bytes) => count_ge_u8(bytes, thr.min(255) as u8, cnt8, 0u8),
+                        None => {
+                            for (c, v) in cnt.iter_mut().zip(&row[..row_len]) {
+                                *c += (*v >= thr_t) as u32;
+                            }
+                        }
+                    }
                 }
-            }
-        });
+                for (c, &k) in cnt.iter_mut().zip(cnt8.iter()) {
+                    *c += k as u32;
+                }
+            });
         self.offsets.clear();
         self.offsets.resize(row_len, 0);
         let mut first = row_len;
@@ -121,10 +156,19 @@ impl Smear {
             return;
         }
         let offs = &self.offsets[first..=last];
+        self.offsets8.clear();
+        self.offsets8.extend(offs.iter().map(|&o| o.min(255) as u8));
+        let offs8 = &self.offsets8;
         data.par_chunks_mut(stride * ROWS_PER_TASK).for_each(|chunk| {
             for row in chunk.chunks_mut(stride) {
-                for (v, &o) in row[first..=last].iter_mut().zip(offs) {
-                    *v = T::from_u32_sat(v.to_u32() + o);
+                match T::bytes_mut(&mut row[first..=last]) {
+                    // 8-bit: saturating byte adds (an offset above 255 saturates either way).
+                    Some(bytes) => add_sat_u8(bytes, offs8, 0u8),
+                    None => {
+                        for (v, &o) in row[first..=last].iter_mut().zip(offs) {
+                            *v = T::from_u32_sat(v.to_u32() + o);
+                        }
+                    }
                 }
             }
         });
