@@ -933,6 +933,15 @@ struct RowFns {
 
 fn row_fns() -> RowFns {
     #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx512_vbmi() {
+        // SAFETY (all three): the CPU supports AVX-512 F/BW/VL/VBMI (checked just above).
+        return RowFns {
+            to_ycc: |s, y, b, r| unsafe { avx512::rgb_to_ycc_row(s, y, b, r) },
+            to_rgb: |y, b, r, o| unsafe { avx512::ycc_to_rgb_row(y, b, r, o) },
+            fancy: |n, f, c, o| unsafe { avx512::fancy_row(n, f, c, o) },
+        };
+    }
+    #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY (all three): the CPU supports AVX2 (checked just above).
         return RowFns {
@@ -942,6 +951,219 @@ fn row_fns() -> RowFns {
         };
     }
     RowFns { to_ycc: rgb_to_ycc_row_scalar, to_rgb: ycc_to_rgb_row_scalar, fancy: fancy_row_scalar }
+}
+
+/// AVX-512 (BW, VBMI) row converters: the same integers as the scalar references, with the
+/// fixed-point products split so that they run in 16-bit lanes (`vpmaddwd`, `vpmulhw`) and
+/// byte permutes for the RGB (de-)interleaving.
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use super::{CBCR_OFFSET, ONE_HALF, fix};
+    use std::arch::x86_64::*;
+
+    /// Weight pair (a, b) for `vpmaddwd`: a on even 16-bit lanes, b on odd ones.
+    #[inline(always)]
+    fn pair(a: i32, b: i32) -> __m512i {
+        debug_assert!(i16::try_from(a).is_ok() && i16::try_from(b).is_ok());
+        // SAFETY: only inlined into functions that enable AVX-512F.
+        unsafe { _mm512_set1_epi32((a & 0xffff) | (b << 16)) }
+    }
+
+    const fn rgb_pick() -> [u8; 64] {
+        // Bytes 0..32: r0 g0 r1 g1 .. r15 g15; bytes 32..64: b0 - b1 - .. b15 - (from 48 bytes).
+        let mut t = [0u8; 64];
+        let mut p = 0;
+        while p < 16 {
+            t[2 * p] = (3 * p) as u8;
+            t[2 * p + 1] = (3 * p + 1) as u8;
+            t[32 + 2 * p] = (3 * p + 2) as u8;
+            t[32 + 2 * p + 1] = 0;
+            p += 1;
+        }
+        t
+    }
+    const RGB_PICK: [u8; 64] = rgb_pick();
+
+    /// RGB -> Y, Cb, Cr for 16 pixels per step.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vbmi")]
+    pub unsafe fn rgb_to_ycc_row(src: &[u8], y: &mut [u8], cb: &mut [u8], cr: &mut [u8]) {
+        let n = y.len().min(cb.len()).min(cr.len()).min(src.len() / 3);
+        // SAFETY: 64-byte table; unaligned load.
+        let pick = unsafe { _mm512_loadu_si512(RGB_PICK.as_ptr() as *const __m512i) };
+        let c128 = _mm512_set1_epi8(-128);
+        // Odd bytes of the upper half: the constant 128 paired with b.
+        let odd_hi: __mmask64 = 0xaaaa_aaaa_0000_0000;
+        // Y = 19595 r + 38470 g + 7471 b + 2^15: g's weight split as 65536 - 27066 (the 65536 g
+        // comes from the (r, g) pair's high word), the rounding as 128 * 256.
+        let ky1 = pair(fix(0.299), fix(0.587) - 65536);
+        let ky2 = pair(fix(0.114), ONE_HALF / 128);
+        // Cb = -11059 r - 21709 g + 32768 b + CBCR_OFFSET + 2^15 - 1 (32768 b = 2 * 16384 b).
+        let kb1 = pair(-fix(0.168_74), -fix(0.331_26));
+        let kb2 = pair(fix(0.5) / 2, 0);
+        // Cr = 32768 r - 27439 g - 5329 b + CBCR_OFFSET + 2^15 - 1.
+        let kr1 = pair(0, -fix(0.418_69));
+        let kr1b = pair(fix(0.5) / 2, 0);
+        let kr2 = pair(-fix(0.081_31), 0);
+        let coff = _mm512_set1_epi32(CBCR_OFFSET + ONE_HALF - 1);
+        let hi16 = _mm512_set1_epi32(0xffff_0000u32 as i32);
+        let mut i = 0;
+        while i + 16 <= n {
+            // SAFETY: bytes 3i .. 3i + 48 are inside `src` (masked load of exactly 48 bytes).
+            let v = unsafe { _mm512_maskz_loadu_epi8(0xffff_ffff_ffff, src.as_ptr().add(3 * i) as *const i8) };
+            let v = _mm512_mask_mov_epi8(_mm512_permutexvar_epi8(pick, v), odd_hi, c128);
+            let p1 = _mm512_cvtepu8_epi16(_mm512_castsi512_si256(v)); // (r, g) pairs
+            let pb = _mm512_cvtepu8_epi16(_mm512_extracti64x4_epi64::<1>(v)); // (b, 128) pairs
+            let yv = _mm512_srai_epi32::<16>(_mm512_add_epi32(
+                _mm512_add_epi32(_mm512_madd_epi16(p1, ky1), _mm512_madd_epi16(pb, ky2)),
+                _mm512_and_si512(p1, hi16),
+            ));
+            let cbv = _mm512_srai_epi32::<16>(_mm512_add_epi32(
+                _mm512_add_epi32(_mm512_madd_epi16(p1, kb1), _mm512_slli_epi32::<1>(_mm512_madd_epi16(pb, kb2))),
+                coff,
+            ));
+            let crv = _mm512_srai_epi32::<16>(_mm512_add_epi32(
+                _mm512_add_epi32(_mm512_madd_epi16(p1, kr1), _mm512_slli_epi32::<1>(_mm512_madd_epi16(p1, kr1b))),
+                _mm512_add_epi32(_mm512_madd_epi16(pb, kr2), coff),
+            ));
+            // SAFETY: 16 bytes at i of each output (i + 16 <= n); values are 0..=255.
+            unsafe {
+                _mm_storeu_si128(y.as_mut_ptr().add(i) as *mut __m128i, _mm512_cvtepi32_epi8(yv));
+                _mm_storeu_si128(cb.as_mut_ptr().add(i) as *mut __m128i, _mm512_cvtepi32_epi8(cbv));
+                _mm_storeu_si128(cr.as_mut_ptr().add(i) as *mut __m128i, _mm512_cvtepi32_epi8(crv));
+            }
+            i += 16;
+        }
+        super::rgb_to_ycc_row_scalar(&src[3 * i..3 * n], &mut y[i..n], &mut cb[i..n], &mut cr[i..n]);
+    }
+
+    const fn interleave(first: usize, len: usize) -> [u8; 64] {
+        // Byte j: channel (first + j) % 3 of pixel (first + j) / 3 from [r 0..32 | g 32..64] and
+        // b (64..96).
+        let mut t = [0u8; 64];
+        let mut j = 0;
+        while j < len {
+            let (p, c) = ((first + j) / 3, (first + j) % 3);
+            t[j] = (32 * c + p) as u8;
+            j += 1;
+        }
+        t
+    }
+    const INTERLEAVE0: [u8; 64] = interleave(0, 64);
+    const INTERLEAVE1: [u8; 64] = interleave(64, 32);
+
+    /// `(v * k + 2^15) >> 16` in 16-bit lanes for |k| < 2^15: high product plus the carry of the
+    /// low half's rounding.
+    #[inline(always)]
+    fn mul_round(v: __m512i, k: __m512i) -> __m512i {
+        // SAFETY: only inlined into functions that enable AVX-512BW.
+        unsafe { _mm512_add_epi16(_mm512_mulhi_epi16(v, k), _mm512_srli_epi16::<15>(_mm512_mullo_epi16(v, k))) }
+    }
+
+    /// Y, Cb, Cr -> RGB for 32 pixels per step.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vbmi")]
+    pub unsafe fn ycc_to_rgb_row(y: &[u8], cb: &[u8], cr: &[u8], out: &mut [u8]) {
+        let n = y.len().min(cb.len()).min(cr.len()).min(out.len() / 3);
+        // R = crx + ((26345 crx + 2^15) >> 16)            (91881 = 65536 + 26345)
+        // B = 2 cbx + ((-14942 cbx + 2^15) >> 16)         (116130 = 131072 - 14942)
+        // G = -crx + ((-22554 cbx + 18734 crx + 2^15) >> 16)   (46802 = 65536 - 18734)
+        let kr = _mm512_set1_epi16((fix(1.402) - 65536) as i16);
+        let kb = _mm512_set1_epi16((fix(1.772) - 131072) as i16);
+        let kg = pair(-fix(0.344_14), 65536 - fix(0.714_14));
+        let half = _mm512_set1_epi32(ONE_HALF);
+        let c128 = _mm512_set1_epi16(128);
+        let zero = _mm512_setzero_si512();
+        // SAFETY: 64-byte tables; unaligned loads.
+        let (il0, il1) = unsafe {
+            (
+                _mm512_loadu_si512(INTERLEAVE0.as_ptr() as *const __m512i),
+                _mm512_loadu_si512(INTERLEAVE1.as_ptr() as *const __m512i),
+            )
+        };
+        let mut i = 0;
+        while i + 32 <= n {
+            // SAFETY: 32 bytes at i of each input (i + 32 <= n).
+            let (yv, cbx, crx) = unsafe {
+                let ld = |s: &[u8]| _mm512_cvtepu8_epi16(_mm256_loadu_si256(s.as_ptr().add(i) as *const __m256i));
+                (ld(y), _mm512_sub_epi16(ld(cb), c128), _mm512_sub_epi16(ld(cr), c128))
+            };
+            let r = _mm512_add_epi16(crx, mul_round(crx, kr));
+            let b = _mm512_add_epi16(_mm512_add_epi16(cbx, cbx), mul_round(cbx, kb));
+            let g_lo = _mm512_madd_epi16(_mm512_unpacklo_epi16(cbx, crx), kg);
+            let g_hi = _mm512_madd_epi16(_mm512_unpackhi_epi16(cbx, crx), kg);
+            let g = _mm512_sub_epi16(
+                _mm512_packs_epi32(
+                    _mm512_srai_epi32::<16>(_mm512_add_epi32(g_lo, half)),
+                    _mm512_srai_epi32::<16>(_mm512_add_epi32(g_hi, half)),
+                ),
+                crx,
+            );
+            // y + term, range-limited to 0..=255 (unsigned saturation after the lower clamp).
+            let lim = |t: __m512i| _mm512_cvtusepi16_epi8(_mm512_max_epi16(_mm512_add_epi16(yv, t), zero));
+            let rg = _mm512_inserti64x4::<1>(_mm512_castsi256_si512(lim(r)), lim(g));
+            let bb = _mm512_castsi256_si512(lim(b));
+            // SAFETY: bytes 3i .. 3i + 96 of `out` exist (i + 32 <= n).
+            unsafe {
+                let o = out.as_mut_ptr().add(3 * i);
+                _mm512_storeu_si512(o as *mut __m512i, _mm512_permutex2var_epi8(rg, il0, bb));
+                _mm512_mask_storeu_epi8(o.add(64) as *mut i8, 0xffff_ffff, _mm512_permutex2var_epi8(rg, il1, bb));
+            }
+            i += 32;
+        }
+        super::ycc_to_rgb_row_scalar(&y[i..n], &cb[i..n], &cr[i..n], &mut out[3 * i..3 * n]);
+    }
+
+    /// libjpeg's h2v2 fancy upsampling of one output row, 32 chroma columns (64 outputs) per step
+    /// in 16-bit lanes (column sums are at most 1020).
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vbmi")]
+    pub unsafe fn fancy_row(near: &[u8], far: &[u8], cs: &mut [i32], out: &mut [u8]) {
+        let n = cs.len();
+        let w = out.len();
+        if n < 40 || near.len() < n || far.len() < n || w < 2 * n - 1 {
+            return super::fancy_row_scalar(near, far, cs, out);
+        }
+        for ((c, &a), &b) in cs.iter_mut().zip(near).zip(far) {
+            *c = 3 * a as i32 + b as i32;
+        }
+        let (e8, o7) = (_mm512_set1_epi16(8), _mm512_set1_epi16(7));
+        let mut c = 1;
+        // Columns c .. c + 32 need chroma columns c - 1 .. c + 33 (inside 0..n) and write
+        // outputs 2c .. 2c + 64 (inside the row: 2(c + 32) <= 2n - 2 < w).
+        while c + 33 <= n {
+            // SAFETY: the loads read bytes c - 1 .. c + 33 of `near` and `far` (<= n).
+            let (l, t, r) = unsafe {
+                let sum = |k: usize| {
+                    let a = _mm512_cvtepu8_epi16(_mm256_loadu_si256(near.as_ptr().add(k) as *const __m256i));
+                    let b = _mm512_cvtepu8_epi16(_mm256_loadu_si256(far.as_ptr().add(k) as *const __m256i));
+                    _mm512_add_epi16(_mm512_add_epi16(_mm512_add_epi16(a, a), a), b)
+                };
+                (sum(c - 1), sum(c), sum(c + 1))
+            };
+            let t3 = _mm512_add_epi16(_mm512_add_epi16(t, t), t);
+            let even = _mm512_srli_epi16::<4>(_mm512_add_epi16(_mm512_add_epi16(t3, l), e8));
+            let odd = _mm512_srli_epi16::<4>(_mm512_add_epi16(_mm512_add_epi16(t3, r), o7));
+            // Little-endian words (even, odd) are the output bytes 2c, 2c + 1.
+            let words = _mm512_or_si512(even, _mm512_slli_epi16::<8>(odd));
+            // SAFETY: bytes 2c .. 2c + 64 of `out` exist (see above).
+            unsafe { _mm512_storeu_si512(out.as_mut_ptr().add(2 * c) as *mut __m512i, words) };
+            c += 32;
+        }
+        // The rest (both edges and the tail) as the scalar reference does it.
+        let edge = |x: usize| -> u8 {
+            let c = x / 2;
+            let this = cs[c];
+            let v = if x & 1 == 0 {
+                (3 * this + cs[c.saturating_sub(1)] + 8) >> 4
+            } else {
+                (3 * this + cs[(c + 1).min(n - 1)] + 7) >> 4
+            };
+            v as u8
+        };
+        out[0] = edge(0);
+        out[1] = edge(1);
+        for x in 2 * c..w {
+            out[x] = edge(x);
+        }
+    }
 }
 
 /// The effect: tables and padded component planes, kept across frames.
@@ -1307,6 +1529,66 @@ mod tests {
                     assert_eq!(u1, u2, "fancy upsampling, {n} px");
                 }
             }
+        }
+    }
+
+    #[test]
+    fn avx512_colour_rows_equal_the_scalar_references() {
+        #[cfg(target_arch = "x86_64")]
+        if crate::faults::kit::has_avx512_vbmi() {
+            let mut r = Rng::new(6);
+            for n in (0..100).chain([255, 960, 1921]) {
+                let src: Vec<u8> = (0..3 * n).map(|_| r.below(256) as u8).collect();
+                let (mut a, mut b) =
+                    ((vec![0u8; n], vec![0u8; n], vec![0u8; n]), (vec![0u8; n], vec![0u8; n], vec![0u8; n]));
+                rgb_to_ycc_row_scalar(&src, &mut a.0, &mut a.1, &mut a.2);
+                // SAFETY: AVX-512 VBMI is available (checked above).
+                unsafe { avx512::rgb_to_ycc_row(&src, &mut b.0, &mut b.1, &mut b.2) };
+                assert_eq!(a, b, "rgb -> ycc, {n} px");
+                let (mut o1, mut o2) = (vec![0u8; 3 * n], vec![0u8; 3 * n]);
+                ycc_to_rgb_row_scalar(&src[..n], &src[n..2 * n], &src[2 * n..], &mut o1);
+                // SAFETY: as above.
+                unsafe { avx512::ycc_to_rgb_row(&src[..n], &src[n..2 * n], &src[2 * n..], &mut o2) };
+                assert_eq!(o1, o2, "ycc -> rgb, {n} px");
+                let cw = n.div_ceil(2);
+                if cw > 0 {
+                    let (mut c1, mut c2) = (vec![0i32; cw], vec![0i32; cw]);
+                    let (mut u1, mut u2) = (vec![0u8; n], vec![0u8; n]);
+                    fancy_row_scalar(&src[..cw], &src[cw..2 * cw], &mut c1, &mut u1);
+                    // SAFETY: as above.
+                    unsafe { avx512::fancy_row(&src[..cw], &src[cw..2 * cw], &mut c2, &mut u2) };
+                    assert_eq!(u1, u2, "fancy upsampling, {n} px");
+                }
+            }
+            // Every (Cb, Cr) pair with extreme and middle luma, and every RGB triple on a grid
+            // that includes the ends of the range.
+            let cbcr: Vec<(u8, u8)> = (0..=255u8).flat_map(|b| (0..=255u8).map(move |c| (b, c))).collect();
+            for yv in [0u8, 1, 77, 128, 200, 254, 255] {
+                let yrow = vec![yv; cbcr.len()];
+                let cb: Vec<u8> = cbcr.iter().map(|p| p.0).collect();
+                let cr: Vec<u8> = cbcr.iter().map(|p| p.1).collect();
+                let (mut o1, mut o2) = (vec![0u8; 3 * cbcr.len()], vec![0u8; 3 * cbcr.len()]);
+                ycc_to_rgb_row_scalar(&yrow, &cb, &cr, &mut o1);
+                // SAFETY: as above.
+                unsafe { avx512::ycc_to_rgb_row(&yrow, &cb, &cr, &mut o2) };
+                assert_eq!(o1, o2, "ycc -> rgb, all chroma pairs, y = {yv}");
+            }
+            let grid: Vec<u8> = (0..=255u8).step_by(5).chain([1, 2, 127, 128, 129, 253, 254]).collect();
+            let mut src = Vec::new();
+            for &r in &grid {
+                for &g in &grid {
+                    for &b in &grid {
+                        src.extend([r, g, b]);
+                    }
+                }
+            }
+            let n = src.len() / 3;
+            let (mut a, mut b) =
+                ((vec![0u8; n], vec![0u8; n], vec![0u8; n]), (vec![0u8; n], vec![0u8; n], vec![0u8; n]));
+            rgb_to_ycc_row_scalar(&src, &mut a.0, &mut a.1, &mut a.2);
+            // SAFETY: as above.
+            unsafe { avx512::rgb_to_ycc_row(&src, &mut b.0, &mut b.1, &mut b.2) };
+            assert_eq!(a, b, "rgb -> ycc on the grid");
         }
     }
 
