@@ -45,6 +45,53 @@ pub struct TwoLevel {
     exact_c: [u16; MAX_EXACT],
     exact: [[i16; 64]; MAX_EXACT],
     n_exact: usize,
+    /// The same form in bytes, when every offset fits in [-127, 127] (64 samples per step with
+    /// single-register byte permutes).
+    bytes: Option<ByteForm>,
+}
+
+/// [`TwoLevel`] with byte entries: `thr` 64 and `res` 255 mean "never", exact-bucket entries
+/// [`BYTE_RESOLVE`] mean "resolve".
+#[derive(Clone, Debug, PartialEq)]
+struct ByteForm {
+    base: [i8; 64],
+    thr: [u8; 64],
+    delta: [i8; 64],
+    res: [u8; 64],
+    exact_c: [u8; MAX_EXACT],
+    exact: [[i8; 64]; MAX_EXACT],
+}
+
+/// Byte-form entry for "resolve" in an exact bucket table.
+const BYTE_RESOLVE: i8 = i8::MIN;
+
+impl ByteForm {
+    fn of(t: &TwoLevel) -> Option<ByteForm> {
+        let byte = |v: i32| i8::try_from(v).ok().filter(|&b| b != BYTE_RESOLVE);
+        let mut b = ByteForm {
+            base: [0; 64],
+            thr: [64; 64],
+            delta: [0; 64],
+            res: [255; 64],
+            exact_c: [255; MAX_EXACT],
+            exact: [[0; 64]; MAX_EXACT],
+        };
+        for c in 0..64 {
+            let (base, delta) = (t.base[c] as i32, t.delta[c] as i32);
+            b.base[c] = byte(base)?;
+            b.delta[c] = byte(delta)?;
+            byte(base + delta)?;
+            b.thr[c] = t.thr[c].min(64) as u8;
+            b.res[c] = if t.res[c] == NEVER { 255 } else { t.res[c] as u8 };
+        }
+        for k in 0..t.n_exact {
+            b.exact_c[k] = t.exact_c[k] as u8;
+            for (o, &q) in b.exact[k].iter_mut().zip(&t.exact[k]) {
+                *o = if q == EXACT_RESOLVE { BYTE_RESOLVE } else { byte(q as i32)? };
+            }
+        }
+        Some(b)
+    }
 }
 
 impl TwoLevel {
@@ -62,6 +109,7 @@ impl TwoLevel {
             exact_c: [NEVER; MAX_EXACT],
             exact: [[0; 64]; MAX_EXACT],
             n_exact: 0,
+            bytes: None,
         };
         for (c, bucket) in table.chunks(fine).enumerate() {
             if bucket.iter().any(|&q| q != RESOLVE && !(-MAX_FAST_OFFSET..=MAX_FAST_OFFSET).contains(&q)) {
@@ -80,7 +128,11 @@ impl TwoLevel {
             }
         }
         // Belt and braces: the form must give back every entry.
-        (0..table.len()).all(|i| t.lookup(i) == table[i]).then_some(t)
+        if !(0..table.len()).all(|i| t.lookup(i) == table[i]) {
+            return None;
+        }
+        t.bytes = ByteForm::of(&t);
+        Some(t)
     }
 
     /// Fill the simple description of bucket `c`; false when it has none.
@@ -126,6 +178,11 @@ impl TwoLevel {
     /// Number of coarse buckets that need an exact table.
     pub fn exact_buckets(&self) -> usize {
         self.n_exact
+    }
+
+    /// Whether the byte form exists (every offset in [-127, 127]).
+    pub fn has_bytes(&self) -> bool {
+        self.bytes.is_some()
     }
 }
 
@@ -181,13 +238,17 @@ pub fn add_table_noise<T: Sample>(
     #[cfg(target_arch = "x86_64")]
     {
         if let Some(t) = table.two_level.as_deref()
-            && size_of::<T>() == 1
             && has_avx512()
+            && let Some(bytes) = T::bytes_mut(row)
         {
-            // SAFETY: T is one byte wide (u8, the only such Sample), so the row is a byte slice.
-            let bytes = unsafe { std::slice::from_raw_parts_mut(row.as_mut_ptr() as *mut u8, row.len()) };
-            // SAFETY: the CPU supports AVX-512 F/BW/VL (checked just above).
-            unsafe { avx512::add_two_level(bytes, lanes, t, entries, bits, resolve) };
+            match &t.bytes {
+                // SAFETY: the CPU supports AVX-512 F/BW/VL/VBMI (checked).
+                Some(b) if super::kit::has_avx512_vbmi() => unsafe {
+                    avx512::add_byte_form(bytes, lanes, b, t.n_exact, entries, bits, resolve)
+                },
+                // SAFETY: the CPU supports AVX-512 F/BW/VL (checked just above).
+                _ => unsafe { avx512::add_two_level(bytes, lanes, t, entries, bits, resolve) },
+            }
             return;
         }
         if std::arch::is_x86_feature_detected!("avx2") {
@@ -413,7 +474,7 @@ pub(crate) mod avx2 {
 #[cfg(target_arch = "x86_64")]
 mod avx512 {
     use super::avx2::{load_state, store_state};
-    use super::{EXACT_RESOLVE, MAX_EXACT, RngLanes, TwoLevel};
+    use super::{BYTE_RESOLVE, ByteForm, EXACT_RESOLVE, MAX_EXACT, RngLanes, TwoLevel};
     use std::arch::x86_64::*;
 
     /// One xoshiro256++ step of the four lanes (as `RngLanes::next4`), with AVX-512VL rotates.
@@ -543,6 +604,110 @@ mod avx512 {
             super::add_table_noise_scalar(&mut row[n32..], lanes, entries, bits, resolve);
         }
     }
+    /// A 64-entry byte table as one register (the operand of `vpermb`).
+    #[inline(always)]
+    fn table8<E>(t: &[E; 64]) -> __m512i {
+        assert_eq!(size_of::<E>(), 1);
+        // SAFETY: 64 one-byte entries; unaligned load (AVX-512F context only).
+        unsafe { _mm512_loadu_si512(t.as_ptr() as *const __m512i) }
+    }
+
+    /// Even bytes (the low byte of each 16-bit element) of `a` then `b`, in order.
+    const fn byte_select(high: bool) -> [u8; 64] {
+        let mut t = [0u8; 64];
+        let mut j = 0;
+        while j < 64 {
+            t[j] = (2 * j + high as usize) as u8;
+            j += 1;
+        }
+        t
+    }
+    const LOW_BYTES: [u8; 64] = byte_select(false);
+    const HIGH_BYTES: [u8; 64] = byte_select(true);
+
+    /// [`add_two_level`] with the byte form: 64 samples per step, offsets from single-register
+    /// byte permutes, saturating byte arithmetic.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vbmi")]
+    pub unsafe fn add_byte_form(
+        row: &mut [u8],
+        lanes: &mut RngLanes,
+        t: &ByteForm,
+        n_exact: usize,
+        entries: &[i32],
+        bits: u32,
+        resolve: &mut dyn FnMut(usize) -> i32,
+    ) {
+        debug_assert_eq!(bits, 12);
+        let mut s = load_state(lanes);
+        let (base, thr, delta, res) = (table8(&t.base), table8(&t.thr), table8(&t.delta), table8(&t.res));
+        let n_exact = n_exact.min(MAX_EXACT);
+        let exact: [(__m512i, __m512i); MAX_EXACT] =
+            std::array::from_fn(|k| (_mm512_set1_epi8(t.exact_c[k] as i8), table8(&t.exact[k])));
+        let (lo_sel, hi_sel) = (table8(&LOW_BYTES), table8(&HIGH_BYTES));
+        let (m03, m3c, m3f) = (_mm512_set1_epi8(0x03), _mm512_set1_epi8(0x3c), _mm512_set1_epi8(0x3f));
+        let sentinel = _mm512_set1_epi8(BYTE_RESOLVE);
+        let zero = _mm512_setzero_si512();
+        let mut pending = Lanes { pos: [0; 64], idx: [0; 64], len: 0 };
+        let n64 = row.len() / 64 * 64;
+        for bi in 0..n64 / 64 {
+            // Samples 0..32 in u0, 32..64 in u1 (16-bit elements, the scalar order).
+            let u0 = _mm512_inserti64x4::<1>(_mm512_castsi256_si512(next4(&mut s)), next4(&mut s));
+            let u1 = _mm512_inserti64x4::<1>(_mm512_castsi256_si512(next4(&mut s)), next4(&mut s));
+            // Index bits 0..5 (fine) and 6..11 (coarse) of each sample, as bytes in order.
+            let lo = _mm512_permutex2var_epi8(u0, lo_sel, u1);
+            let hi = _mm512_permutex2var_epi8(u0, hi_sel, u1);
+            let f = _mm512_and_si512(lo, m3f);
+            let c = _mm512_or_si512(
+                _mm512_and_si512(_mm512_srli_epi16::<6>(lo), m03),
+                _mm512_and_si512(_mm512_slli_epi16::<2>(hi), m3c),
+            );
+            let mut val = _mm512_permutexvar_epi8(c, base);
+            let step = _mm512_cmpge_epu8_mask(f, _mm512_permutexvar_epi8(c, thr));
+            val = _mm512_mask_add_epi8(val, step, val, _mm512_permutexvar_epi8(c, delta));
+            let mut m_res = _mm512_cmpeq_epi8_mask(f, _mm512_permutexvar_epi8(c, res));
+            for &(ec, tab) in &exact[..n_exact] {
+                let mk = _mm512_cmpeq_epi8_mask(c, ec);
+                val = _mm512_mask_mov_epi8(val, mk, _mm512_permutexvar_epi8(f, tab));
+            }
+            m_res |= _mm512_cmpeq_epi8_mask(val, sentinel);
+            if m_res != 0 {
+                // Lanes to resolve: left unchanged now (offset 0), resolved in sample order
+                // after the loop (or when the list is full), from the sample itself.
+                let mut ix = [0u16; 64];
+                // SAFETY: 64 u16 = 128 bytes; unaligned stores.
+                unsafe {
+                    _mm512_storeu_si512(ix.as_mut_ptr() as *mut __m512i, u0);
+                    _mm512_storeu_si512(ix.as_mut_ptr().add(32) as *mut __m512i, u1);
+                }
+                let mut m = m_res;
+                while m != 0 {
+                    let j = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    if pending.len == pending.pos.len() {
+                        pending.flush(row, resolve);
+                    }
+                    pending.pos[pending.len] = (bi * 64 + j) as u32;
+                    pending.idx[pending.len] = ix[j] & 0x0fff;
+                    pending.len += 1;
+                }
+                val = _mm512_maskz_mov_epi8(!m_res, val);
+            }
+            // SAFETY: 64 bytes at 64·bi lie inside the row (bi < n64 / 64); unaligned access.
+            unsafe {
+                let p = row.as_mut_ptr().add(bi * 64) as *mut __m512i;
+                let v = _mm512_loadu_si512(p);
+                // v + val clipped to [0, 255]: add the positive part, subtract the negative one.
+                let pos = _mm512_max_epi8(val, zero);
+                let neg = _mm512_sub_epi8(pos, val);
+                _mm512_storeu_si512(p, _mm512_subs_epu8(_mm512_adds_epu8(v, pos), neg));
+            }
+        }
+        pending.flush(row, resolve);
+        store_state(lanes, &s);
+        if n64 < row.len() {
+            super::add_table_noise_scalar(&mut row[n64..], lanes, entries, bits, resolve);
+        }
+    }
 }
 
 #[cfg(test)]
@@ -618,7 +783,7 @@ mod tests {
                     .map(|(i, m)| if i == 0 || i == last { RESOLVE } else { (sigma * m + 0.5).floor() as i32 }),
             );
             match t.two_level() {
-                Some(tl) => assert!(sigma <= 7.0 && tl.exact_buckets() <= MAX_EXACT),
+                Some(tl) => assert!(sigma <= 7.0 && tl.exact_buckets() <= MAX_EXACT && tl.has_bytes()),
                 None => assert!(sigma > 7.0, "gaussian sigma {sigma}: no two-level form"),
             }
             compare::<u8>(&t, 255, &mut r);
@@ -632,6 +797,21 @@ mod tests {
                 assert!(t.two_level().is_some(), "poisson lambda {lambda}: no two-level form");
             }
             compare::<u8>(t, 255, &mut r);
+        }
+        // Offsets beyond a byte: the two-level form without its byte form (16-bit lanes).
+        for shift in [-200, 150] {
+            let mut t = NoiseTable::default();
+            let last = normal.len() - 1;
+            t.rebuild(
+                12,
+                normal
+                    .iter()
+                    .enumerate()
+                    .map(|(i, m)| if i == 0 || i == last { RESOLVE } else { shift + (2.0 * m + 0.5).floor() as i32 }),
+            );
+            let tl = t.two_level().expect("two-level form");
+            assert!(!tl.has_bytes());
+            compare::<u8>(&t, 255, &mut r);
         }
         // Every entry of the form is checked when it is built; a table whose buckets change value
         // more than once (and too often to be exact buckets) has none.
