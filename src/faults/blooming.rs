@@ -95,8 +95,9 @@ pub struct Blooming {
     has_exc: Vec<bool>,
     hbuf: Vec<f32>,
     lbuf: Vec<f32>,
-    queue: Vec<(u32, u32)>,
-    frontier: Vec<(u32, u32)>,
+    /// Breadth-first fill: (x, y, pool index).
+    queue: Vec<(u32, u32, u32)>,
+    frontier: Vec<(u32, u32, u32)>,
     streaks: Vec<(u32, u32, u32)>,
     /// Streaks of every channel: (channel, column, first row, end row), added at the end.
     streak_list: Vec<(u32, u32, u32, u32)>,
@@ -376,7 +377,7 @@ impl Blooming {
     /// Move every remaining excess to the nearest pixels with room (breadth-first from each
     /// saturated region). Exact conservation; returns what did not fit in the frame.
     fn fallback<T: Sample>(&mut self, v: &View<'_, T>, vertical_only: bool, horizontal_only: bool) -> f64 {
-        let (w, h) = (v.img.width, v.img.height);
+        let axes = (vertical_only, horizontal_only);
         let mut lost = 0.0;
         // Generations increase across calls, so stamps left by earlier frames never match; on
         // wrap-around the stamps are cleared once.
@@ -402,26 +403,29 @@ impl Blooming {
                 let mut pool = 0f64;
                 self.queue.clear();
                 self.frontier.clear();
-                self.stamp[s * TT + li] = generation;
-                self.queue.push((x0 as u32, y0 as u32));
+                let seed = s * TT + li;
+                self.stamp[seed] = generation;
+                self.queue.push((x0 as u32, y0 as u32, seed as u32));
+                let mut nb = [(0u32, 0u32, 0u32); 4];
                 // Pass A: the saturated region around the seed, pooling its excess.
                 let mut head = 0;
                 while head < self.queue.len() {
-                    let (x, y) = self.queue[head];
+                    let (x, y, i) = self.queue[head];
                     head += 1;
-                    let i = self.index(x as usize, y as usize, v);
+                    let i = i as usize;
                     pool += self.exc[i] as f64;
                     self.exc[i] = 0.0;
-                    for (nx, ny) in neighbours(x as usize, y as usize, w, h, vertical_only, horizontal_only) {
-                        let j = self.index(nx, ny, v);
+                    let k = self.neighbours_of(x as usize, y as usize, i, axes, v, &mut nb);
+                    for &(nx, ny, j) in &nb[..k] {
+                        let j = j as usize;
                         if self.stamp[j] == generation {
                             continue;
                         }
                         self.stamp[j] = generation;
                         if self.cur[j] >= v.well {
-                            self.queue.push((nx as u32, ny as u32));
+                            self.queue.push((nx, ny, j as u32));
                         } else {
-                            self.frontier.push((nx as u32, ny as u32));
+                            self.frontier.push((nx, ny, j as u32));
                         }
                     }
                 }
@@ -429,9 +433,9 @@ impl Blooming {
                 std::mem::swap(&mut self.queue, &mut self.frontier);
                 let mut head = 0;
                 while head < self.queue.len() && pool > 0.0 {
-                    let (x, y) = self.queue[head];
+                    let (x, y, i) = self.queue[head];
                     head += 1;
-                    let i = self.index(x as usize, y as usize, v);
+                    let i = i as usize;
                     pool += self.exc[i] as f64;
                     self.exc[i] = 0.0;
                     let take = ((v.well - self.cur[i]) as f64).clamp(0.0, pool);
@@ -440,11 +444,11 @@ impl Blooming {
                     if pool <= 0.0 {
                         break;
                     }
-                    for (nx, ny) in neighbours(x as usize, y as usize, w, h, vertical_only, horizontal_only) {
-                        let j = self.index(nx, ny, v);
-                        if self.stamp[j] != generation {
-                            self.stamp[j] = generation;
-                            self.queue.push((nx as u32, ny as u32));
+                    let k = self.neighbours_of(x as usize, y as usize, i, axes, v, &mut nb);
+                    for &(nx, ny, j) in &nb[..k] {
+                        if self.stamp[j as usize] != generation {
+                            self.stamp[j as usize] = generation;
+                            self.queue.push((nx, ny, j));
                         }
                     }
                 }
@@ -455,6 +459,45 @@ impl Blooming {
         }
         self.generation = generation;
         lost
+    }
+
+    /// The 4-neighbours of pixel (x, y) (pool index `i`) inside the frame, optionally restricted
+    /// to one axis (`axes` = (vertical only, horizontal only)), in the order left, right, up,
+    /// down, with their pool indices (inside the tile by offset, across a tile edge through the
+    /// tile table, loading the tile if needed); returns how many.
+    #[inline(always)]
+    fn neighbours_of<T: Sample>(
+        &mut self,
+        x: usize,
+        y: usize,
+        i: usize,
+        axes: (bool, bool),
+        v: &View<'_, T>,
+        out: &mut [(u32, u32, u32); 4],
+    ) -> usize {
+        let (w, h) = (v.img.width, v.img.height);
+        let mut k = 0;
+        let mut put = |nx: usize, ny: usize, j: usize| {
+            out[k] = (nx as u32, ny as u32, j as u32);
+            k += 1;
+        };
+        if !axes.0 {
+            if x > 0 {
+                put(x - 1, y, if !x.is_multiple_of(TILE) { i - 1 } else { self.index(x - 1, y, v) });
+            }
+            if x + 1 < w {
+                put(x + 1, y, if !(x + 1).is_multiple_of(TILE) { i + 1 } else { self.index(x + 1, y, v) });
+            }
+        }
+        if !axes.1 {
+            if y > 0 {
+                put(x, y - 1, if !y.is_multiple_of(TILE) { i - TILE } else { self.index(x, y - 1, v) });
+            }
+            if y + 1 < h {
+                put(x, y + 1, if !(y + 1).is_multiple_of(TILE) { i + TILE } else { self.index(x, y + 1, v) });
+            }
+        }
+        k
     }
 
     /// Glow mode on one channel: halo (one scatter, no well) and streak profiles.
@@ -782,24 +825,6 @@ fn merge_tile(cur: &mut [f32], acc: &mut [f32], exc: &mut [f32], well: f32) -> f
     let mut out = 0.0;
     merge_tile_mv(cur, acc, exc, well, &mut out, 0u8);
     out
-}
-
-/// 4-neighbours inside the frame, optionally restricted to one axis.
-fn neighbours(
-    x: usize,
-    y: usize,
-    w: usize,
-    h: usize,
-    vertical_only: bool,
-    horizontal_only: bool,
-) -> impl Iterator<Item = (usize, usize)> {
-    let cand = [
-        (!vertical_only && x > 0).then(|| (x.wrapping_sub(1), y)),
-        (!vertical_only && x + 1 < w).then_some((x + 1, y)),
-        (!horizontal_only && y > 0).then(|| (x, y.wrapping_sub(1))),
-        (!horizontal_only && y + 1 < h).then_some((x, y + 1)),
-    ];
-    cand.into_iter().flatten()
 }
 
 impl Effect for Blooming {
