@@ -1,5 +1,6 @@
 //! `gain_offset`: linear transfer error of the readout chain, `v = gain * v + offset_dn`.
 
+use super::kit::lut_u8_row;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, Sample};
 use crate::with_image_mut;
@@ -56,10 +57,16 @@ impl Effect for GainOffset {
             self.lut_key = Some(key);
         }
         let (l8, l16) = (&self.lut8, &self.lut16);
+        let t8 = <&[u8; 256]>::try_from(&l8[..]).ok();
         with_image_mut!(frame, img => {
             for row in img.rows_mut() {
-                for v in row.iter_mut() {
-                    *v = lut_get(l8, l16, *v);
+                match (Sample::bytes_mut(&mut *row), t8) {
+                    (Some(bytes), Some(t8)) => lut_u8_row(bytes, t8),
+                    (_, _) => {
+                        for v in row.iter_mut() {
+                            *v = lut_get(l8, l16, *v);
+                        }
+                    }
                 }
             }
         });

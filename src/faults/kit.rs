@@ -426,9 +426,7 @@ impl Lut {
                 let Ok(t) = <&[u8; 256]>::try_from(&self.t8[..]) else { return };
                 par_bands(d, stride, height, |_, _, band| {
                     for row in band_rows(band, stride, row_len) {
-                        for v in row.iter_mut() {
-                            *v = t[*v as usize];
-                        }
+                        lut_u8_row(row, t);
                     }
                 });
             }
