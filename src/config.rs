@@ -237,6 +237,8 @@ pub fn set_from_toml(params: &mut Params, key: &str, v: &toml::Value) -> Result<
     let spec = info.param(key).map(|(_, s)| s);
     match (v, spec.map(|s| s.kind)) {
         (toml::Value::String(w), _) => params.set_choice(key, w),
+        // A choice whose words are numbers (jpeg.chroma = 420) may be written unquoted.
+        (toml::Value::Integer(i), Some(ParamKind::Choice(_))) => params.set_choice(key, &i.to_string()),
         (toml::Value::Boolean(b), _) => params.set(key, if *b { 1.0 } else { 0.0 }),
         (toml::Value::Integer(i), _) => params.set(key, *i as f64),
         (toml::Value::Float(f), _) => params.set(key, *f),
@@ -265,6 +267,17 @@ mod tests {
         let back = FaultConfig::parse(&c.to_toml(), "back").unwrap();
         assert_eq!(back.effects[0].params, c.effects[0].params);
         assert_eq!(back.seed, 7);
+    }
+
+    #[test]
+    fn numeric_choice_words_may_be_unquoted() {
+        for text in ["[[effects]]\nname = \"jpeg\"\nchroma = 444\n", "[[effects]]\nname = \"jpeg\"\nchroma = \"444\"\n"]
+        {
+            let c = FaultConfig::parse(text, "c.toml").unwrap();
+            assert_eq!(c.effects[0].params.choice("chroma"), "444", "{text}");
+        }
+        let e = FaultConfig::parse("[[effects]]\nname = \"jpeg\"\nchroma = 422\n", "c.toml").unwrap_err().to_string();
+        assert!(e.starts_with("c.toml:3:") && e.contains("420, 444"), "{e}");
     }
 
     #[test]

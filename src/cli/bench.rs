@@ -243,9 +243,12 @@ fn single_params(name: &str, sets: &[String]) -> anyhow::Result<Params> {
         if effect != name {
             continue;
         }
-        match value.parse::<f64>() {
-            Ok(v) => p.set(param, v)?,
-            Err(_) => p.set_choice(param, value)?,
+        // A choice word first (some are numbers, e.g. jpeg.chroma=444), else a number.
+        if p.set_choice(param, value).is_err() {
+            match value.parse::<f64>() {
+                Ok(v) => p.set(param, v)?,
+                Err(_) => p.set_choice(param, value)?,
+            }
         }
     }
     Ok(p)

@@ -958,8 +958,134 @@ fn row_fns() -> RowFns {
 /// byte permutes for the RGB (de-)interleaving.
 #[cfg(target_arch = "x86_64")]
 mod avx512 {
-    use super::{CBCR_OFFSET, ONE_HALF, fix};
+    use super::{CBCR_OFFSET, CONST_BITS, IQuant, Lanes, ONE_HALF, PASS1_BITS, fdct_int_pass, fix, idct_int_pass};
     use std::arch::x86_64::*;
+
+    /// Two horizontally adjacent blocks at once: the same row of the left block in the low
+    /// eight i32 lanes and of the right block in the high eight (the integer DCT of
+    /// [`super::roundtrip_block_int`], lane by lane).
+    #[derive(Clone, Copy)]
+    struct V2(__m512i);
+
+    // SAFETY (all methods): only called from `roundtrip_pair_in_plane`, which runs with AVX-512
+    // enabled (its caller checked the CPU); `#[inline(always)]` puts the intrinsics there.
+    impl Lanes for V2 {
+        #[inline(always)]
+        fn add(self, b: Self) -> Self {
+            V2(unsafe { _mm512_add_epi32(self.0, b.0) })
+        }
+        #[inline(always)]
+        fn sub(self, b: Self) -> Self {
+            V2(unsafe { _mm512_sub_epi32(self.0, b.0) })
+        }
+        #[inline(always)]
+        fn mul(self, k: i32) -> Self {
+            V2(unsafe { _mm512_mullo_epi32(self.0, _mm512_set1_epi32(k)) })
+        }
+        #[inline(always)]
+        fn shl(self, n: u32) -> Self {
+            V2(unsafe { _mm512_sll_epi32(self.0, _mm_cvtsi32_si128(n as i32)) })
+        }
+        #[inline(always)]
+        fn descale(self, n: u32) -> Self {
+            unsafe {
+                let r = _mm512_add_epi32(self.0, _mm512_set1_epi32(1 << (n - 1)));
+                V2(_mm512_sra_epi32(r, _mm_cvtsi32_si128(n as i32)))
+            }
+        }
+    }
+
+    /// Transpose both 8x8 blocks (each 256-bit half separately).
+    #[inline(always)]
+    fn transpose2(r: &mut [V2; 8]) {
+        // SAFETY: only inlined into `roundtrip_pair_in_plane` (AVX-512F enabled).
+        unsafe {
+            let t0 = _mm512_unpacklo_epi32(r[0].0, r[1].0);
+            let t1 = _mm512_unpackhi_epi32(r[0].0, r[1].0);
+            let t2 = _mm512_unpacklo_epi32(r[2].0, r[3].0);
+            let t3 = _mm512_unpackhi_epi32(r[2].0, r[3].0);
+            let t4 = _mm512_unpacklo_epi32(r[4].0, r[5].0);
+            let t5 = _mm512_unpackhi_epi32(r[4].0, r[5].0);
+            let t6 = _mm512_unpacklo_epi32(r[6].0, r[7].0);
+            let t7 = _mm512_unpackhi_epi32(r[6].0, r[7].0);
+            let u0 = _mm512_unpacklo_epi64(t0, t2);
+            let u1 = _mm512_unpackhi_epi64(t0, t2);
+            let u2 = _mm512_unpacklo_epi64(t1, t3);
+            let u3 = _mm512_unpackhi_epi64(t1, t3);
+            let u4 = _mm512_unpacklo_epi64(t4, t6);
+            let u5 = _mm512_unpackhi_epi64(t4, t6);
+            let u6 = _mm512_unpacklo_epi64(t5, t7);
+            let u7 = _mm512_unpackhi_epi64(t5, t7);
+            // Per 256-bit half: (a.lo128, b.lo128) and (a.hi128, b.hi128), as AVX2's
+            // permute2x128 0x20 / 0x31.
+            let lo = _mm512_setr_epi64(0, 1, 8, 9, 4, 5, 12, 13);
+            let hi = _mm512_setr_epi64(2, 3, 10, 11, 6, 7, 14, 15);
+            r[0] = V2(_mm512_permutex2var_epi64(u0, lo, u4));
+            r[1] = V2(_mm512_permutex2var_epi64(u1, lo, u5));
+            r[2] = V2(_mm512_permutex2var_epi64(u2, lo, u6));
+            r[3] = V2(_mm512_permutex2var_epi64(u3, lo, u7));
+            r[4] = V2(_mm512_permutex2var_epi64(u0, hi, u4));
+            r[5] = V2(_mm512_permutex2var_epi64(u1, hi, u5));
+            r[6] = V2(_mm512_permutex2var_epi64(u2, hi, u6));
+            r[7] = V2(_mm512_permutex2var_epi64(u3, hi, u7));
+        }
+    }
+
+    /// Upper 32 bits of the unsigned 32x32-bit products, lane by lane.
+    #[inline(always)]
+    fn mulhi_epu32(a: __m512i, b: __m512i) -> __m512i {
+        // SAFETY: only inlined into `roundtrip_pair_in_plane` (AVX-512F enabled).
+        unsafe {
+            let even = _mm512_srli_epi64::<32>(_mm512_mul_epu32(a, b));
+            let odd = _mm512_mul_epu32(_mm512_srli_epi64::<32>(a), _mm512_srli_epi64::<32>(b));
+            _mm512_mask_blend_epi32(0xaaaa, even, odd)
+        }
+    }
+
+    /// Round trip of the two 8x8 blocks of `plane` whose top-left samples are `off` and
+    /// `off + 8` (rows `pitch` apart), in place: the integers of
+    /// [`super::roundtrip_in_plane_scalar`] applied to each block.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl")]
+    pub unsafe fn roundtrip_pair_in_plane(plane: &mut [u8], off: usize, pitch: usize, q: &IQuant) {
+        if off + 7 * pitch + 16 > plane.len() {
+            return;
+        }
+        let c128 = _mm512_set1_epi32(128);
+        let mut r: [V2; 8] = std::array::from_fn(|dy| {
+            // SAFETY: bytes off + dy * pitch .. + 16 lie inside `plane` (checked above).
+            let v = unsafe { _mm_loadu_si128(plane.as_ptr().add(off + dy * pitch) as *const __m128i) };
+            V2(_mm512_sub_epi32(_mm512_cvtepu8_epi32(v), c128))
+        });
+        transpose2(&mut r);
+        fdct_int_pass(&mut r, true);
+        transpose2(&mut r);
+        fdct_int_pass(&mut r, false);
+        let zero = _mm512_setzero_si512();
+        for (v, row) in r.iter_mut().enumerate() {
+            let c = row.0;
+            // SAFETY: eight i32 per quantiser row; unaligned 32-byte loads, broadcast to both
+            // blocks.
+            let (half, recip, qq) = unsafe {
+                let ld = |p: &[i32; 8]| _mm512_broadcast_i64x4(_mm256_loadu_si256(p.as_ptr() as *const __m256i));
+                let recip = _mm512_broadcast_i64x4(_mm256_loadu_si256(q.recip[v].as_ptr() as *const __m256i));
+                (ld(&q.half[v]), recip, ld(&q.q[v]))
+            };
+            let a = _mm512_add_epi32(_mm512_abs_epi32(c), half);
+            let level = _mm512_mullo_epi32(mulhi_epu32(a, recip), qq);
+            // sign(c) * level (level is 0 where c is 0).
+            row.0 = _mm512_mask_sub_epi32(level, _mm512_cmplt_epi32_mask(c, zero), zero, level);
+        }
+        idct_int_pass(&mut r, CONST_BITS - PASS1_BITS);
+        transpose2(&mut r);
+        idct_int_pass(&mut r, CONST_BITS + PASS1_BITS + 3);
+        transpose2(&mut r);
+        for (dy, row) in r.iter().enumerate() {
+            // Range limit: clamp(v + 128, 0, 255).
+            let v = _mm512_cvtusepi32_epi8(_mm512_max_epi32(_mm512_add_epi32(row.0, c128), zero));
+            // SAFETY: as for the loads.
+            unsafe { _mm_storeu_si128(plane.as_mut_ptr().add(off + dy * pitch) as *mut __m128i, v) };
+        }
+    }
 
     /// Weight pair (a, b) for `vpmaddwd`: a on even 16-bit lanes, b on odd ones.
     #[inline(always)]
@@ -1291,14 +1417,34 @@ fn gray8(data: &mut [u8], w: usize, h: usize, stride: usize, q: &IQuant) {
 /// Round trip of a tightly packed u8 plane whose size is a multiple of 8 in both directions.
 fn plane_roundtrip(plane: &mut [u8], pw: usize, q: &IQuant) {
     let f = plane_block_fn();
+    let pair = plane_pair_fn();
     plane.par_chunks_mut(pw * ROWS_PER_TASK).for_each(|chunk| {
         let rows = chunk.len() / pw;
         for by in (0..rows).step_by(8) {
-            for bx in (0..pw).step_by(8) {
+            let mut bx = 0;
+            if let Some(pair) = pair {
+                while bx + 16 <= pw {
+                    pair(chunk, by * pw + bx, pw, q);
+                    bx += 16;
+                }
+            }
+            while bx < pw {
                 f(chunk, by * pw + bx, pw, q);
+                bx += 8;
             }
         }
     });
+}
+
+/// Two horizontally adjacent blocks at once, when this CPU has a kernel for it (the same bits as
+/// two calls of [`plane_block_fn`]).
+fn plane_pair_fn() -> Option<fn(&mut [u8], usize, usize, &IQuant)> {
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx512() {
+        // SAFETY: the CPU supports AVX-512 F/BW/VL (checked just above).
+        return Some(|p, o, s, q| unsafe { avx512::roundtrip_pair_in_plane(p, o, s, q) });
+    }
+    None
 }
 
 impl Jpeg {
@@ -1529,6 +1675,39 @@ mod tests {
                     assert_eq!(u1, u2, "fancy upsampling, {n} px");
                 }
             }
+        }
+    }
+
+    /// The two-block AVX-512 kernel gives, for each block, the scalar reference's bytes.
+    #[test]
+    fn block_pair_round_trip_equals_the_scalar_reference() {
+        let Some(pair) = plane_pair_fn() else { return };
+        let mut r = Rng::new(23);
+        let pitch = 40;
+        for trial in 0..2000 {
+            let q = 1 + (trial % 100) as u32;
+            let table = if trial % 2 == 0 { &STD_LUMA } else { &STD_CHROMA };
+            let iq = IQuant::new(&scaled_table(table, q));
+            // Random samples, flat areas and checkerboards at the extremes (largest coefficients).
+            let plane: Vec<u8> = (0..pitch * 9)
+                .map(|i| match trial % 3 {
+                    0 => r.below(256) as u8,
+                    1 => (trial % 256) as u8,
+                    _ => {
+                        if (i % pitch + i / pitch) % 2 == 0 {
+                            255
+                        } else {
+                            0
+                        }
+                    }
+                })
+                .collect();
+            let off = 1 + (trial % 7) as usize;
+            let (mut a, mut b) = (plane.clone(), plane);
+            roundtrip_in_plane_scalar(&mut a, off, pitch, &iq);
+            roundtrip_in_plane_scalar(&mut a, off + 8, pitch, &iq);
+            pair(&mut b, off, pitch, &iq);
+            assert_eq!(a, b, "trial {trial} quality {q}");
         }
     }
 

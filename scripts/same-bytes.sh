@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Check that two faultcam binaries produce the same bytes: every effect alone (both bench scenes,
+# mono8 / rgb8 / mono16) and the original eight-fault chain on 1 and 2 threads, by the digests
+# `faultcam bench` prints. Used to show that speed work leaves the output unchanged, e.g.
+#   git worktree add /tmp/old <commit> && (cd /tmp/old && CARGO_TARGET_DIR=/tmp/oldtarget cargo build --release --bin faultcam)
+#   ./scripts/same-bytes.sh /tmp/oldtarget/release/faultcam ./target/release/faultcam
+set -euo pipefail
+cd "$(dirname "$0")/.."
+old=${1:?usage: same-bytes.sh OLD_BINARY NEW_BINARY}
+new=${2:?usage: same-bytes.sh OLD_BINARY NEW_BINARY}
+fail=0
+digests() { "$@" 2>&1 | awk 'length($NF) == 16 && $NF ~ /^[0-9a-f]+$/ {print $1, $NF}' || true; }
+compare() {
+  local what=$1; shift
+  local a b
+  a=$(digests "$old" "$@")
+  b=$(digests "$new" "$@")
+  if [ -n "$a" ] && [ "$a" == "$b" ]; then
+    echo "same      $what ($(echo "$a" | wc -l) digests)"
+  else
+    echo "DIFFERENT $what"; diff <(echo "$a") <(echo "$b") || true; fail=1
+  fi
+}
+for fmt in mono8 rgb8 mono16; do
+  for scene in spacecraft stress; do
+    compare "$fmt $scene: every effect" bench --all-effects --size 640x480 --format "$fmt" --scene "$scene" --frames 4 --warmup 1
+    compare "$fmt $scene: original chain, 1 and 2 threads" bench --faults hil/campaigns/original8.toml \
+      --size 1920x1200 --format "$fmt" --scene "$scene" --frames 6 --warmup 1 --threads 1,2
+  done
+done
+for set in blooming.mode=glow blooming.mode=charge blooming.exposure_gain=1.5 blooming.axis=vertical \
+  gaussian_noise.sigma_dn=20 gaussian_noise.sigma_dn=0.5 dark_current.mean_dn=40 dark_current.mean_dn=0.3 \
+  dark_current.gain_e_per_dn=3 jpeg.quality=20 jpeg.quality=97; do
+  compare "$set, stress scene" bench --effect "${set%%.*}" --set "$set" --size 1000x700 --format mono8,rgb8,mono16 \
+    --scene stress --frames 3 --warmup 0
+done
+exit $fail
