@@ -764,7 +764,10 @@ fn roundtrip_in_plane_scalar(plane: &mut [u8], off: usize, pitch: usize, q: &IQu
 }
 
 /// The fastest implementation of the in-plane block round trip (all give the same bits).
-fn plane_block_fn() -> fn(&mut [u8], usize, usize, &IQuant) {
+/// Round trip of the block(s) of a plane at an offset, with the plane's pitch.
+type PlaneBlockFn = fn(&mut [u8], usize, usize, &IQuant);
+
+fn plane_block_fn() -> PlaneBlockFn {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2 (checked just above).
@@ -1438,7 +1441,7 @@ fn plane_roundtrip(plane: &mut [u8], pw: usize, q: &IQuant) {
 
 /// Two horizontally adjacent blocks at once, when this CPU has a kernel for it (the same bits as
 /// two calls of [`plane_block_fn`]).
-fn plane_pair_fn() -> Option<fn(&mut [u8], usize, usize, &IQuant)> {
+fn plane_pair_fn() -> Option<PlaneBlockFn> {
     #[cfg(target_arch = "x86_64")]
     if super::kit::has_avx512() {
         // SAFETY: the CPU supports AVX-512 F/BW/VL (checked just above).
