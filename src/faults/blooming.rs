@@ -1043,12 +1043,19 @@ impl Blooming {
         }
         let (fixed, lut) = (self.fixed_gain, &self.lut);
         let lut8: &[u8; 256] = self.lut8.as_slice().try_into().expect("256 entries");
+        // Byte table lookups when the CPU permutes bytes, else the vectorised Q16 multiply.
+        #[cfg(target_arch = "x86_64")]
+        let has_vbmi = super::kit::has_avx512_vbmi();
+        #[cfg(not(target_arch = "x86_64"))]
+        let has_vbmi = false;
         let (w, h, ch, stride) = (img.width, img.height, img.channels, img.stride);
         let used = stride * (h - 1) + w * ch;
         img.data[..used].par_chunks_mut(stride * TILE).for_each(|chunk| {
             for row in chunk.chunks_mut(stride) {
                 let row = &mut row[..w * ch];
-                if let Some(bytes) = T::bytes_mut(row) {
+                if let Some(bytes) = T::bytes_mut(row)
+                    && (has_vbmi || fixed.is_none())
+                {
                     lut_u8_row(bytes, lut8);
                     continue;
                 }

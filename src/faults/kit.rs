@@ -123,7 +123,34 @@ pub fn ge_mask_u8(row: &[u8], thr: u8, out: &mut [u64]) {
         unsafe { simd512::ge_mask_u8(row, thr, out) };
         return;
     }
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        unsafe { ge_mask_u8_avx2(row, thr, out) };
+        return;
+    }
     ge_mask_u8_scalar(row, thr, out)
+}
+
+/// AVX2 version of [`ge_mask_u8`]: whole 64-byte words by `movemask`, the tail by the reference.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn ge_mask_u8_avx2(row: &[u8], thr: u8, out: &mut [u64]) {
+    use std::arch::x86_64::*;
+    let t = _mm256_set1_epi8(thr as i8);
+    let full = row.len() / 64;
+    for (k, o) in out.iter_mut().enumerate().take(full) {
+        // SAFETY: bytes 64k .. 64k + 64 are inside the row (k < row.len() / 64).
+        let bits = |off: usize| unsafe {
+            let v = _mm256_loadu_si256(row.as_ptr().add(64 * k + off) as *const __m256i);
+            // v >= thr  <=>  max(v, thr) == v (unsigned).
+            _mm256_movemask_epi8(_mm256_cmpeq_epi8(_mm256_max_epu8(v, t), v)) as u32 as u64
+        };
+        *o = bits(0) | bits(32) << 32;
+    }
+    if full < out.len() {
+        ge_mask_u8_scalar(&row[64 * full..], thr, &mut out[full..]);
+    }
 }
 
 /// Scalar reference of [`ge_mask_u8`].
