@@ -340,11 +340,23 @@ pub struct IQuant {
     half: IBlock,
     /// ceil(2^32 / (8 Q)) < 2^29.
     recip: [[u32; 8]; 8],
+    /// Q, 4 Q and 1 / (8 Q) (f32, correctly rounded) for the 16-bit kernel: floor(a / (8 Q))
+    /// = trunc((a + 1/2) * (1 / (8 Q))) exactly for 0 <= a < 2^14 (see `dct16`).
+    q16: [[i16; 8]; 8],
+    half16: [[i16; 8]; 8],
+    recip_f: [[f32; 8]; 8],
 }
 
 impl IQuant {
     pub fn new(table: &[u16; 64]) -> IQuant {
-        let mut out = IQuant { q: [[0; 8]; 8], half: [[0; 8]; 8], recip: [[0; 8]; 8] };
+        let mut out = IQuant {
+            q: [[0; 8]; 8],
+            half: [[0; 8]; 8],
+            recip: [[0; 8]; 8],
+            q16: [[0; 8]; 8],
+            half16: [[0; 8]; 8],
+            recip_f: [[0.0; 8]; 8],
+        };
         for v in 0..8 {
             for u in 0..8 {
                 let qv = table[v * 8 + u] as u64 * 8;
@@ -352,6 +364,10 @@ impl IQuant {
                 out.half[v][u] = (qv / 2) as i32;
                 // floor(n / qv) = (n * ceil(2^32 / qv)) >> 32 exactly for n < 2^32 / qv (n < 2^15 here).
                 out.recip[v][u] = (1u64 << 32).div_ceil(qv) as u32;
+                // Tables are clamped to 1..=255 (baseline), so these fit 16 bits.
+                out.q16[v][u] = table[v * 8 + u].min(255) as i16;
+                out.half16[v][u] = (qv / 2).min(1020) as i16;
+                out.recip_f[v][u] = 1.0f32 / qv as f32;
             }
         }
         out
@@ -956,139 +972,248 @@ fn row_fns() -> RowFns {
     RowFns { to_ycc: rgb_to_ycc_row_scalar, to_rgb: ycc_to_rgb_row_scalar, fancy: fancy_row_scalar }
 }
 
+/// The integer DCT round trip of two horizontally adjacent blocks in 16-bit lanes (AVX2), in the
+/// manner of libjpeg-turbo's SIMD islow: every product pair of [`fdct_int_pass`] /
+/// [`idct_int_pass`] regrouped as `vpmaddwd` of interleaved 16-bit operands with 16-bit
+/// constants (integer identities, so the 32-bit sums are the reference's), descaled and packed
+/// back to 16 bits (the values fit: samples are -128..=127 and the tables baseline). The
+/// quantiser divides in f32: for 0 <= a < 2^14 and 8 <= 8 Q <= 2040, (a + 1/2) / (8 Q) is at
+/// least 1 / (16 Q) from an integer and the f32 product errs by less than 2^-23 relative, so
+/// its truncation is floor(a / (8 Q)) (checked for every a and Q in the tests).
+#[cfg(target_arch = "x86_64")]
+mod dct16 {
+    use super::{
+        CONST_BITS, FIX_0_298631336, FIX_0_390180644, FIX_0_541196100, FIX_0_765366865, FIX_0_899976223,
+        FIX_1_175875602, FIX_1_501321110, FIX_1_847759065, FIX_1_961570560, FIX_2_053119869, FIX_2_562915447,
+        FIX_3_072711026, IQuant, PASS1_BITS,
+    };
+    use std::arch::x86_64::*;
+
+    type R = [__m256i; 8];
+
+    // SAFETY (all helpers): `#[inline(always)]` into `roundtrip_pair`, which enables AVX2.
+    #[inline(always)]
+    fn add(a: __m256i, b: __m256i) -> __m256i {
+        unsafe { _mm256_add_epi16(a, b) }
+    }
+    #[inline(always)]
+    fn sub(a: __m256i, b: __m256i) -> __m256i {
+        unsafe { _mm256_sub_epi16(a, b) }
+    }
+    #[inline(always)]
+    fn add32(a: (__m256i, __m256i), b: (__m256i, __m256i)) -> (__m256i, __m256i) {
+        unsafe { (_mm256_add_epi32(a.0, b.0), _mm256_add_epi32(a.1, b.1)) }
+    }
+    #[inline(always)]
+    fn sub32(a: (__m256i, __m256i), b: (__m256i, __m256i)) -> (__m256i, __m256i) {
+        unsafe { (_mm256_sub_epi32(a.0, b.0), _mm256_sub_epi32(a.1, b.1)) }
+    }
+    /// Interleaved (a, b) pairs, low and high halves of each 128-bit lane.
+    #[inline(always)]
+    fn pairs(a: __m256i, b: __m256i) -> (__m256i, __m256i) {
+        unsafe { (_mm256_unpacklo_epi16(a, b), _mm256_unpackhi_epi16(a, b)) }
+    }
+    /// a * ka + b * kb in 32 bits for the pairs of [`pairs`].
+    #[inline(always)]
+    fn madd(p: (__m256i, __m256i), ka: i32, kb: i32) -> (__m256i, __m256i) {
+        debug_assert!(i16::try_from(ka).is_ok() && i16::try_from(kb).is_ok());
+        unsafe {
+            let k = _mm256_set1_epi32((ka & 0xffff) | (kb << 16));
+            (_mm256_madd_epi16(p.0, k), _mm256_madd_epi16(p.1, k))
+        }
+    }
+    /// DESCALE(x, n) of both halves, packed back to 16 bits in the original lane order.
+    #[inline(always)]
+    fn descale(x: (__m256i, __m256i), n: u32) -> __m256i {
+        unsafe {
+            let r = _mm256_set1_epi32(1 << (n - 1));
+            let c = _mm_cvtsi32_si128(n as i32);
+            _mm256_packs_epi32(
+                _mm256_sra_epi32(_mm256_add_epi32(x.0, r), c),
+                _mm256_sra_epi32(_mm256_add_epi32(x.1, r), c),
+            )
+        }
+    }
+
+    const F0298: i32 = FIX_0_298631336;
+    const F0390: i32 = FIX_0_390180644;
+    const F0541: i32 = FIX_0_541196100;
+    const F0765: i32 = FIX_0_765366865;
+    const F0899: i32 = FIX_0_899976223;
+    const F1175: i32 = FIX_1_175875602;
+    const F1501: i32 = FIX_1_501321110;
+    const F1847: i32 = FIX_1_847759065;
+    const F1961: i32 = FIX_1_961570560;
+    const F2053: i32 = FIX_2_053119869;
+    const F2562: i32 = FIX_2_562915447;
+    const F3072: i32 = FIX_3_072711026;
+
+    /// The odd part shared by both directions: for inputs (x4, x5, x6, x7) (forward: tmp4..tmp7;
+    /// inverse: b7, b5, b3, b1) the four sums before descaling, in the order of the forward
+    /// outputs 7, 5, 3, 1 (inverse: t0', t1', t2', t3').
+    #[inline(always)]
+    #[allow(clippy::type_complexity)]
+    fn odd(x4: __m256i, x5: __m256i, x6: __m256i, x7: __m256i) -> [(__m256i, __m256i); 4] {
+        let z = pairs(add(x4, x6), add(x5, x7));
+        let z3 = madd(z, F1175 - F1961, F1175);
+        let z4 = madd(z, F1175, F1175 - F0390);
+        let a = pairs(x4, x7);
+        let c = pairs(x5, x6);
+        [
+            add32(madd(a, F0298 - F0899, -F0899), z3),
+            add32(madd(c, F2053 - F2562, -F2562), z4),
+            add32(madd(c, -F2562, F3072 - F2562), z3),
+            add32(madd(a, -F0899, F1501 - F0899), z4),
+        ]
+    }
+
+    /// [`super::fdct_int_pass`] in 16-bit lanes.
+    #[inline(always)]
+    fn fdct(b: &mut R, pass1: bool) {
+        let (tmp0, tmp7) = (add(b[0], b[7]), sub(b[0], b[7]));
+        let (tmp1, tmp6) = (add(b[1], b[6]), sub(b[1], b[6]));
+        let (tmp2, tmp5) = (add(b[2], b[5]), sub(b[2], b[5]));
+        let (tmp3, tmp4) = (add(b[3], b[4]), sub(b[3], b[4]));
+        let (tmp10, tmp13) = (add(tmp0, tmp3), sub(tmp0, tmp3));
+        let (tmp11, tmp12) = (add(tmp1, tmp2), sub(tmp1, tmp2));
+        // SAFETY: AVX2 context (see above).
+        unsafe {
+            if pass1 {
+                b[0] = _mm256_slli_epi16::<{ PASS1_BITS as i32 }>(add(tmp10, tmp11));
+                b[4] = _mm256_slli_epi16::<{ PASS1_BITS as i32 }>(sub(tmp10, tmp11));
+            } else {
+                let r = _mm256_set1_epi16(1 << (PASS1_BITS - 1));
+                b[0] = _mm256_srai_epi16::<{ PASS1_BITS as i32 }>(add(add(tmp10, tmp11), r));
+                b[4] = _mm256_srai_epi16::<{ PASS1_BITS as i32 }>(add(sub(tmp10, tmp11), r));
+            }
+        }
+        let n = if pass1 { CONST_BITS - PASS1_BITS } else { CONST_BITS + PASS1_BITS };
+        let e = pairs(tmp13, tmp12);
+        b[2] = descale(madd(e, F0541 + F0765, F0541), n);
+        b[6] = descale(madd(e, F0541, F0541 - F1847), n);
+        let [o7, o5, o3, o1] = odd(tmp4, tmp5, tmp6, tmp7);
+        b[7] = descale(o7, n);
+        b[5] = descale(o5, n);
+        b[3] = descale(o3, n);
+        b[1] = descale(o1, n);
+    }
+
+    /// [`super::idct_int_pass`] in 16-bit lanes (32-bit sums), final descale `n`.
+    #[inline(always)]
+    fn idct(b: &mut R, n: u32) {
+        let e = pairs(b[2], b[6]);
+        let tmp2 = madd(e, F0541, F0541 - F1847);
+        let tmp3 = madd(e, F0541 + F0765, F0541);
+        let d = pairs(b[0], b[4]);
+        let tmp0 = madd(d, 1 << CONST_BITS, 1 << CONST_BITS);
+        let tmp1 = madd(d, 1 << CONST_BITS, -(1 << CONST_BITS));
+        let (tmp10, tmp13) = (add32(tmp0, tmp3), sub32(tmp0, tmp3));
+        let (tmp11, tmp12) = (add32(tmp1, tmp2), sub32(tmp1, tmp2));
+        let [t0, t1, t2, t3] = odd(b[7], b[5], b[3], b[1]);
+        b[0] = descale(add32(tmp10, t3), n);
+        b[7] = descale(sub32(tmp10, t3), n);
+        b[1] = descale(add32(tmp11, t2), n);
+        b[6] = descale(sub32(tmp11, t2), n);
+        b[2] = descale(add32(tmp12, t1), n);
+        b[5] = descale(sub32(tmp12, t1), n);
+        b[3] = descale(add32(tmp13, t0), n);
+        b[4] = descale(sub32(tmp13, t0), n);
+    }
+
+    /// Transpose the 8x8 16-bit block in each 128-bit lane.
+    #[inline(always)]
+    fn transpose(r: &mut R) {
+        // SAFETY: AVX2 context (see above).
+        unsafe {
+            let a0 = _mm256_unpacklo_epi16(r[0], r[1]);
+            let a1 = _mm256_unpackhi_epi16(r[0], r[1]);
+            let a2 = _mm256_unpacklo_epi16(r[2], r[3]);
+            let a3 = _mm256_unpackhi_epi16(r[2], r[3]);
+            let a4 = _mm256_unpacklo_epi16(r[4], r[5]);
+            let a5 = _mm256_unpackhi_epi16(r[4], r[5]);
+            let a6 = _mm256_unpacklo_epi16(r[6], r[7]);
+            let a7 = _mm256_unpackhi_epi16(r[6], r[7]);
+            let b0 = _mm256_unpacklo_epi32(a0, a2);
+            let b1 = _mm256_unpackhi_epi32(a0, a2);
+            let b2 = _mm256_unpacklo_epi32(a1, a3);
+            let b3 = _mm256_unpackhi_epi32(a1, a3);
+            let b4 = _mm256_unpacklo_epi32(a4, a6);
+            let b5 = _mm256_unpackhi_epi32(a4, a6);
+            let b6 = _mm256_unpacklo_epi32(a5, a7);
+            let b7 = _mm256_unpackhi_epi32(a5, a7);
+            r[0] = _mm256_unpacklo_epi64(b0, b4);
+            r[1] = _mm256_unpackhi_epi64(b0, b4);
+            r[2] = _mm256_unpacklo_epi64(b1, b5);
+            r[3] = _mm256_unpackhi_epi64(b1, b5);
+            r[4] = _mm256_unpacklo_epi64(b2, b6);
+            r[5] = _mm256_unpackhi_epi64(b2, b6);
+            r[6] = _mm256_unpacklo_epi64(b3, b7);
+            r[7] = _mm256_unpackhi_epi64(b3, b7);
+        }
+    }
+
+    /// Quantise and dequantise row `v` (both blocks): sign(c) * floor((|c| + 4Q) / 8Q) * Q.
+    #[inline(always)]
+    fn quant(c: __m256i, q: &IQuant, v: usize) -> __m256i {
+        // SAFETY: AVX2 context; eight-lane table rows (unaligned 16- and 32-byte loads).
+        unsafe {
+            let row16 = |t: &[i16; 8]| _mm256_broadcastsi128_si256(_mm_loadu_si128(t.as_ptr() as *const __m128i));
+            let r = _mm256_loadu_ps(q.recip_f[v].as_ptr());
+            let a = _mm256_add_epi16(_mm256_abs_epi16(c), row16(&q.half16[v]));
+            let half = _mm256_set1_ps(0.5);
+            let level = |x: __m128i| {
+                let f = _mm256_cvtepi32_ps(_mm256_cvtepi16_epi32(x));
+                _mm256_cvttps_epi32(_mm256_mul_ps(_mm256_add_ps(f, half), r))
+            };
+            let (la, lb) = (level(_mm256_castsi256_si128(a)), level(_mm256_extracti128_si256::<1>(a)));
+            // packs interleaves the 128-bit lanes: [A0-3 B0-3 | A4-7 B4-7] -> [A0-7 | B0-7].
+            let l16 = _mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_packs_epi32(la, lb));
+            _mm256_sign_epi16(_mm256_mullo_epi16(l16, row16(&q.q16[v])), c)
+        }
+    }
+
+    /// Round trip of the two 8x8 blocks of `plane` at `off` and `off + 8` (rows `pitch` apart),
+    /// in place: the bytes of two calls of [`super::roundtrip_in_plane_scalar`].
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn roundtrip_pair(plane: &mut [u8], off: usize, pitch: usize, q: &IQuant) {
+        if off + 7 * pitch + 16 > plane.len() {
+            return;
+        }
+        let c128 = _mm256_set1_epi16(128);
+        let mut r: R = std::array::from_fn(|dy| {
+            // SAFETY: bytes off + dy * pitch .. + 16 lie inside `plane` (checked above).
+            let v = unsafe { _mm_loadu_si128(plane.as_ptr().add(off + dy * pitch) as *const __m128i) };
+            _mm256_sub_epi16(_mm256_cvtepu8_epi16(v), c128)
+        });
+        transpose(&mut r);
+        fdct(&mut r, true);
+        transpose(&mut r);
+        fdct(&mut r, false);
+        for (v, row) in r.iter_mut().enumerate() {
+            *row = quant(*row, q, v);
+        }
+        idct(&mut r, CONST_BITS - PASS1_BITS);
+        transpose(&mut r);
+        idct(&mut r, CONST_BITS + PASS1_BITS + 3);
+        transpose(&mut r);
+        for (dy, row) in r.iter().enumerate() {
+            // Range limit clamp(v + 128, 0, 255) by the unsigned saturation of the pack; block A's
+            // bytes are quadword 0, block B's quadword 2.
+            let p = _mm256_packus_epi16(_mm256_add_epi16(*row, c128), *row);
+            let bytes = _mm256_castsi256_si128(_mm256_permute4x64_epi64::<0b00_00_10_00>(p));
+            // SAFETY: as for the loads.
+            unsafe { _mm_storeu_si128(plane.as_mut_ptr().add(off + dy * pitch) as *mut __m128i, bytes) };
+        }
+    }
+}
+
 /// AVX-512 (BW, VBMI) row converters: the same integers as the scalar references, with the
 /// fixed-point products split so that they run in 16-bit lanes (`vpmaddwd`, `vpmulhw`) and
 /// byte permutes for the RGB (de-)interleaving.
 #[cfg(target_arch = "x86_64")]
 mod avx512 {
-    use super::{CBCR_OFFSET, CONST_BITS, IQuant, Lanes, ONE_HALF, PASS1_BITS, fdct_int_pass, fix, idct_int_pass};
+    use super::{CBCR_OFFSET, ONE_HALF, fix};
     use std::arch::x86_64::*;
-
-    /// Two horizontally adjacent blocks at once: the same row of the left block in the low
-    /// eight i32 lanes and of the right block in the high eight (the integer DCT of
-    /// [`super::roundtrip_block_int`], lane by lane).
-    #[derive(Clone, Copy)]
-    struct V2(__m512i);
-
-    // SAFETY (all methods): only called from `roundtrip_pair_in_plane`, which runs with AVX-512
-    // enabled (its caller checked the CPU); `#[inline(always)]` puts the intrinsics there.
-    impl Lanes for V2 {
-        #[inline(always)]
-        fn add(self, b: Self) -> Self {
-            V2(unsafe { _mm512_add_epi32(self.0, b.0) })
-        }
-        #[inline(always)]
-        fn sub(self, b: Self) -> Self {
-            V2(unsafe { _mm512_sub_epi32(self.0, b.0) })
-        }
-        #[inline(always)]
-        fn mul(self, k: i32) -> Self {
-            V2(unsafe { _mm512_mullo_epi32(self.0, _mm512_set1_epi32(k)) })
-        }
-        #[inline(always)]
-        fn shl(self, n: u32) -> Self {
-            V2(unsafe { _mm512_sll_epi32(self.0, _mm_cvtsi32_si128(n as i32)) })
-        }
-        #[inline(always)]
-        fn descale(self, n: u32) -> Self {
-            unsafe {
-                let r = _mm512_add_epi32(self.0, _mm512_set1_epi32(1 << (n - 1)));
-                V2(_mm512_sra_epi32(r, _mm_cvtsi32_si128(n as i32)))
-            }
-        }
-    }
-
-    /// Transpose both 8x8 blocks (each 256-bit half separately).
-    #[inline(always)]
-    fn transpose2(r: &mut [V2; 8]) {
-        // SAFETY: only inlined into `roundtrip_pair_in_plane` (AVX-512F enabled).
-        unsafe {
-            let t0 = _mm512_unpacklo_epi32(r[0].0, r[1].0);
-            let t1 = _mm512_unpackhi_epi32(r[0].0, r[1].0);
-            let t2 = _mm512_unpacklo_epi32(r[2].0, r[3].0);
-            let t3 = _mm512_unpackhi_epi32(r[2].0, r[3].0);
-            let t4 = _mm512_unpacklo_epi32(r[4].0, r[5].0);
-            let t5 = _mm512_unpackhi_epi32(r[4].0, r[5].0);
-            let t6 = _mm512_unpacklo_epi32(r[6].0, r[7].0);
-            let t7 = _mm512_unpackhi_epi32(r[6].0, r[7].0);
-            let u0 = _mm512_unpacklo_epi64(t0, t2);
-            let u1 = _mm512_unpackhi_epi64(t0, t2);
-            let u2 = _mm512_unpacklo_epi64(t1, t3);
-            let u3 = _mm512_unpackhi_epi64(t1, t3);
-            let u4 = _mm512_unpacklo_epi64(t4, t6);
-            let u5 = _mm512_unpackhi_epi64(t4, t6);
-            let u6 = _mm512_unpacklo_epi64(t5, t7);
-            let u7 = _mm512_unpackhi_epi64(t5, t7);
-            // Per 256-bit half: (a.lo128, b.lo128) and (a.hi128, b.hi128), as AVX2's
-            // permute2x128 0x20 / 0x31.
-            let lo = _mm512_setr_epi64(0, 1, 8, 9, 4, 5, 12, 13);
-            let hi = _mm512_setr_epi64(2, 3, 10, 11, 6, 7, 14, 15);
-            r[0] = V2(_mm512_permutex2var_epi64(u0, lo, u4));
-            r[1] = V2(_mm512_permutex2var_epi64(u1, lo, u5));
-            r[2] = V2(_mm512_permutex2var_epi64(u2, lo, u6));
-            r[3] = V2(_mm512_permutex2var_epi64(u3, lo, u7));
-            r[4] = V2(_mm512_permutex2var_epi64(u0, hi, u4));
-            r[5] = V2(_mm512_permutex2var_epi64(u1, hi, u5));
-            r[6] = V2(_mm512_permutex2var_epi64(u2, hi, u6));
-            r[7] = V2(_mm512_permutex2var_epi64(u3, hi, u7));
-        }
-    }
-
-    /// Upper 32 bits of the unsigned 32x32-bit products, lane by lane.
-    #[inline(always)]
-    fn mulhi_epu32(a: __m512i, b: __m512i) -> __m512i {
-        // SAFETY: only inlined into `roundtrip_pair_in_plane` (AVX-512F enabled).
-        unsafe {
-            let even = _mm512_srli_epi64::<32>(_mm512_mul_epu32(a, b));
-            let odd = _mm512_mul_epu32(_mm512_srli_epi64::<32>(a), _mm512_srli_epi64::<32>(b));
-            _mm512_mask_blend_epi32(0xaaaa, even, odd)
-        }
-    }
-
-    /// Round trip of the two 8x8 blocks of `plane` whose top-left samples are `off` and
-    /// `off + 8` (rows `pitch` apart), in place: the integers of
-    /// [`super::roundtrip_in_plane_scalar`] applied to each block.
-    #[target_feature(enable = "avx512f,avx512bw,avx512vl")]
-    pub unsafe fn roundtrip_pair_in_plane(plane: &mut [u8], off: usize, pitch: usize, q: &IQuant) {
-        if off + 7 * pitch + 16 > plane.len() {
-            return;
-        }
-        let c128 = _mm512_set1_epi32(128);
-        let mut r: [V2; 8] = std::array::from_fn(|dy| {
-            // SAFETY: bytes off + dy * pitch .. + 16 lie inside `plane` (checked above).
-            let v = unsafe { _mm_loadu_si128(plane.as_ptr().add(off + dy * pitch) as *const __m128i) };
-            V2(_mm512_sub_epi32(_mm512_cvtepu8_epi32(v), c128))
-        });
-        transpose2(&mut r);
-        fdct_int_pass(&mut r, true);
-        transpose2(&mut r);
-        fdct_int_pass(&mut r, false);
-        let zero = _mm512_setzero_si512();
-        for (v, row) in r.iter_mut().enumerate() {
-            let c = row.0;
-            // SAFETY: eight i32 per quantiser row; unaligned 32-byte loads, broadcast to both
-            // blocks.
-            let (half, recip, qq) = unsafe {
-                let ld = |p: &[i32; 8]| _mm512_broadcast_i64x4(_mm256_loadu_si256(p.as_ptr() as *const __m256i));
-                let recip = _mm512_broadcast_i64x4(_mm256_loadu_si256(q.recip[v].as_ptr() as *const __m256i));
-                (ld(&q.half[v]), recip, ld(&q.q[v]))
-            };
-            let a = _mm512_add_epi32(_mm512_abs_epi32(c), half);
-            let level = _mm512_mullo_epi32(mulhi_epu32(a, recip), qq);
-            // sign(c) * level (level is 0 where c is 0).
-            row.0 = _mm512_mask_sub_epi32(level, _mm512_cmplt_epi32_mask(c, zero), zero, level);
-        }
-        idct_int_pass(&mut r, CONST_BITS - PASS1_BITS);
-        transpose2(&mut r);
-        idct_int_pass(&mut r, CONST_BITS + PASS1_BITS + 3);
-        transpose2(&mut r);
-        for (dy, row) in r.iter().enumerate() {
-            // Range limit: clamp(v + 128, 0, 255).
-            let v = _mm512_cvtusepi32_epi8(_mm512_max_epi32(_mm512_add_epi32(row.0, c128), zero));
-            // SAFETY: as for the loads.
-            unsafe { _mm_storeu_si128(plane.as_mut_ptr().add(off + dy * pitch) as *mut __m128i, v) };
-        }
-    }
 
     /// Weight pair (a, b) for `vpmaddwd`: a on even 16-bit lanes, b on odd ones.
     #[inline(always)]
@@ -1383,11 +1508,23 @@ fn gray<T: Sample>(img: &mut ImageMut<'_, T>, q: &Quant, scale: f32) {
 /// row/column, as libjpeg pads to whole blocks.
 fn gray8(data: &mut [u8], w: usize, h: usize, stride: usize, q: &IQuant) {
     let used = stride * (h - 1) + w;
-    let (f, fp) = (block_fn(), plane_block_fn());
+    let (f, fp, pair) = (block_fn(), plane_block_fn(), plane_pair_fn());
     data[..used].par_chunks_mut(stride * ROWS_PER_TASK).for_each(|chunk| {
         let rows = chunk.len().div_ceil(stride);
         for by in (0..rows).step_by(8) {
+            let mut next = 0;
             for bx in (0..w).step_by(8) {
+                if bx < next {
+                    continue;
+                }
+                if let Some(pair) = pair
+                    && bx + 16 <= w
+                    && by + 8 <= rows
+                {
+                    pair(chunk, by * stride + bx, stride, q);
+                    next = bx + 16;
+                    continue;
+                }
                 if bx + 8 <= w && by + 8 <= rows {
                     fp(chunk, by * stride + bx, stride, q);
                     continue;
@@ -1443,9 +1580,9 @@ fn plane_roundtrip(plane: &mut [u8], pw: usize, q: &IQuant) {
 /// two calls of [`plane_block_fn`]).
 fn plane_pair_fn() -> Option<PlaneBlockFn> {
     #[cfg(target_arch = "x86_64")]
-    if super::kit::has_avx512() {
-        // SAFETY: the CPU supports AVX-512 F/BW/VL (checked just above).
-        return Some(|p, o, s, q| unsafe { avx512::roundtrip_pair_in_plane(p, o, s, q) });
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        return Some(|p, o, s, q| unsafe { dct16::roundtrip_pair(p, o, s, q) });
     }
     None
 }
@@ -1681,10 +1818,29 @@ mod tests {
         }
     }
 
-    /// The two-block AVX-512 kernel gives, for each block, the scalar reference's bytes.
+    /// The two-block 16-bit kernel gives, for each block, the scalar reference's bytes.
+    /// The 16-bit kernel's division: trunc((a + 1/2) * fl(1 / 8Q)) in f32 equals floor(a / 8Q)
+    /// for every quantiser value and every a it can meet (|c| + 4Q <= 8192 + 1020).
+    #[test]
+    fn float_quantiser_division_is_exact() {
+        for q in 1..=255u32 {
+            let qv = 8 * q;
+            let r = 1.0f32 / qv as f32;
+            for a in 0..=9300u32 {
+                let got = ((a as f32 + 0.5) * r) as u32;
+                assert_eq!(got, a / qv, "a {a}, Q {q}");
+            }
+        }
+    }
+
+    /// The two-block 16-bit kernel gives, for each block, the scalar reference's bytes.
     #[test]
     fn block_pair_round_trip_equals_the_scalar_reference() {
         let Some(pair) = plane_pair_fn() else { return };
+        check_pair(pair);
+    }
+
+    fn check_pair(pair: PlaneBlockFn) {
         let mut r = Rng::new(23);
         let pitch = 40;
         for trial in 0..2000 {
@@ -1692,20 +1848,23 @@ mod tests {
             let table = if trial % 2 == 0 { &STD_LUMA } else { &STD_CHROMA };
             let iq = IQuant::new(&scaled_table(table, q));
             // Random samples, flat areas and checkerboards at the extremes (largest coefficients).
+            // Random samples, flat areas, checkerboards and stripes at the extremes (the largest
+            // coefficients of every frequency).
             let plane: Vec<u8> = (0..pitch * 9)
-                .map(|i| match trial % 3 {
-                    0 => r.below(256) as u8,
-                    1 => (trial % 256) as u8,
-                    _ => {
-                        if (i % pitch + i / pitch) % 2 == 0 {
-                            255
-                        } else {
-                            0
-                        }
+                .map(|i| {
+                    let (x, y) = (i % pitch, i / pitch);
+                    let ext = |on: bool| if on { 255 } else { 0 };
+                    match trial % 6 {
+                        0 => r.below(256) as u8,
+                        1 => (trial % 256) as u8,
+                        2 => ext((x + y) % 2 == 0),
+                        3 => ext(x % 2 == 0),
+                        4 => ext((y / (1 + trial % 4)) % 2 == 0),
+                        _ => ext(r.below(2) == 0),
                     }
                 })
                 .collect();
-            let off = 1 + (trial % 7) as usize;
+            let off = 1 + trial % 7;
             let (mut a, mut b) = (plane.clone(), plane);
             roundtrip_in_plane_scalar(&mut a, off, pitch, &iq);
             roundtrip_in_plane_scalar(&mut a, off + 8, pitch, &iq);
