@@ -6,9 +6,11 @@
 //! `jpeg_quality_scaling`, dequantisation, inverse DCT, "fancy" (triangular) chroma upsampling
 //! and YCbCr→RGB in fixed point — and skips the entropy coding, which is lossless: the result is
 //! what a decoder shows. 8-bit frames use libjpeg's default integer DCTs (`jfdctint` /
-//! `jidctint`, "islow") with its rounding, vectorised over the eight columns of a block (AVX2
-//! when the CPU has it; integer arithmetic, so the bits do not depend on the path): the output
-//! is bit-identical to libjpeg-turbo's encode/decode (tested against OpenCV's imencode/imdecode).
+//! `jidctint`, "islow") with its rounding, vectorised over the columns of the blocks (two blocks
+//! at a time in 16-bit lanes with AVX2, as libjpeg-turbo's SIMD does; eight 32-bit lanes or the
+//! scalar reference otherwise; exact arithmetic, so the bits do not depend on the path): the
+//! output is bit-identical to libjpeg-turbo's encode/decode (tested against OpenCV's
+//! imencode/imdecode).
 //! Mono16 uses the AAN float DCT (`jfdctflt` / `jidctflt`) at full precision. `codec = encoder`
 //! runs a real encode/decode through the `image` crate instead (reference; allocates per frame).
 
