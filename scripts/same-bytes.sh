@@ -34,4 +34,13 @@ for set in blooming.mode=glow blooming.mode=charge blooming.exposure_gain=1.5 bl
   compare "$set, stress scene" bench --effect "${set%%.*}" --set "$set" --size 1000x700 --format mono8,rgb8,mono16 \
     --scene stress --frames 3 --warmup 0
 done
+# Odd frame sizes (partial tiles, blocks and SIMD tails), JPEG 4:4:4, noise before JPEG.
+tmp=$(mktemp -d)
+trap 'rm -rf "$tmp"' EXIT
+printf 'seed = 3\n[[effects]]\nname = "jpeg"\nquality = 60\nchroma = "444"\n' > "$tmp/jpeg444.toml"
+printf 'seed = 3\n[[effects]]\nname = "jpeg"\nquality = 33\n[[effects]]\nname = "gaussian_noise"\nsigma_dn = 5\n[[effects]]\nname = "dark_current"\nmean_dn = 9\nhot_pixel_rate = 0.001\n' > "$tmp/mix.toml"
+for cfg in jpeg444 mix; do
+  compare "$cfg config, odd sizes, 1 and 2 threads" bench --faults "$tmp/$cfg.toml" --size 1000x702,1917x1203 \
+    --format mono8,rgb8 --frames 3 --warmup 0 --threads 1,2
+done
 exit $fail
