@@ -1789,40 +1789,47 @@ mod tests {
         }
     }
 
-    #[test]
-    fn simd_colour_rows_equal_the_scalar_references() {
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            let mut r = Rng::new(5);
-            for n in (0..70).chain([255, 960, 1921]) {
-                let src: Vec<u8> = (0..3 * n).map(|_| r.below(256) as u8).collect();
-                let (mut a, mut b) =
-                    ((vec![0u8; n], vec![0u8; n], vec![0u8; n]), (vec![0u8; n], vec![0u8; n], vec![0u8; n]));
-                rgb_to_ycc_row_scalar(&src, &mut a.0, &mut a.1, &mut a.2);
-                // SAFETY: AVX2 is available (checked above).
-                unsafe { avx2::rgb_to_ycc_row(&src, &mut b.0, &mut b.1, &mut b.2) };
-                assert_eq!(a, b, "rgb -> ycc, {n} px");
-                let (mut o1, mut o2) = (vec![0u8; 3 * n], vec![0u8; 3 * n]);
-                ycc_to_rgb_row_scalar(&src[..n], &src[n..2 * n], &src[2 * n..], &mut o1);
-                // SAFETY: as above.
-                unsafe { avx2::ycc_to_rgb_row(&src[..n], &src[n..2 * n], &src[2 * n..], &mut o2) };
-                assert_eq!(o1, o2, "ycc -> rgb, {n} px");
-                let cw = n.div_ceil(2);
-                if cw > 0 {
-                    let (mut c1, mut c2) = (vec![0i32; cw], vec![0i32; cw]);
-                    let (mut u1, mut u2) = (vec![0u8; n], vec![0u8; n]);
-                    fancy_row_scalar(&src[..cw], &src[cw..2 * cw], &mut c1, &mut u1);
-                    // SAFETY: as above.
-                    unsafe { avx2::fancy_row(&src[..cw], &src[cw..2 * cw], &mut c2, &mut u2) };
-                    assert_eq!(u1, u2, "fancy upsampling, {n} px");
-                }
+    /// One set of row converters against the scalar references on rows of many lengths.
+    fn check_colour_rows(f: RowFns, seed: u64) {
+        let mut r = Rng::new(seed);
+        for n in (0..100).chain([255, 960, 1921]) {
+            let src: Vec<u8> = (0..3 * n).map(|_| r.below(256) as u8).collect();
+            let (mut a, mut b) =
+                ((vec![0u8; n], vec![0u8; n], vec![0u8; n]), (vec![0u8; n], vec![0u8; n], vec![0u8; n]));
+            rgb_to_ycc_row_scalar(&src, &mut a.0, &mut a.1, &mut a.2);
+            (f.to_ycc)(&src, &mut b.0, &mut b.1, &mut b.2);
+            assert_eq!(a, b, "rgb -> ycc, {n} px");
+            let (mut o1, mut o2) = (vec![0u8; 3 * n], vec![0u8; 3 * n]);
+            ycc_to_rgb_row_scalar(&src[..n], &src[n..2 * n], &src[2 * n..], &mut o1);
+            (f.to_rgb)(&src[..n], &src[n..2 * n], &src[2 * n..], &mut o2);
+            assert_eq!(o1, o2, "ycc -> rgb, {n} px");
+            let cw = n.div_ceil(2);
+            if cw > 0 {
+                let (mut c1, mut c2) = (vec![0i32; cw], vec![0i32; cw]);
+                let (mut u1, mut u2) = (vec![0u8; n], vec![0u8; n]);
+                fancy_row_scalar(&src[..cw], &src[cw..2 * cw], &mut c1, &mut u1);
+                (f.fancy)(&src[..cw], &src[cw..2 * cw], &mut c2, &mut u2);
+                assert_eq!(u1, u2, "fancy upsampling, {n} px");
             }
         }
     }
 
-    /// The two-block 16-bit kernel gives, for each block, the scalar reference's bytes.
-    /// The 16-bit kernel's division: trunc((a + 1/2) * fl(1 / 8Q)) in f32 equals floor(a / 8Q)
-    /// for every quantiser value and every a it can meet (|c| + 4Q <= 8192 + 1020).
+    #[test]
+    fn simd_colour_rows_equal_the_scalar_references() {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY (all three): AVX2 is available (checked above).
+            check_colour_rows(
+                RowFns {
+                    to_ycc: |s, y, b, r| unsafe { avx2::rgb_to_ycc_row(s, y, b, r) },
+                    to_rgb: |y, b, r, o| unsafe { avx2::ycc_to_rgb_row(y, b, r, o) },
+                    fancy: |n, f, c, o| unsafe { avx2::fancy_row(n, f, c, o) },
+                },
+                5,
+            );
+        }
+    }
+
     #[test]
     fn float_quantiser_division_is_exact() {
         for q in 1..=255u32 {
@@ -1879,30 +1886,15 @@ mod tests {
     fn avx512_colour_rows_equal_the_scalar_references() {
         #[cfg(target_arch = "x86_64")]
         if crate::faults::kit::has_avx512_vbmi() {
-            let mut r = Rng::new(6);
-            for n in (0..100).chain([255, 960, 1921]) {
-                let src: Vec<u8> = (0..3 * n).map(|_| r.below(256) as u8).collect();
-                let (mut a, mut b) =
-                    ((vec![0u8; n], vec![0u8; n], vec![0u8; n]), (vec![0u8; n], vec![0u8; n], vec![0u8; n]));
-                rgb_to_ycc_row_scalar(&src, &mut a.0, &mut a.1, &mut a.2);
-                // SAFETY: AVX-512 VBMI is available (checked above).
-                unsafe { avx512::rgb_to_ycc_row(&src, &mut b.0, &mut b.1, &mut b.2) };
-                assert_eq!(a, b, "rgb -> ycc, {n} px");
-                let (mut o1, mut o2) = (vec![0u8; 3 * n], vec![0u8; 3 * n]);
-                ycc_to_rgb_row_scalar(&src[..n], &src[n..2 * n], &src[2 * n..], &mut o1);
-                // SAFETY: as above.
-                unsafe { avx512::ycc_to_rgb_row(&src[..n], &src[n..2 * n], &src[2 * n..], &mut o2) };
-                assert_eq!(o1, o2, "ycc -> rgb, {n} px");
-                let cw = n.div_ceil(2);
-                if cw > 0 {
-                    let (mut c1, mut c2) = (vec![0i32; cw], vec![0i32; cw]);
-                    let (mut u1, mut u2) = (vec![0u8; n], vec![0u8; n]);
-                    fancy_row_scalar(&src[..cw], &src[cw..2 * cw], &mut c1, &mut u1);
-                    // SAFETY: as above.
-                    unsafe { avx512::fancy_row(&src[..cw], &src[cw..2 * cw], &mut c2, &mut u2) };
-                    assert_eq!(u1, u2, "fancy upsampling, {n} px");
-                }
-            }
+            // SAFETY (all three): AVX-512 VBMI is available (checked above).
+            check_colour_rows(
+                RowFns {
+                    to_ycc: |s, y, b, r| unsafe { avx512::rgb_to_ycc_row(s, y, b, r) },
+                    to_rgb: |y, b, r, o| unsafe { avx512::ycc_to_rgb_row(y, b, r, o) },
+                    fancy: |n, f, c, o| unsafe { avx512::fancy_row(n, f, c, o) },
+                },
+                6,
+            );
             // Every (Cb, Cr) pair with extreme and middle luma, and every RGB triple on a grid
             // that includes the ends of the range.
             let cbcr: Vec<(u8, u8)> = (0..=255u8).flat_map(|b| (0..=255u8).map(move |c| (b, c))).collect();

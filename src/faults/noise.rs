@@ -503,6 +503,29 @@ mod avx512 {
     }
 
     impl Lanes {
+        /// List the lanes set in `mask`, in order: sample `base + j`, table index `ix[j]`'s low
+        /// 12 bits (resolving the list first when it is full).
+        #[inline]
+        fn push_mask(
+            &mut self,
+            mut mask: u64,
+            base: usize,
+            ix: &[u16],
+            row: &mut [u8],
+            resolve: &mut dyn FnMut(usize) -> i32,
+        ) {
+            while mask != 0 {
+                let j = mask.trailing_zeros() as usize;
+                mask &= mask - 1;
+                if self.len == self.pos.len() {
+                    self.flush(row, resolve);
+                }
+                self.pos[self.len] = (base + j) as u32;
+                self.idx[self.len] = ix[j] & 0x0fff;
+                self.len += 1;
+            }
+        }
+
         /// Resolve the listed samples in order (they still hold their input value).
         #[cold]
         fn flush(&mut self, row: &mut [u8], resolve: &mut dyn FnMut(usize) -> i32) {
@@ -576,17 +599,7 @@ mod avx512 {
                 let mut ix = [0u16; 32];
                 // SAFETY: 32 u16 = 64 bytes; unaligned store.
                 unsafe { _mm512_storeu_si512(ix.as_mut_ptr() as *mut __m512i, idx) };
-                let mut m = m_res;
-                while m != 0 {
-                    let j = m.trailing_zeros() as usize;
-                    m &= m - 1;
-                    if pending.len == pending.pos.len() {
-                        pending.flush(row, resolve);
-                    }
-                    pending.pos[pending.len] = (bi * 32 + j) as u32;
-                    pending.idx[pending.len] = ix[j];
-                    pending.len += 1;
-                }
+                pending.push_mask(m_res as u64, bi * 32, &ix, row, resolve);
                 val = _mm512_maskz_mov_epi16(!m_res, val);
             }
             // SAFETY: 32 bytes at 32·bi lie inside the row (bi < n32 / 32); unaligned access.
@@ -679,17 +692,7 @@ mod avx512 {
                     _mm512_storeu_si512(ix.as_mut_ptr() as *mut __m512i, u0);
                     _mm512_storeu_si512(ix.as_mut_ptr().add(32) as *mut __m512i, u1);
                 }
-                let mut m = m_res;
-                while m != 0 {
-                    let j = m.trailing_zeros() as usize;
-                    m &= m - 1;
-                    if pending.len == pending.pos.len() {
-                        pending.flush(row, resolve);
-                    }
-                    pending.pos[pending.len] = (bi * 64 + j) as u32;
-                    pending.idx[pending.len] = ix[j] & 0x0fff;
-                    pending.len += 1;
-                }
+                pending.push_mask(m_res, bi * 64, &ix, row, resolve);
                 val = _mm512_maskz_mov_epi8(!m_res, val);
             }
             // SAFETY: 64 bytes at 64·bi lie inside the row (bi < n64 / 64); unaligned access.
