@@ -679,7 +679,6 @@ mod avx2 {
     #[target_feature(enable = "avx2")]
     pub unsafe fn fancy_row(near: &[u8], far: &[u8], cs: &mut [i32], out: &mut [u8]) {
         let n = cs.len();
-        let w = out.len();
         if n < 10 {
             return super::fancy_row_scalar(near, far, cs, out);
         }
@@ -714,21 +713,7 @@ mod avx2 {
             c += 8;
         }
         // The rest (both edges and the tail) as the scalar reference does it.
-        let edge = |x: usize| -> u8 {
-            let c = x / 2;
-            let this = cs[c];
-            let v = if x & 1 == 0 {
-                (3 * this + cs[c.saturating_sub(1)] + 8) >> 4
-            } else {
-                (3 * this + cs[(c + 1).min(n - 1)] + 7) >> 4
-            };
-            v as u8
-        };
-        out[0] = edge(0);
-        out[1] = edge(1);
-        for x in 2 * c..w {
-            out[x] = edge(x);
-        }
+        super::fancy_edges(cs, out, 2 * c);
     }
 
     /// Round trip of the 8x8 block of `plane` whose top-left sample is `off` (rows `pitch`
@@ -882,6 +867,27 @@ fn ycc_to_rgb_row_scalar(y: &[u8], cb: &[u8], cr: &[u8], out: &mut [u8]) {
     }
     for k in i..n {
         out[3 * k..3 * k + 3].copy_from_slice(&rgb_of(y[k] as i32, cb[k] as i32, cr[k] as i32));
+    }
+}
+
+/// Outputs 0, 1 and `from..` of [`fancy_row_scalar`] from the column sums `cs` (the edges and
+/// tail the SIMD versions leave to it).
+fn fancy_edges(cs: &[i32], out: &mut [u8], from: usize) {
+    let n = cs.len();
+    let edge = |x: usize| -> u8 {
+        let c = x / 2;
+        let this = cs[c];
+        let v = if x & 1 == 0 {
+            (3 * this + cs[c.saturating_sub(1)] + 8) >> 4
+        } else {
+            (3 * this + cs[(c + 1).min(n - 1)] + 7) >> 4
+        };
+        v as u8
+    };
+    out[0] = edge(0);
+    out[1] = edge(1);
+    for x in from..out.len() {
+        out[x] = edge(x);
     }
 }
 
@@ -1404,21 +1410,7 @@ mod avx512 {
             c += 32;
         }
         // The rest (both edges and the tail) as the scalar reference does it.
-        let edge = |x: usize| -> u8 {
-            let c = x / 2;
-            let this = cs[c];
-            let v = if x & 1 == 0 {
-                (3 * this + cs[c.saturating_sub(1)] + 8) >> 4
-            } else {
-                (3 * this + cs[(c + 1).min(n - 1)] + 7) >> 4
-            };
-            v as u8
-        };
-        out[0] = edge(0);
-        out[1] = edge(1);
-        for x in 2 * c..w {
-            out[x] = edge(x);
-        }
+        super::fancy_edges(cs, out, 2 * c);
     }
 }
 

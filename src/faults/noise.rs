@@ -775,16 +775,18 @@ mod tests {
         let mut r = Rng::new(11);
         let normal = crate::faults::gaussian_noise::conditional_mean_table();
         // Up to sigma 7 DN the form exists; at 20 DN the tails step too often (AVX2 gathers).
-        for sigma in [0.3, 1.0, 3.0, 4.0, 5.0, 6.0, 7.0, 20.0] {
+        // The gaussian_noise table (outer buckets resolved) of `entry(conditional mean)`.
+        let table = |entry: &dyn Fn(f64) -> i32| {
             let mut t = NoiseTable::default();
             let last = normal.len() - 1;
             t.rebuild(
                 12,
-                normal
-                    .iter()
-                    .enumerate()
-                    .map(|(i, m)| if i == 0 || i == last { RESOLVE } else { (sigma * m + 0.5).floor() as i32 }),
+                normal.iter().enumerate().map(|(i, &m)| if i == 0 || i == last { RESOLVE } else { entry(m) }),
             );
+            t
+        };
+        for sigma in [0.3, 1.0, 3.0, 4.0, 5.0, 6.0, 7.0, 20.0] {
+            let t = table(&|m| (sigma * m + 0.5).floor() as i32);
             match t.two_level() {
                 Some(tl) => assert!(sigma <= 7.0 && tl.exact_buckets() <= MAX_EXACT && tl.has_bytes()),
                 None => assert!(sigma > 7.0, "gaussian sigma {sigma}: no two-level form"),
@@ -803,15 +805,7 @@ mod tests {
         }
         // Offsets beyond a byte: the two-level form without its byte form (16-bit lanes).
         for shift in [-200, 150] {
-            let mut t = NoiseTable::default();
-            let last = normal.len() - 1;
-            t.rebuild(
-                12,
-                normal
-                    .iter()
-                    .enumerate()
-                    .map(|(i, m)| if i == 0 || i == last { RESOLVE } else { shift + (2.0 * m + 0.5).floor() as i32 }),
-            );
+            let t = table(&|m| shift + (2.0 * m + 0.5).floor() as i32);
             let tl = t.two_level().expect("two-level form");
             assert!(!tl.has_bytes());
             compare::<u8>(&t, 255, &mut r);
