@@ -6,7 +6,7 @@
 //! loaded into a floating-point pool; everything else is never touched (or, with an exposure
 //! gain, only rescaled).
 
-use super::kit::{ge_mask_u8, lut_u8_row, max_of_row, multiversion, scale_q16_row};
+use super::kit::{RGB_CHANNEL_BITS, ge_mask_u8, lut_u8_row, max_of_row, multiversion, scale_q16_row};
 use super::util::gaussian_kernel;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, ImageMut, ImageRef, Sample};
@@ -105,7 +105,7 @@ pub struct Blooming {
     tile_flags: Vec<bool>,
     // allocation: once per gain and sample width: round(v * exposure_gain)
     lut: Vec<u32>,
-    /// `lut` for 8-bit samples (256 entries).
+    /// `lut` as bytes, for 8-bit samples only (256 entries; empty for 16-bit).
     lut8: Vec<u8>,
     lut_gain: Option<u32>,
     /// The gain in Q16 when `(v * g + 2^15) >> 16` equals the table for every v.
@@ -714,33 +714,6 @@ multiversion! {
 }
 
 multiversion! {
-    /// Whether each channel of `seg` (interleaved, `ch` channels) holds a sample >= `thr`
-    /// (`out[c] |= ...`).
-    fn channels_reach<T: Sample>(seg: &[T], ch: usize, thr: T, out: &mut [bool]) {
-        if ch == 3 {
-            // Element-wise maxima over 16-pixel blocks keep the channels apart (48 = 16 * 3).
-            let mut m = [T::default(); 48];
-            let mut it = seg.chunks_exact(48);
-            for b in &mut it {
-                for k in 0..48 {
-                    m[k] = if b[k] > m[k] { b[k] } else { m[k] };
-                }
-            }
-            for (k, &v) in it.remainder().iter().enumerate() {
-                m[k] = if v > m[k] { v } else { m[k] };
-            }
-            for (k, &v) in m.iter().enumerate() {
-                out[k % 3] |= v >= thr;
-            }
-        } else {
-            for (c, o) in out.iter_mut().enumerate().take(ch) {
-                *o |= seg.iter().skip(c).step_by(ch).any(|&v| v >= thr);
-            }
-        }
-    }
-}
-
-multiversion! {
     /// Maximum of each `seg`-sample segment of `row` into `out` (one per segment, the last one
     /// possibly shorter).
     fn segment_max<T: Sample>(row: &[T], seg: usize, out: &mut [T]) {
@@ -753,32 +726,6 @@ multiversion! {
 /// Flag (tile, channel) pairs of one row from its comparison bits (`bits`: sample i of the row
 /// is bit i; `flags`: `ch` entries per tile).
 fn flag_tiles_from_bits(bits: &[u64], w: usize, ch: usize, flags: &mut [bool]) {
-    // CHANNEL[r][c]: the bits j of a 64-bit word whose samples are in channel c when the word
-    // starts r samples (mod 3) after a pixel boundary.
-    const fn pattern(r: usize, c: usize) -> u64 {
-        let mut m = 0u64;
-        let mut j = 0;
-        while j < 64 {
-            if (r + j) % 3 == c {
-                m |= 1 << j;
-            }
-            j += 1;
-        }
-        m
-    }
-    const CHANNEL: [[u64; 3]; 3] = {
-        let mut t = [[0u64; 3]; 3];
-        let mut r = 0;
-        while r < 3 {
-            let mut c = 0;
-            while c < 3 {
-                t[r][c] = pattern(r, c);
-                c += 1;
-            }
-            r += 1;
-        }
-        t
-    };
     let span = TILE * ch;
     let len = w * ch;
     // Only the words holding a set bit matter; each covers at most three tiles' samples.
@@ -800,7 +747,7 @@ fn flag_tiles_from_bits(bits: &[u64], w: usize, ch: usize, flags: &mut [bool]) {
                         // Bit 0 of `part` is sample a, whose channel is (a - tile start) % 3.
                         let r = (a - tx * span) % 3;
                         for (c, fc) in f.iter_mut().enumerate() {
-                            *fc |= part & CHANNEL[r][c] != 0;
+                            *fc |= part & RGB_CHANNEL_BITS[r][c] != 0;
                         }
                     }
                     _ => {
@@ -917,7 +864,9 @@ impl Blooming {
                         if ch == 1 {
                             f[0] = true;
                         } else {
-                            channels_reach(seg, ch, thr_t, f);
+                            for (c, fc) in f.iter_mut().enumerate() {
+                                *fc |= seg.iter().skip(c).step_by(ch).any(|&v| v >= thr_t);
+                            }
                         }
                     }
                 }
@@ -1039,10 +988,12 @@ impl Blooming {
             let fixed = |v: u64| ((v * gq + 32768) >> 16).min(T::MAX_U32 as u64) as u32;
             self.fixed_gain = self.lut.iter().enumerate().all(|(v, &l)| fixed(v as u64) == l).then_some(gq as u32);
             self.lut8.clear();
-            self.lut8.extend((0..256).map(|v| self.lut.get(v).map_or(0, |&l| l.min(255) as u8)));
+            if n == 256 {
+                self.lut8.extend(self.lut.iter().map(|&l| l as u8));
+            }
         }
         let (fixed, lut) = (self.fixed_gain, &self.lut);
-        let lut8: &[u8; 256] = self.lut8.as_slice().try_into().expect("256 entries");
+        let lut8 = <&[u8; 256]>::try_from(self.lut8.as_slice()).ok();
         // Byte table lookups when the CPU permutes bytes, else the vectorised Q16 multiply.
         #[cfg(target_arch = "x86_64")]
         let has_vbmi = super::kit::has_avx512_vbmi();
@@ -1053,7 +1004,7 @@ impl Blooming {
         img.data[..used].par_chunks_mut(stride * TILE).for_each(|chunk| {
             for row in chunk.chunks_mut(stride) {
                 let row = &mut row[..w * ch];
-                if let Some(bytes) = T::bytes_mut(row)
+                if let (Some(bytes), Some(lut8)) = (T::bytes_mut(row), lut8)
                     && (has_vbmi || fixed.is_none())
                 {
                     lut_u8_row(bytes, lut8);

@@ -130,9 +130,10 @@ fn put_channel(rgb: &mut [u8], plane: &[u8], c: usize) {
 
 #[cfg(target_arch = "x86_64")]
 mod vbmi {
+    use crate::faults::kit::RGB_CHANNEL_BITS;
     use std::arch::x86_64::*;
 
-    /// Byte j of `IDX[k]`: the plane index (pixel) of byte 64k + j of 64 RGB pixels.
+    /// Byte j of `PIXEL[k]`: the plane index (pixel) of byte 64k + j of 64 RGB pixels.
     const PIXEL: [[u8; 64]; 3] = {
         let mut t = [[0u8; 64]; 3];
         let mut k = 0;
@@ -140,21 +141,6 @@ mod vbmi {
             let mut j = 0;
             while j < 64 {
                 t[k][j] = ((64 * k + j) / 3) as u8;
-                j += 1;
-            }
-            k += 1;
-        }
-        t
-    };
-
-    /// Bits j of `CHANNEL[k][c]`: byte 64k + j of 64 RGB pixels is channel c.
-    const CHANNEL: [[u64; 3]; 3] = {
-        let mut t = [[0u64; 3]; 3];
-        let mut k = 0;
-        while k < 3 {
-            let mut j = 0;
-            while j < 64 {
-                t[k][(64 * k + j) % 3] |= 1 << j;
                 j += 1;
             }
             k += 1;
@@ -233,7 +219,8 @@ mod vbmi {
             return 0;
         }
         let idx = [load(&PIXEL[0]), load(&PIXEL[1]), load(&PIXEL[2])];
-        let masks = [CHANNEL[0][c], CHANNEL[1][c], CHANNEL[2][c]];
+        // Register k holds bytes 64k.., which start k samples (mod 3) after a pixel boundary.
+        let masks = [RGB_CHANNEL_BITS[0][c], RGB_CHANNEL_BITS[1][c], RGB_CHANNEL_BITS[2][c]];
         for i in (0..n).step_by(64) {
             // SAFETY: bytes i .. i + 64 of `plane` and 3i .. 3i + 192 of `rgb` exist.
             unsafe {

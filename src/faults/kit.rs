@@ -160,15 +160,23 @@ pub fn ge_mask_u8_scalar(row: &[u8], thr: u8, out: &mut [u64]) {
     }
 }
 
-/// `n <= 64` bits of `mask` from bit `pos` (bits beyond the mask read 0).
-#[inline]
-pub fn mask_bits(mask: &[u64], pos: usize, n: usize) -> u64 {
-    let (w, b) = (pos / 64, pos % 64);
-    let lo = mask.get(w).copied().unwrap_or(0) >> b;
-    let hi = if b == 0 { 0 } else { mask.get(w + 1).copied().unwrap_or(0) << (64 - b) };
-    let keep = if n >= 64 { u64::MAX } else { (1u64 << n) - 1 };
-    (lo | hi) & keep
-}
+/// Bit j of `RGB_CHANNEL_BITS[r][c]` is set when sample `r + j` of an interleaved RGB row,
+/// counted from a pixel boundary, belongs to channel c: the channel masks of a 64-sample word
+/// that starts r (mod 3) samples after a pixel boundary (64 = 1 mod 3, so word k of a row
+/// starts k mod 3 samples after one).
+pub const RGB_CHANNEL_BITS: [[u64; 3]; 3] = {
+    let mut t = [[0u64; 3]; 3];
+    let mut r = 0;
+    while r < 3 {
+        let mut j = 0;
+        while j < 64 {
+            t[r][(r + j) % 3] |= 1 << j;
+            j += 1;
+        }
+        r += 1;
+    }
+    t
+};
 
 #[cfg(target_arch = "x86_64")]
 mod simd512 {
@@ -660,11 +668,17 @@ mod tests {
                 ge_mask_u8_scalar(&row, thr, &mut slow);
                 assert_eq!(fast, slow, "mask, {n} bytes, thr {thr}");
                 for i in 0..n {
-                    assert_eq!(mask_bits(&fast, i, 1) == 1, row[i] >= thr);
+                    assert_eq!(fast[i / 64] >> (i % 64) & 1 == 1, row[i] >= thr);
                 }
             }
         }
-        assert_eq!(mask_bits(&[0xf0, 0x1], 4, 64), 0xf | 1 << 60);
+        // Channel masks: every bit in exactly one channel; word 1 of a row starts at sample 64,
+        // which is channel 1.
+        for r in 0..3 {
+            assert_eq!(RGB_CHANNEL_BITS[r].iter().fold(0, |a, m| a | m), u64::MAX);
+            assert_eq!(RGB_CHANNEL_BITS[r][0] & RGB_CHANNEL_BITS[r][1], 0);
+            assert_eq!(RGB_CHANNEL_BITS[r][r] & 1, 1);
+        }
     }
 
     #[test]

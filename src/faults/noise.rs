@@ -9,12 +9,15 @@
 //!
 //! [`add_table_noise`] dispatches to the fastest exact version the CPU has; the scalar reference
 //! below defines the bytes and the tests check that every version agrees:
-//! - AVX-512 (BW/VL), 8-bit samples, for tables with the two-level form of [`TwoLevel`] (the
-//!   monotone inverse-CDF tables of both effects have it): the offset is computed in registers
-//!   from 64-entry word tables (`vpermi2w`), 32 samples per step, with no memory lookups;
+//! - AVX-512, 8-bit samples, for tables with the two-level form of [`TwoLevel`] (the monotone
+//!   inverse-CDF tables of both effects have it): the offset is computed in registers, with no
+//!   memory lookups, from 64-entry byte tables (`vpermb`, VBMI, 64 samples per step) when every
+//!   offset fits a byte, else from 64-entry word tables (`vpermi2w`, 32 samples per step);
 //! - AVX2: eight-lane xoshiro256++ state in registers, gathered table lookups.
 
 use super::kit::RngLanes;
+#[cfg(target_arch = "x86_64")]
+use super::kit::{has_avx512, has_avx512_vbmi};
 use crate::frame::Sample;
 
 /// Table entry meaning "ask `resolve`".
@@ -243,7 +246,7 @@ pub fn add_table_noise<T: Sample>(
         {
             match &t.bytes {
                 // SAFETY: the CPU supports AVX-512 F/BW/VL/VBMI (checked).
-                Some(b) if super::kit::has_avx512_vbmi() => unsafe {
+                Some(b) if has_avx512_vbmi() => unsafe {
                     avx512::add_byte_form(bytes, lanes, b, t.n_exact, entries, bits, resolve)
                 },
                 // SAFETY: the CPU supports AVX-512 F/BW/VL (checked just above).
@@ -259,9 +262,6 @@ pub fn add_table_noise<T: Sample>(
     }
     add_table_noise_scalar(row, lanes, entries, bits, resolve)
 }
-
-#[cfg(target_arch = "x86_64")]
-pub use super::kit::has_avx512;
 
 /// Scalar reference of [`add_table_noise`].
 pub fn add_table_noise_scalar<T: Sample>(
