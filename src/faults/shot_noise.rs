@@ -192,18 +192,19 @@ fn draw_row_fn() -> fn(&mut [u8], &mut RngLanes, &[u32], &mut [u32]) {
     #[cfg(target_arch = "x86_64")]
     if super::kit::has_avx512() {
         // SAFETY: the CPU supports AVX-512 F/BW/VL (checked just above).
-        return |row, lanes, table, rand| unsafe { avx2::draw_row_avx512(row, lanes, table, rand) };
+        return |row, lanes, table, rand| unsafe { simd::draw_row_avx512(row, lanes, table, rand) };
     }
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2 (checked just above).
-        return |row, lanes, table, rand| unsafe { avx2::draw_row(row, lanes, table, rand) };
+        return |row, lanes, table, rand| unsafe { simd::draw_row(row, lanes, table, rand) };
     }
     draw_row_scalar
 }
 
 #[cfg(target_arch = "x86_64")]
-mod avx2 {
+/// The AVX2 and AVX-512 row drawers (the same bytes as `draw_row_scalar`).
+mod simd {
     use super::RngLanes;
     use crate::faults::noise::avx2::{load_state, next4, store_state};
     use std::arch::x86_64::*;
