@@ -46,4 +46,13 @@ fi
 need_components() {
   cargo fmt --version >/dev/null 2>&1 || rustup component add rustfmt
   cargo clippy --version >/dev/null 2>&1 || rustup component add clippy
+  # The ARM (aarch64) standard library, for the cross check of the library in .ci/run; a
+  # machine that cannot fetch it skips that check.
+  have_aarch64 || rustup target add aarch64-unknown-linux-gnu ||
+    echo "faultcam: could not add the aarch64 target; the ARM build check will be skipped" >&2
+}
+
+# Whether the aarch64 standard library is installed (for `cargo check --target aarch64-...`).
+have_aarch64() {
+  [ -d "$(rustc --print sysroot)/lib/rustlib/aarch64-unknown-linux-gnu/lib" ]
 }

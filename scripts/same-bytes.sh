@@ -4,12 +4,27 @@
 # `faultcam bench` prints. Used to show that speed work leaves the output unchanged, e.g.
 #   git worktree add /tmp/old <commit> && (cd /tmp/old && CARGO_TARGET_DIR=/tmp/oldtarget cargo build --release --bin faultcam)
 #   ./scripts/same-bytes.sh /tmp/oldtarget/release/faultcam ./target/release/faultcam
+#
+# With --kernels BINARY it compares one binary's kernel sets instead: the fastest this CPU has
+# against FAULTCAM_NO_AVX512=1 (AVX2) and against FAULTCAM_NO_SIMD=1 (the scalar references):
+#   ./scripts/same-bytes.sh --kernels ./target/release/faultcam
 set -euo pipefail
+self="$(cd "$(dirname "$0")" && pwd)/$(basename "$0")"
 cd "$(dirname "$0")/.."
-old=${1:?usage: same-bytes.sh OLD_BINARY NEW_BINARY}
-new=${2:?usage: same-bytes.sh OLD_BINARY NEW_BINARY}
+usage="usage: same-bytes.sh OLD_BINARY NEW_BINARY | same-bytes.sh --kernels BINARY"
+if [ "${1:-}" = "--kernels" ]; then
+  bin=${2:?$usage}
+  rc=0
+  for var in FAULTCAM_NO_AVX512 FAULTCAM_NO_SIMD; do
+    echo "== $("$bin" bench --effect gamma --size 8x8 --frames 1 --warmup 0 | grep '^CPU:') vs $var=1"
+    env -u FAULTCAM_NO_AVX512 -u FAULTCAM_NO_SIMD "$self" "$bin" "env $var=1 $bin" || rc=1
+  done
+  exit $rc
+fi
+old=${1:?$usage}
+new=${2:?$usage}
 fail=0
-digests() { "$@" 2>&1 | awk 'length($NF) == 16 && $NF ~ /^[0-9a-f]+$/ {print $1, $NF}' || true; }
+digests() { $1 "${@:2}" 2>&1 | awk 'length($NF) == 16 && $NF ~ /^[0-9a-f]+$/ {print $1, $NF}' || true; }
 compare() {
   local what=$1; shift
   local a b

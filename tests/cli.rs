@@ -424,3 +424,47 @@ fn bench_prints_latency_percentiles_and_the_same_digest_on_one_and_two_threads()
     faultcam().args(["bench", "--size", "64x48"]).assert().code(2);
     faultcam().args(["bench", "--effect", "nope"]).assert().code(2);
 }
+
+/// Every kernel set gives the same bytes: the chain and every effect alone, in each format, with
+/// the fastest kernels this CPU has, with `FAULTCAM_NO_AVX512` (AVX2 on an AVX-512 machine) and
+/// with `FAULTCAM_NO_SIMD` (the scalar references), compared digest by digest. The frame size is
+/// odd so every SIMD tail runs too. `faultcam bench` names the kernel set it ran.
+#[test]
+fn scalar_avx2_and_avx512_kernels_give_the_same_bytes() {
+    let run = |env: Option<&str>| -> (String, Vec<String>) {
+        let mut cmd = faultcam();
+        cmd.env_remove("FAULTCAM_NO_AVX512").env_remove("FAULTCAM_NO_SIMD");
+        if let Some(var) = env {
+            cmd.env(var, "1");
+        }
+        let out = cmd
+            .args(["bench", "--faults", "hil/campaigns/original8.toml", "--all-effects", "--size", "333x203"])
+            .args(["--format", "mono8,rgb8,mono16", "--frames", "2", "--warmup", "0", "--scene", "stress"])
+            .assert()
+            .success()
+            .get_output()
+            .stdout
+            .clone();
+        let text = String::from_utf8(out).unwrap();
+        let kernels = text.lines().find(|l| l.starts_with("CPU: ")).expect("CPU line").to_string();
+        let rows: Vec<String> = text
+            .lines()
+            .filter_map(|l| {
+                let d = l.split_whitespace().last()?;
+                (d.len() == 16 && d.bytes().all(|b| b.is_ascii_hexdigit()))
+                    .then(|| format!("{} {d}", l.split_whitespace().next().unwrap()))
+            })
+            .collect();
+        (kernels, rows)
+    };
+    let (fast_k, fast) = run(None);
+    let (avx2_k, avx2) = run(Some("FAULTCAM_NO_AVX512"));
+    let (scalar_k, scalar) = run(Some("FAULTCAM_NO_SIMD"));
+    assert!(scalar_k.ends_with("kernels: scalar"), "{scalar_k}");
+    assert!(!avx2_k.contains("AVX-512"), "{avx2_k}");
+    assert!(fast_k.contains(" kernels: ") && !fast_k.contains("CPU: ;"), "{fast_k}");
+    // Chain and every effect, three formats, one frame size.
+    assert!(fast.len() > 3 * registry::all().len(), "{fast:?}");
+    assert_eq!(fast, avx2, "{fast_k} vs {avx2_k}");
+    assert_eq!(fast, scalar, "{fast_k} vs {scalar_k}");
+}

@@ -298,6 +298,9 @@ pub fn run(a: Args) -> anyhow::Result<u8> {
             .map(|l| format!(", load average {}", l.split_whitespace().take(3).collect::<Vec<_>>().join(" ")))
             .unwrap_or_default()
     );
+    // Every number names its CPU and the kernel set that ran (FAULTCAM_NO_AVX512 /
+    // FAULTCAM_NO_SIMD switch the faster ones off).
+    println!("CPU: {}; kernels: {}", faultcam::faults::kit::cpu_model(), faultcam::faults::kit::kernel_set());
     if a.markdown {
         println!(
             "\n| case | effect | stage | size | format | threads | p50 ms | p99 ms | max ms | cpu p50 ms | Mpx/s | digest |"

@@ -772,7 +772,7 @@ type PlaneBlockFn = fn(&mut [u8], usize, usize, &IQuant);
 
 fn plane_block_fn() -> PlaneBlockFn {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if crate::faults::kit::has_avx2() {
         // SAFETY: the CPU supports AVX2 (checked just above).
         return |p, o, s, q| unsafe { avx2::roundtrip_in_plane(p, o, s, q) };
     }
@@ -782,7 +782,7 @@ fn plane_block_fn() -> PlaneBlockFn {
 /// The fastest implementation of [`roundtrip_block_int`] this CPU runs (all give the same bits).
 fn block_fn() -> fn(&mut IBlock, &IQuant) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if crate::faults::kit::has_avx2() {
         // SAFETY: the CPU supports AVX2 (checked just above).
         return |b, q| unsafe { avx2::roundtrip(b, q) };
     }
@@ -872,6 +872,7 @@ fn ycc_to_rgb_row_scalar(y: &[u8], cb: &[u8], cr: &[u8], out: &mut [u8]) {
 
 /// Outputs 0, 1 and `from..` of [`fancy_row_scalar`] from the column sums `cs` (the edges and
 /// tail the SIMD versions leave to it).
+#[cfg(target_arch = "x86_64")]
 fn fancy_edges(cs: &[i32], out: &mut [u8], from: usize) {
     let n = cs.len();
     let edge = |x: usize| -> u8 {
@@ -969,7 +970,7 @@ fn row_fns() -> RowFns {
         };
     }
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if crate::faults::kit::has_avx2() {
         // SAFETY (all three): the CPU supports AVX2 (checked just above).
         return RowFns {
             to_ycc: |s, y, b, r| unsafe { avx2::rgb_to_ycc_row(s, y, b, r) },
@@ -1574,7 +1575,7 @@ fn plane_roundtrip(plane: &mut [u8], pw: usize, q: &IQuant) {
 /// two calls of [`plane_block_fn`]).
 fn plane_pair_fn() -> Option<PlaneBlockFn> {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if crate::faults::kit::has_avx2() {
         // SAFETY: the CPU supports AVX2 (checked just above).
         return Some(|p, o, s, q| unsafe { dct16::roundtrip_pair(p, o, s, q) });
     }
@@ -1752,7 +1753,7 @@ mod tests {
     #[test]
     fn simd_block_round_trip_equals_the_scalar_reference() {
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
+        if crate::faults::kit::has_avx2() {
             let mut r = Rng::new(17);
             for trial in 0..3000 {
                 let q = 1 + (trial % 100) as u32;
@@ -1809,7 +1810,7 @@ mod tests {
     #[test]
     fn simd_colour_rows_equal_the_scalar_references() {
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
+        if crate::faults::kit::has_avx2() {
             // SAFETY (all three): AVX2 is available (checked above).
             check_colour_rows(
                 RowFns {

@@ -68,7 +68,7 @@ macro_rules! multiversion {
                 generic($($a),*)
             }
             #[cfg(target_arch = "x86_64")]
-            if std::arch::is_x86_feature_detected!("avx2") {
+            if $crate::faults::kit::has_avx2() {
                 // SAFETY: the CPU supports AVX2 (checked just above).
                 return unsafe { avx2($($a),*) };
             }
@@ -79,14 +79,31 @@ macro_rules! multiversion {
 
 pub(crate) use multiversion;
 
-/// Whether the AVX-512 kernels can run (F, BW and VL), unless `FAULTCAM_NO_AVX512` is set
-/// (to time or test the AVX2 and scalar versions on the same machine).
+/// Whether `FAULTCAM_NO_SIMD` is set: every kernel then runs its portable scalar reference (to
+/// time it, or to test that it gives the SIMD versions' bytes on the same machine).
+pub fn no_simd() -> bool {
+    use std::sync::OnceLock;
+    static NO: OnceLock<bool> = OnceLock::new();
+    *NO.get_or_init(|| std::env::var_os("FAULTCAM_NO_SIMD").is_some())
+}
+
+/// Whether the AVX2 kernels can run, unless `FAULTCAM_NO_SIMD` is set.
+#[cfg(target_arch = "x86_64")]
+pub fn has_avx2() -> bool {
+    use std::sync::OnceLock;
+    static HAS: OnceLock<bool> = OnceLock::new();
+    *HAS.get_or_init(|| !no_simd() && std::arch::is_x86_feature_detected!("avx2"))
+}
+
+/// Whether the AVX-512 kernels can run (F, BW and VL), unless `FAULTCAM_NO_AVX512` or
+/// `FAULTCAM_NO_SIMD` is set (to time or test the AVX2 and scalar versions on the same machine).
 #[cfg(target_arch = "x86_64")]
 pub fn has_avx512() -> bool {
     use std::sync::OnceLock;
     static HAS: OnceLock<bool> = OnceLock::new();
     *HAS.get_or_init(|| {
         std::env::var_os("FAULTCAM_NO_AVX512").is_none()
+            && has_avx2()
             && std::arch::is_x86_feature_detected!("avx512f")
             && std::arch::is_x86_feature_detected!("avx512bw")
             && std::arch::is_x86_feature_detected!("avx512vl")
@@ -99,6 +116,45 @@ pub fn has_avx512_vbmi() -> bool {
     use std::sync::OnceLock;
     static HAS: OnceLock<bool> = OnceLock::new();
     *HAS.get_or_init(|| has_avx512() && std::arch::is_x86_feature_detected!("avx512vbmi"))
+}
+
+/// The kernel set the hot loops run on this CPU, as `faultcam bench` reports it: "AVX-512
+/// (VBMI)", "AVX-512", "AVX2" or "scalar" (after `FAULTCAM_NO_AVX512` / `FAULTCAM_NO_SIMD`).
+pub fn kernel_set() -> &'static str {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if has_avx512_vbmi() {
+            return "AVX-512 (F/BW/VL/VBMI)";
+        }
+        if has_avx512() {
+            return "AVX-512 (F/BW/VL)";
+        }
+        if has_avx2() {
+            return "AVX2";
+        }
+    }
+    "scalar"
+}
+
+/// The CPU model: `model name` of /proc/cpuinfo, with the x86 family/model numbers (a VM may
+/// show only "AMD EPYC"; family 25 = Zen 3/4, 23 = Zen 1/2), else the architecture.
+pub fn cpu_model() -> String {
+    let info = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+    let field = |key: &str| {
+        info.lines()
+            .find(|l| l.split(':').next().is_some_and(|k| k.trim() == key))
+            .and_then(|l| l.split_once(':'))
+            .map(|(_, v)| v.trim().to_string())
+            .filter(|v| !v.is_empty())
+    };
+    let name = field("model name")
+        .or_else(|| field("Hardware"))
+        .or_else(|| field("CPU part").map(|p| format!("CPU part {p}")));
+    match (name, field("cpu family"), field("model")) {
+        (Some(n), Some(f), Some(m)) => format!("{n} (family {f}, model {m})"),
+        (Some(n), _, _) => n,
+        _ => std::env::consts::ARCH.to_string(),
+    }
 }
 
 /// `v = lut[v]` for every byte of `row`.
@@ -124,7 +180,7 @@ pub fn ge_mask_u8(row: &[u8], thr: u8, out: &mut [u64]) {
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if has_avx2() {
         // SAFETY: the CPU supports AVX2 (checked just above).
         unsafe { ge_mask_u8_avx2(row, thr, out) };
         return;
@@ -334,6 +390,7 @@ impl RngLanes {
     }
 
     /// The state, `[word][lane]` (for SIMD kernels that step the lanes in registers).
+    #[cfg(target_arch = "x86_64")]
     pub(crate) fn state_mut(&mut self) -> &mut [[u64; 4]; 4] {
         &mut self.s
     }

@@ -13,11 +13,17 @@
 //!   inverse-CDF tables of both effects have it): the offset is computed in registers, with no
 //!   memory lookups, from 64-entry byte tables (`vpermb`, VBMI, 64 samples per step) when every
 //!   offset fits a byte, else from 64-entry word tables (`vpermi2w`, 32 samples per step);
-//! - AVX2: eight-lane xoshiro256++ state in registers, gathered table lookups.
+//! - AVX2, 8-bit samples, for tables whose two-level form has the byte form: the same
+//!   computation with no memory lookups and no gathers, from 16-entry quarters of the 64-entry
+//!   byte tables (`vpshufb`, two `vpblendvb` on the coarse index's bits 4 and 5), 32 samples per
+//!   step; gathers are microcoded and slow on many AMD cores (Zen 2/3), so no AVX2 kernel uses
+//!   them;
+//! - AVX2, other tables and 16-bit samples: xoshiro256++ lanes in registers, table entries by
+//!   scalar loads.
 
 use super::kit::RngLanes;
 #[cfg(target_arch = "x86_64")]
-use super::kit::{has_avx512, has_avx512_vbmi};
+use super::kit::{has_avx2, has_avx512, has_avx512_vbmi};
 use crate::frame::Sample;
 
 /// Table entry meaning "ask `resolve`".
@@ -241,7 +247,7 @@ pub fn add_table_noise<T: Sample>(
     #[cfg(target_arch = "x86_64")]
     {
         if let Some(t) = table.two_level.as_deref()
-            && has_avx512()
+            && has_avx2()
             && let Some(bytes) = T::bytes_mut(row)
         {
             match &t.bytes {
@@ -250,11 +256,15 @@ pub fn add_table_noise<T: Sample>(
                     avx512::add_byte_form(bytes, lanes, b, t.n_exact, entries, bits, resolve)
                 },
                 // SAFETY: the CPU supports AVX-512 F/BW/VL (checked just above).
-                _ => unsafe { avx512::add_two_level(bytes, lanes, t, entries, bits, resolve) },
+                _ if has_avx512() => unsafe { avx512::add_two_level(bytes, lanes, t, entries, bits, resolve) },
+                // SAFETY: the CPU supports AVX2 (checked above).
+                Some(b) => unsafe { avx2::add_byte_form(bytes, lanes, b, t.n_exact, entries, bits, resolve) },
+                // SAFETY: the CPU supports AVX2 (checked above); the table length was checked.
+                None => unsafe { avx2::add_table_noise(bytes, lanes, entries, bits, resolve) },
             }
             return;
         }
-        if std::arch::is_x86_feature_detected!("avx2") {
+        if has_avx2() {
             // SAFETY: the CPU supports AVX2 (checked just above); the table length was checked.
             unsafe { avx2::add_table_noise(row, lanes, entries, bits, resolve) };
             return;
@@ -286,9 +296,58 @@ pub fn add_table_noise_scalar<T: Sample>(
     }
 }
 
+/// 8-bit samples still to resolve (position in the row, table index), in sample order; fixed
+/// capacity (no allocation). Used by the two-level SIMD kernels.
+#[cfg(target_arch = "x86_64")]
+struct Lanes {
+    pos: [u32; 64],
+    idx: [u16; 64],
+    len: usize,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl Lanes {
+    fn new() -> Lanes {
+        Lanes { pos: [0; 64], idx: [0; 64], len: 0 }
+    }
+
+    /// List the lanes set in `mask`, in order: sample `base + j`, table index `ix[j]`'s low
+    /// 12 bits (resolving the list first when it is full).
+    #[inline]
+    fn push_mask(
+        &mut self,
+        mut mask: u64,
+        base: usize,
+        ix: &[u16],
+        row: &mut [u8],
+        resolve: &mut dyn FnMut(usize) -> i32,
+    ) {
+        while mask != 0 {
+            let j = mask.trailing_zeros() as usize;
+            mask &= mask - 1;
+            if self.len == self.pos.len() {
+                self.flush(row, resolve);
+            }
+            self.pos[self.len] = (base + j) as u32;
+            self.idx[self.len] = ix[j] & 0x0fff;
+            self.len += 1;
+        }
+    }
+
+    /// Resolve the listed samples in order (they still hold their input value).
+    #[cold]
+    fn flush(&mut self, row: &mut [u8], resolve: &mut dyn FnMut(usize) -> i32) {
+        for (&p, &i) in self.pos[..self.len].iter().zip(&self.idx[..self.len]) {
+            let v = &mut row[p as usize];
+            *v = (*v as i32).saturating_add(resolve(i as usize)).clamp(0, 255) as u8;
+        }
+        self.len = 0;
+    }
+}
+
 #[cfg(target_arch = "x86_64")]
 pub(crate) mod avx2 {
-    use super::{RESOLVE, RngLanes, Sample};
+    use super::{BYTE_RESOLVE, ByteForm, Lanes, MAX_EXACT, RESOLVE, RngLanes, Sample};
     use std::arch::x86_64::*;
 
     #[inline(always)]
@@ -334,6 +393,23 @@ pub(crate) mod avx2 {
         }
     }
 
+    /// `table[idx[j]]` for the eight lanes, by eight scalar loads instead of `vpgatherdd`
+    /// (microcoded and slow on many AMD cores, and on Intel cores with the GDS mitigation).
+    ///
+    /// # Safety
+    /// AVX2 context; every lane of `idx` is a valid index of `table`.
+    #[inline(always)]
+    pub(crate) unsafe fn lookup8(table: &[i32], idx: __m256i) -> __m256i {
+        let mut ix = [0u32; 8];
+        // SAFETY: eight u32 = 32 bytes; unaligned store. The caller guarantees the indices.
+        unsafe {
+            _mm256_storeu_si256(ix.as_mut_ptr() as *mut __m256i, idx);
+            debug_assert!(ix.iter().all(|&i| (i as usize) < table.len()));
+            let t = |j: usize| *table.get_unchecked(ix[j] as usize);
+            _mm256_setr_epi32(t(0), t(1), t(2), t(3), t(4), t(5), t(6), t(7))
+        }
+    }
+
     #[target_feature(enable = "avx2")]
     pub unsafe fn add_table_noise<T: Sample>(
         row: &mut [T],
@@ -356,9 +432,7 @@ pub(crate) mod avx2 {
             let i_lo = _mm256_and_si256(_mm256_cvtepu16_epi32(_mm256_castsi256_si128(r)), mask);
             let i_hi = _mm256_and_si256(_mm256_cvtepu16_epi32(_mm256_extracti128_si256(r, 1)), mask);
             // SAFETY: every index is masked to `bits` bits and the table holds 1 << bits entries.
-            let (mut q_lo, mut q_hi) = unsafe {
-                (_mm256_i32gather_epi32::<4>(table.as_ptr(), i_lo), _mm256_i32gather_epi32::<4>(table.as_ptr(), i_hi))
-            };
+            let (mut q_lo, mut q_hi) = unsafe { (lookup8(table, i_lo), lookup8(table, i_hi)) };
             let (m_lo, m_hi) = (_mm256_cmpeq_epi32(q_lo, marker), _mm256_cmpeq_epi32(q_hi, marker));
             if _mm256_movemask_epi8(_mm256_or_si256(m_lo, m_hi)) != 0 {
                 if pending.full() {
@@ -411,6 +485,123 @@ pub(crate) mod avx2 {
         store_state(lanes, &s);
         if n16 < row.len() {
             super::add_table_noise_scalar(&mut row[n16..], lanes, table, bits, resolve);
+        }
+    }
+
+    /// A 64-entry byte table as four 16-entry quarters, each repeated in both 128-bit halves
+    /// (the operands of `vpshufb`).
+    #[inline(always)]
+    fn quarters<E>(t: &[E; 64]) -> [__m256i; 4] {
+        assert_eq!(size_of::<E>(), 1);
+        // SAFETY: 64 one-byte entries; 16-byte unaligned loads (AVX2 context only).
+        std::array::from_fn(|q| unsafe {
+            _mm256_broadcastsi128_si256(_mm_loadu_si128((t.as_ptr() as *const u8).add(16 * q) as *const __m128i))
+        })
+    }
+
+    /// Bit 4 and bit 5 of every byte of `i` moved to bit 7 (the `vpblendvb` selectors of
+    /// [`lookup64`]).
+    #[inline(always)]
+    fn selectors(i: __m256i) -> (__m256i, __m256i) {
+        // SAFETY: AVX2 context only. The 16-bit shifts move no set bit across a byte's bit 7
+        // that matters: only bit 7 of each byte is read.
+        unsafe { (_mm256_slli_epi16::<3>(i), _mm256_slli_epi16::<2>(i)) }
+    }
+
+    /// `t[i]` for every byte `i` in 0..64: four in-register `vpshufb` lookups (low four bits)
+    /// and two blends on bits 4 and 5. No memory access.
+    #[inline(always)]
+    fn lookup64(t: &[__m256i; 4], i: __m256i, (s4, s5): (__m256i, __m256i)) -> __m256i {
+        // SAFETY: AVX2 context only; bytes of `i` are below 64 (bit 7 clear: no zeroing).
+        unsafe {
+            let a = _mm256_blendv_epi8(_mm256_shuffle_epi8(t[0], i), _mm256_shuffle_epi8(t[1], i), s4);
+            let b = _mm256_blendv_epi8(_mm256_shuffle_epi8(t[2], i), _mm256_shuffle_epi8(t[3], i), s4);
+            _mm256_blendv_epi8(a, b, s5)
+        }
+    }
+
+    /// [`super::add_table_noise`] for 8-bit samples and a table with the byte form of its
+    /// two-level form (`bits` = 12), with AVX2 and no gathers: 32 samples per step, each offset
+    /// computed from in-register byte shuffles (`vpshufb` over 16-entry quarters of the 64-entry
+    /// coarse tables), a compare for the step and saturating byte arithmetic. The same bytes as
+    /// the reference (and as the AVX-512 `add_byte_form`).
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn add_byte_form(
+        row: &mut [u8],
+        lanes: &mut RngLanes,
+        t: &ByteForm,
+        n_exact: usize,
+        entries: &[i32],
+        bits: u32,
+        resolve: &mut dyn FnMut(usize) -> i32,
+    ) {
+        debug_assert_eq!(bits, 12);
+        let mut s = load_state(lanes);
+        let (base, thr, delta, res) = (quarters(&t.base), quarters(&t.thr), quarters(&t.delta), quarters(&t.res));
+        let n_exact = n_exact.min(MAX_EXACT);
+        let exact: [(__m256i, [__m256i; 4]); MAX_EXACT] =
+            std::array::from_fn(|k| (_mm256_set1_epi8(t.exact_c[k] as i8), quarters(&t.exact[k])));
+        let m3f = _mm256_set1_epi16(0x3f);
+        let sentinel = _mm256_set1_epi8(BYTE_RESOLVE);
+        let zero = _mm256_setzero_si256();
+        let mut pending = Lanes::new();
+        let n32 = row.len() / 32 * 32;
+        for bi in 0..n32 / 32 {
+            // Samples 0..16 in r0, 16..32 in r1 (16-bit elements, the scalar order).
+            let (r0, r1) = (next4(&mut s), next4(&mut s));
+            // Fine (bits 0..5) and coarse (bits 6..11) index of each sample as bytes; `packus`
+            // interleaves the 128-bit halves: byte order s0-7, s16-23, s8-15, s24-31.
+            let f = _mm256_packus_epi16(_mm256_and_si256(r0, m3f), _mm256_and_si256(r1, m3f));
+            let c = _mm256_packus_epi16(
+                _mm256_and_si256(_mm256_srli_epi16::<6>(r0), m3f),
+                _mm256_and_si256(_mm256_srli_epi16::<6>(r1), m3f),
+            );
+            let sc = selectors(c);
+            let mut val = lookup64(&base, c, sc);
+            // f >= thr[c] (unsigned): max(f, thr) == f; thr 64 never.
+            let thr_c = lookup64(&thr, c, sc);
+            let step = _mm256_cmpeq_epi8(_mm256_max_epu8(f, thr_c), f);
+            val = _mm256_add_epi8(val, _mm256_and_si256(step, lookup64(&delta, c, sc)));
+            let mut m_res = _mm256_cmpeq_epi8(f, lookup64(&res, c, sc));
+            if n_exact > 0 {
+                let sf = selectors(f);
+                for (ec, tab) in &exact[..n_exact] {
+                    let mk = _mm256_cmpeq_epi8(c, *ec);
+                    val = _mm256_blendv_epi8(val, lookup64(tab, f, sf), mk);
+                }
+            }
+            m_res = _mm256_or_si256(m_res, _mm256_cmpeq_epi8(val, sentinel));
+            // Back to sample order.
+            let mut val = _mm256_permute4x64_epi64::<0b11_01_10_00>(val);
+            let m_res = _mm256_permute4x64_epi64::<0b11_01_10_00>(m_res);
+            let bits_res = _mm256_movemask_epi8(m_res) as u32;
+            if bits_res != 0 {
+                // Lanes to resolve: left unchanged now (offset 0), resolved in sample order
+                // after the loop (or when the list is full), from the sample itself.
+                let mut ix = [0u16; 32];
+                // SAFETY: 32 u16 = 64 bytes; unaligned stores.
+                unsafe {
+                    _mm256_storeu_si256(ix.as_mut_ptr() as *mut __m256i, r0);
+                    _mm256_storeu_si256(ix.as_mut_ptr().add(16) as *mut __m256i, r1);
+                }
+                pending.push_mask(bits_res as u64, bi * 32, &ix, row, resolve);
+                val = _mm256_andnot_si256(m_res, val);
+            }
+            // SAFETY: 32 bytes at 32·bi lie inside the row (bi < n32 / 32); unaligned access.
+            unsafe {
+                let p = row.as_mut_ptr().add(bi * 32) as *mut __m256i;
+                let v = _mm256_loadu_si256(p);
+                // v + val clipped to [0, 255] (|val| <= 127): add the positive part, subtract
+                // the negative one, both saturating.
+                let pos = _mm256_max_epi8(val, zero);
+                let neg = _mm256_sub_epi8(pos, val);
+                _mm256_storeu_si256(p, _mm256_subs_epu8(_mm256_adds_epu8(v, pos), neg));
+            }
+        }
+        pending.flush(row, resolve);
+        store_state(lanes, &s);
+        if n32 < row.len() {
+            super::add_table_noise_scalar(&mut row[n32..], lanes, entries, bits, resolve);
         }
     }
 
@@ -474,7 +665,7 @@ pub(crate) mod avx2 {
 #[cfg(target_arch = "x86_64")]
 mod avx512 {
     use super::avx2::{load_state, store_state};
-    use super::{BYTE_RESOLVE, ByteForm, EXACT_RESOLVE, MAX_EXACT, RngLanes, TwoLevel};
+    use super::{BYTE_RESOLVE, ByteForm, EXACT_RESOLVE, Lanes, MAX_EXACT, RngLanes, TwoLevel};
     use std::arch::x86_64::*;
 
     /// One xoshiro256++ step of the four lanes (as `RngLanes::next4`), with AVX-512VL rotates.
@@ -491,49 +682,6 @@ mod avx512 {
             s[2] = _mm256_xor_si256(s[2], t);
             s[3] = _mm256_rol_epi64::<45>(s[3]);
             out
-        }
-    }
-
-    /// Samples still to resolve (position in the row, table index), in sample order; fixed
-    /// capacity (no allocation).
-    struct Lanes {
-        pos: [u32; 64],
-        idx: [u16; 64],
-        len: usize,
-    }
-
-    impl Lanes {
-        /// List the lanes set in `mask`, in order: sample `base + j`, table index `ix[j]`'s low
-        /// 12 bits (resolving the list first when it is full).
-        #[inline]
-        fn push_mask(
-            &mut self,
-            mut mask: u64,
-            base: usize,
-            ix: &[u16],
-            row: &mut [u8],
-            resolve: &mut dyn FnMut(usize) -> i32,
-        ) {
-            while mask != 0 {
-                let j = mask.trailing_zeros() as usize;
-                mask &= mask - 1;
-                if self.len == self.pos.len() {
-                    self.flush(row, resolve);
-                }
-                self.pos[self.len] = (base + j) as u32;
-                self.idx[self.len] = ix[j] & 0x0fff;
-                self.len += 1;
-            }
-        }
-
-        /// Resolve the listed samples in order (they still hold their input value).
-        #[cold]
-        fn flush(&mut self, row: &mut [u8], resolve: &mut dyn FnMut(usize) -> i32) {
-            for (&p, &i) in self.pos[..self.len].iter().zip(&self.idx[..self.len]) {
-                let v = &mut row[p as usize];
-                *v = (*v as i32).saturating_add(resolve(i as usize)).clamp(0, 255) as u8;
-            }
-            self.len = 0;
         }
     }
 
@@ -574,7 +722,7 @@ mod avx512 {
         let fine_mask = _mm512_set1_epi16(0x003f);
         let sentinel = _mm512_set1_epi16(EXACT_RESOLVE);
         let zero = _mm512_setzero_si512();
-        let mut pending = Lanes { pos: [0; 64], idx: [0; 64], len: 0 };
+        let mut pending = Lanes::new();
         let n32 = row.len() / 32 * 32;
         for bi in 0..n32 / 32 {
             let r0 = next4(&mut s);
@@ -660,7 +808,7 @@ mod avx512 {
         let (m03, m3c, m3f) = (_mm512_set1_epi8(0x03), _mm512_set1_epi8(0x3c), _mm512_set1_epi8(0x3f));
         let sentinel = _mm512_set1_epi8(BYTE_RESOLVE);
         let zero = _mm512_setzero_si512();
-        let mut pending = Lanes { pos: [0; 64], idx: [0; 64], len: 0 };
+        let mut pending = Lanes::new();
         let n64 = row.len() / 64 * 64;
         for bi in 0..n64 / 64 {
             // Samples 0..32 in u0, 32..64 in u1 (16-bit elements, the scalar order).
@@ -720,9 +868,36 @@ mod tests {
 
     /// The dispatched kernel (whatever this CPU runs) against the scalar reference on rows of
     /// every length class, with the resolve calls in the same order.
+    /// A noise kernel under test: row, lanes, table, resolve.
+    type Kernel<T> = dyn Fn(&mut [T], &mut RngLanes, &NoiseTable, &mut dyn FnMut(usize) -> i32);
+
     fn compare<T: Sample + std::fmt::Debug + PartialEq>(table: &NoiseTable, max: u32, r: &mut Rng) {
+        compare_kernel::<T>(table, max, r, &|row, lanes, t, res| add_table_noise(row, lanes, t, res));
+        // The gather-free AVX2 kernel directly, whatever faster kernel this CPU also has.
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2()
+            && T::MAX_U32 == 255
+            && let Some(tl) = table.two_level()
+            && let Some(b) = &tl.bytes
+        {
+            compare_kernel::<T>(table, max, r, &|row, lanes, t, res| {
+                let bytes = T::bytes_mut(row).expect("8-bit rows only");
+                // SAFETY: the CPU supports AVX2 (checked above).
+                unsafe { avx2::add_byte_form(bytes, lanes, b, tl.n_exact, t.entries(), t.bits(), res) }
+            });
+        }
+    }
+
+    /// `kernel` against the scalar reference on rows of every length class, with the resolve
+    /// calls in the same order.
+    fn compare_kernel<T: Sample + std::fmt::Debug + PartialEq>(
+        table: &NoiseTable,
+        max: u32,
+        r: &mut Rng,
+        kernel: &Kernel<T>,
+    ) {
         let bits = table.bits();
-        for n in [0usize, 1, 15, 16, 17, 31, 32, 33, 100, 1921, 5760] {
+        for n in [0usize, 1, 15, 16, 17, 31, 32, 33, 63, 64, 65, 100, 1921, 5760] {
             let row: Vec<T> = (0..n).map(|_| T::from_u32_sat(r.below(max as u64 + 1) as u32)).collect();
             let seed = Rng::new(n as u64 + bits as u64);
             let (mut a, mut b) = (row.clone(), row.clone());
@@ -733,7 +908,7 @@ mod tests {
                 ca.push(i);
                 ra.below(41) as i32 - 20
             });
-            add_table_noise(&mut b, &mut lb, table, &mut |i| {
+            kernel(&mut b, &mut lb, table, &mut |i| {
                 cb.push(i);
                 rb.below(41) as i32 - 20
             });
@@ -817,6 +992,34 @@ mod tests {
         // Monotone with many steps per bucket in the middle: none either.
         let steep: Vec<i32> = (0..4096).map(|i: i32| i / 8).collect();
         assert!(TwoLevel::compile(&steep, 12).is_none());
+    }
+
+    /// A two-level byte-form table with every feature: steps, an entry to resolve in every
+    /// other bucket (dense: the fix-up list fills and flushes mid-row), three exact buckets with
+    /// entries to resolve, offsets of both signs up to the byte limit.
+    #[test]
+    fn two_level_kernels_with_dense_resolves_and_exact_buckets() {
+        let entries: Vec<i32> = (0..4096usize)
+            .map(|i| {
+                let (c, f) = (i / 64, i % 64);
+                if [3, 17, 40].contains(&c) {
+                    return if f % 9 == 4 { RESOLVE } else { (f as i32 * 37 % 255) - 127 };
+                }
+                if c % 2 == 0 && f == (c * 7) % 64 {
+                    return RESOLVE;
+                }
+                let base = 4 * c as i32 - 127;
+                if f >= (c * 5) % 64 { (base + 3).min(127) } else { base }
+            })
+            .collect();
+        let mut table = NoiseTable::default();
+        table.rebuild(12, entries);
+        let tl = table.two_level().expect("two-level form");
+        assert_eq!(tl.exact_buckets(), 3);
+        assert!(tl.has_bytes());
+        let mut r = Rng::new(5);
+        compare::<u8>(&table, 255, &mut r);
+        compare::<u16>(&table, 65535, &mut r);
     }
 
     #[test]

@@ -195,7 +195,7 @@ fn draw_row_fn() -> fn(&mut [u8], &mut RngLanes, &[u32], &mut [u32]) {
         return |row, lanes, table, rand| unsafe { simd::draw_row_avx512(row, lanes, table, rand) };
     }
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if crate::faults::kit::has_avx2() {
         // SAFETY: the CPU supports AVX2 (checked just above).
         return |row, lanes, table, rand| unsafe { simd::draw_row(row, lanes, table, rand) };
     }
@@ -206,16 +206,19 @@ fn draw_row_fn() -> fn(&mut [u8], &mut RngLanes, &[u32], &mut [u32]) {
 /// The AVX2 and AVX-512 row drawers (the same bytes as `draw_row_scalar`).
 mod simd {
     use super::RngLanes;
-    use crate::faults::noise::avx2::{load_state, next4, store_state};
+    use crate::faults::noise::avx2::{load_state, lookup8, next4, store_state};
     use std::arch::x86_64::*;
 
     /// AVX2 version of `draw_row_scalar`: eight samples per `next4` (the u32 order of
-    /// `fill_u32`), alias entries gathered, threshold compared in lanes.
+    /// `fill_u32`), alias entries by scalar loads (no gathers: slow on many AMD cores),
+    /// threshold compared in lanes.
     #[target_feature(enable = "avx2")]
     pub unsafe fn draw_row(row: &mut [u8], lanes: &mut RngLanes, table: &[u32], rand: &mut [u32]) {
         if table.len() != 256 * 256 {
             return;
         }
+        // SAFETY: u32 and i32 have the same size and alignment; the same memory, read only.
+        let table32 = unsafe { std::slice::from_raw_parts(table.as_ptr() as *const i32, table.len()) };
         let n8 = row.len() / 8 * 8;
         let (m8, m16) = (_mm256_set1_epi32(0xff), _mm256_set1_epi32(0xffff));
         let mut s = load_state(lanes);
@@ -225,7 +228,7 @@ mod simd {
                 let v = _mm256_cvtepu8_epi32(_mm_loadl_epi64(chunk.as_ptr() as *const __m128i));
                 let cell = _mm256_and_si256(r, m8);
                 let idx = _mm256_add_epi32(_mm256_slli_epi32(v, 8), cell);
-                let e = _mm256_i32gather_epi32::<4>(table.as_ptr() as *const i32, idx);
+                let e = lookup8(table32, idx);
                 // Own cell when (r >> 8) & 0xffff < threshold (e >> 8, <= 65536): a signed compare
                 // is exact for these non-negative values.
                 let own = _mm256_cmpgt_epi32(_mm256_srli_epi32(e, 8), _mm256_and_si256(_mm256_srli_epi32(r, 8), m16));
