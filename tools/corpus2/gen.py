@@ -635,7 +635,10 @@ class Case:
             e[:, :, 2] = fourier_shift(e[:, :, 2], p["dx_b"], p["dy_b"])
         if on("lens_flare"):
             _, p, _, _ = self.has("lens_flare")
-            lum = e.mean(axis=2)
+            # the brightest source: maximum of the luminance smoothed over a few px (flux, not
+            # peak, so the same source is chosen on every frame)
+            g1 = np.exp(-0.5 * (np.arange(-9, 10) / 3.0) ** 2)
+            lum = fft_convolve(e.mean(axis=2, keepdims=True), np.outer(g1, g1) / g1.sum() ** 2)[:, :, 0]
             sy, sx = np.unravel_index(int(np.argmax(lum)), lum.shape)
             cx, cy = (W - 1) / 2, (H - 1) / 2
             g = self.flare_geom
