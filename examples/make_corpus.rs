@@ -1,7 +1,9 @@
 //! Write the diagnosis corpus (issue 7, part 6) to a folder: `<dir>/<case>/{sim,real}/frame_NN.png`
 //! and `<dir>/<case>/truth.json`.
 //!
-//! `cargo run --example make_corpus -- OUT_DIR [CASE ...]` (all cases when none is named).
+//! `cargo run --example make_corpus -- OUT_DIR [--size WxH] [--frames N] [CASE ...]` (all cases
+//! when none is named; `--size`/`--frames` render the same cases at another size and frame count,
+//! e.g. 640x400 for timing `faultcam diagnose`).
 //! The scene renderer and the camera model live in `tests/support/realcam.rs`.
 
 #[path = "../tests/support/realcam.rs"]
@@ -13,12 +15,22 @@ fn main() -> std::process::ExitCode {
         eprintln!("usage: make_corpus OUT_DIR [CASE ...]");
         return std::process::ExitCode::from(2);
     };
-    let wanted: Vec<String> = args.collect();
+    let mut wanted: Vec<String> = Vec::new();
+    let mut size: Option<(usize, usize)> = None;
+    let mut frames: Option<usize> = None;
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--size" => size = args.next().and_then(|v| realcam::parse_size(&v)),
+            "--frames" => frames = args.next().and_then(|v| v.parse().ok()),
+            _ => wanted.push(a),
+        }
+    }
     let out = std::path::PathBuf::from(out);
     let cases: Vec<_> = realcam::corpus()
         .into_iter()
         .chain(realcam::unpaired_corpus())
         .filter(|c| wanted.is_empty() || wanted.contains(&c.name))
+        .map(|c| realcam::resized(c, size, frames))
         .collect();
     if cases.is_empty() {
         let names: Vec<String> = realcam::corpus().into_iter().map(|c| c.name).collect();

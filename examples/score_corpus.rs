@@ -1,7 +1,7 @@
 //! Score `faultcam diagnose` on the diagnosis corpus and print a markdown table.
 //!
 //! `cargo build --bin faultcam && cargo run --example score_corpus -- [--faultcam PATH]
-//!  [--keep DIR] [--out FILE.md] [CASE ...]`
+//!  [--keep DIR] [--out FILE.md] [--size WxH] [--frames N] [CASE ...]`
 //!
 //! `--faultcam` defaults to the `faultcam` binary next to this example's build directory;
 //! `--keep` keeps the generated corpus and the diagnose outputs (default: a temporary folder).
@@ -19,12 +19,16 @@ fn main() -> std::process::ExitCode {
     let mut keep: Option<PathBuf> = None;
     let mut out: Option<PathBuf> = None;
     let mut wanted = Vec::new();
+    let mut size: Option<(usize, usize)> = None;
+    let mut frames: Option<usize> = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
             "--faultcam" => faultcam = args.next().map(PathBuf::from),
             "--keep" => keep = args.next().map(PathBuf::from),
             "--out" => out = args.next().map(PathBuf::from),
+            "--size" => size = args.next().and_then(|v| realcam::parse_size(&v)),
+            "--frames" => frames = args.next().and_then(|v| v.parse().ok()),
             _ => wanted.push(a),
         }
     }
@@ -55,6 +59,7 @@ fn main() -> std::process::ExitCode {
         .into_iter()
         .chain(realcam::unpaired_corpus())
         .filter(|c| wanted.is_empty() || wanted.contains(&c.name))
+        .map(|c| realcam::resized(c, size, frames))
         .collect();
     let mut scores = Vec::new();
     for c in &cases {

@@ -398,21 +398,20 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     let mut ctx = FitCtx {
         inputs,
         seqs: fidx.iter().map(|&k| k as u64).collect(),
-        loss: LossData {
-            pairs: fidx.iter().map(|&k| &pairs[k]).collect(),
-            skip: fidx.iter().map(|&k| loc.hot[k].as_slice()).collect(),
-            interior: fidx
-                .iter()
+        loss: LossData::new(
+            fidx.iter().map(|&k| &pairs[k]).collect(),
+            fidx.iter().map(|&k| loc.hot[k].as_slice()).collect(),
+            fidx.iter()
                 .map(|&k| {
                     let m = &loc.masks[k];
                     (0..m.sat.len()).map(|i| m.dist_edge[i] > 2.0 && m.dist_sat[i] > 4.0).collect()
                 })
                 .collect(),
-            noise: loc.noise.clone(),
+            loc.noise.clone(),
             row_step,
-        },
+        ),
         seed,
-        evals: std::cell::Cell::new(0),
+        evals: std::sync::atomic::AtomicUsize::new(0),
     };
     let mut sel = select::select(&ctx, &cands, z, start, None)?;
     // The noise model was measured on real - sim; with the fitted effects taken out it may
@@ -425,21 +424,21 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     let renoise = noise::estimate(pairs, &loc.masks, &model_planes, loc.quant, 0.0, Some(&loc.hot));
     let change = [2.0, 30.0, 100.0, 200.0]
         .iter()
-        .map(|&l| (renoise.var(l) / ctx.loss.noise.var(l) - 1.0).abs())
+        .map(|&l| (renoise.var(l) / ctx.loss.noise().var(l) - 1.0).abs())
         .fold(0.0f64, f64::max);
     if change > 0.15 {
         notes.push(format!(
             "noise model re-measured on the residual of the fitted model (variance changed by up to {:.0} %): selection repeated with it",
             100.0 * change
         ));
-        ctx.loss.noise = renoise;
+        ctx.loss.set_noise(renoise);
         let start: Vec<select::Step> = sel
             .steps
             .iter()
             .map(|s| {
                 let mut c = s.boxed_clone();
                 if c.dither.is_some() {
-                    c.dither = Some(ctx.loss.noise.clone());
+                    c.dither = Some(ctx.loss.noise().clone());
                 }
                 c
             })
@@ -458,7 +457,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     notes.push(format!(
         "forward-model selection: {} candidates, {} loss evaluations on {} of {} pairs{}",
         cands.len(),
-        ctx.evals.get(),
+        ctx.evals.load(std::sync::atomic::Ordering::Relaxed),
         fidx.len(),
         pairs.len(),
         if row_step > 1 { format!(" (every {row_step}th row)") } else { String::new() }

@@ -28,6 +28,7 @@ use super::noise::NoiseModel;
 use super::{DiagnoseError, stats};
 use crate::faults::{self, Effect, EffectCtx, ParamKind, Params, Scale, Stage, registry};
 use crate::frame::{Frame, FrameData, PixelFormat};
+use rayon::prelude::*;
 
 /// Effects fitted by pixel loss, in physical order.
 pub const DETERMINISTIC: &[&str] = &[
@@ -249,12 +250,135 @@ pub struct LossData<'a> {
     pub skip: Vec<&'a [bool]>,
     /// Pixels away from edges and saturation (global tone effects must show there).
     pub interior: Vec<Vec<bool>>,
-    pub noise: NoiseModel,
+    noise: NoiseModel,
     /// Row subsampling of the loss (1 = every row).
     pub row_step: usize,
+    tables: LossTables,
 }
 
 const DBLOCK: usize = 16;
+
+/// Loss terms tabulated over the values a model plane can take. Model planes come from Mono16
+/// work frames, so a model value is one of 65536 levels `v·255/65535` (8-bit DN): the noise
+/// sigma, the censored losses of clipped real values and their generalised residuals, and the
+/// interval losses of small integer real values, are exact functions of `v` (and of the real
+/// value), computed once per noise model instead of once per pixel and evaluation. A value that is
+/// not such a level (or outside a table) is computed directly, with the same formulas.
+struct LossTables {
+    /// The model value of each level, as the work planes hold it (to check a lookup).
+    level: Vec<f32>,
+    sd: Vec<f64>,
+    /// Real clipped at 0: (loss, generalised residual).
+    low: Vec<(f64, f64)>,
+    /// Real clipped at full scale: (loss, generalised residual).
+    high: Vec<(f64, f64)>,
+    /// 8-bit real data only: interval loss for real value r (integer DN) and the model levels
+    /// `first[r] .. first[r] + rows[r].len()`; empty when the data are not 8-bit.
+    interval_first: Vec<usize>,
+    interval_rows: Vec<Vec<f64>>,
+}
+
+const LEVELS: usize = 65536;
+
+impl LossTables {
+    fn new(noise: &NoiseModel) -> LossTables {
+        let q = noise.quant;
+        let fs = FS as f64;
+        let scale = 255.0f32 / 65535.0f32;
+        let level: Vec<f32> = (0..LEVELS).map(|v| v as f32 * scale).collect();
+        let sd: Vec<f64> = level.iter().map(|&m| noise.sd(m as f64)).collect();
+        let mut low = Vec::with_capacity(LEVELS);
+        let mut high = Vec::with_capacity(LEVELS);
+        for (v, &mf) in level.iter().enumerate() {
+            let (m, s) = (mf as f64, sd[v]);
+            low.push(low_term(m, s, q));
+            high.push(high_term(m, s, q, fs));
+        }
+        let mut interval_first = Vec::new();
+        let mut interval_rows = Vec::new();
+        if q == 1.0 {
+            // Real values r = 1..254 for which the interval form can apply (r < 3 sd or
+            // r > FS - 3 sd), for model levels within 3 sd of r (|z| <= 3).
+            let sd_max = sd.iter().fold(0.0f64, |a, &b| a.max(b));
+            for r in 0..=255usize {
+                let rv = r as f64;
+                let near = rv > 0.0 && rv < fs && (rv < 3.0 * sd_max || rv > fs - 3.0 * sd_max);
+                if !near {
+                    interval_first.push(0);
+                    interval_rows.push(Vec::new());
+                    continue;
+                }
+                let lo = ((rv - 3.0 * sd_max - 1.0) * 257.0).floor().clamp(0.0, (LEVELS - 1) as f64) as usize;
+                let hi = ((rv + 3.0 * sd_max + 1.0) * 257.0).ceil().clamp(0.0, (LEVELS - 1) as f64) as usize;
+                interval_first.push(lo);
+                interval_rows.push((lo..=hi).map(|v| interval(rv, level[v] as f64, sd[v], q)).collect());
+            }
+        }
+        LossTables { level, sd, low, high, interval_first, interval_rows }
+    }
+
+    /// Level index of a model value, if it is a tabulated level.
+    #[inline]
+    fn index(&self, m: f32) -> Option<usize> {
+        let v = (m * 257.0).round();
+        if !(0.0..LEVELS as f32).contains(&v) {
+            return None;
+        }
+        let v = v as usize;
+        (self.level[v].to_bits() == m.to_bits()).then_some(v)
+    }
+
+    #[inline]
+    fn interval_at(&self, r: f64, v: usize) -> Option<f64> {
+        let ri = r as usize;
+        if ri as f64 != r {
+            return None;
+        }
+        let row = self.interval_rows.get(ri)?;
+        let first = self.interval_first[ri];
+        if v < first {
+            return None;
+        }
+        row.get(v - first).copied()
+    }
+}
+
+/// Loss and generalised residual of a real value clipped at 0 for model `m` and sigma `sd`.
+#[inline]
+fn low_term(m: f64, sd: f64, q: f64) -> (f64, f64) {
+    let t = (0.5 * q - m) / sd;
+    (censored(m - 0.5 * q, sd), -(stats::norm_pdf(t) / stats::norm_cdf(t).max(1e-12)).max(-4.0))
+}
+
+/// Loss and generalised residual of a real value clipped at full scale.
+#[inline]
+fn high_term(m: f64, sd: f64, q: f64, fs: f64) -> (f64, f64) {
+    let t = (m - (fs - 0.5 * q)) / sd;
+    (censored(fs - 0.5 * q - m, sd), (stats::norm_pdf(t) / stats::norm_cdf(t).max(1e-12)).min(4.0))
+}
+
+impl<'a> LossData<'a> {
+    pub fn new(
+        pairs: Vec<&'a Pair>,
+        skip: Vec<&'a [bool]>,
+        interior: Vec<Vec<bool>>,
+        noise: NoiseModel,
+        row_step: usize,
+    ) -> LossData<'a> {
+        let tables = LossTables::new(&noise);
+        LossData { pairs, skip, interior, noise, row_step, tables }
+    }
+
+    pub fn noise(&self) -> &NoiseModel {
+        &self.noise
+    }
+
+    /// Replace the noise model (and its tables).
+    pub fn set_noise(&mut self, noise: NoiseModel) {
+        self.tables = LossTables::new(&noise);
+        self.noise = noise;
+    }
+}
 
 impl LossData<'_> {
     /// Robust negative log-likelihood of the real planes given model planes.
@@ -262,71 +386,101 @@ impl LossData<'_> {
         self.eval_on(model, false)
     }
 
-    /// [`Self::eval`], optionally on the interior pixels only.
+    /// [`Self::eval`], optionally on the interior pixels only. The planes are evaluated in
+    /// parallel (one task per pair and channel) and their sums combined in a fixed order, so the
+    /// result does not depend on the number of threads.
     pub fn eval_on(&self, model: &[Vec<Plane>], interior_only: bool) -> LossEval {
+        use rayon::prelude::*;
+        let jobs: Vec<(usize, usize)> =
+            model.iter().enumerate().flat_map(|(k, mp)| (0..mp.len()).map(move |c| (k, c))).collect();
+        let parts: Vec<(f64, usize, f64, usize)> =
+            jobs.par_iter().map(|&(k, c)| self.eval_plane(k, c, &model[k][c], interior_only)).collect();
+        let (mut total, mut n, mut dsum, mut dn) = (0.0, 0usize, 0.0, 0usize);
+        for p in parts {
+            total += p.0;
+            n += p.1;
+            dsum += p.2;
+            dn += p.3;
+        }
+        LossEval { total, n, design: if dn > 0 { dsum / dn as f64 } else { 1.0 } }
+    }
+
+    /// Loss of one plane of pair `k`, channel `c`: (total, values, design sum, design blocks).
+    fn eval_plane(&self, k: usize, c: usize, plane: &Plane, interior_only: bool) -> (f64, usize, f64, usize) {
         let q = self.noise.quant;
         let fs = FS as f64;
         let mut total = 0.0;
         let mut n = 0usize;
         let mut dsum = 0.0;
         let mut dn = 0usize;
-        for (k, mp) in model.iter().enumerate() {
-            let p = self.pairs[k];
-            let (w, h) = (p.w(), p.h());
-            let bw = w.div_ceil(DBLOCK);
-            let nb = bw * h.div_ceil(DBLOCK);
-            for (c, plane) in mp.iter().enumerate() {
-                let r = &p.real[c].data;
-                let mut bs = vec![0.0f64; nb];
-                let mut bc = vec![0u32; nb];
-                for y in (0..h).step_by(self.row_step) {
-                    for x in 0..w {
-                        let i = y * w + x;
-                        if self.skip[k][i] || (interior_only && !self.interior[k][i]) {
-                            continue;
+        let p = self.pairs[k];
+        let (w, h) = (p.w(), p.h());
+        let bw = w.div_ceil(DBLOCK);
+        let nb = bw * h.div_ceil(DBLOCK);
+        let r = &p.real[c].data;
+        let tab = &self.tables;
+        let mut bs = vec![0.0f64; nb];
+        let mut bc = vec![0u32; nb];
+        for y in (0..h).step_by(self.row_step) {
+            for x in 0..w {
+                let i = y * w + x;
+                if self.skip[k][i] || (interior_only && !self.interior[k][i]) {
+                    continue;
+                }
+                let mf = plane.data[i];
+                let m = mf as f64;
+                let rv = r[i] as f64;
+                let lv = tab.index(mf);
+                let sd = match lv {
+                    Some(v) => tab.sd[v],
+                    None => self.noise.sd(m),
+                };
+                let b = (y / DBLOCK) * bw + x / DBLOCK;
+                // Block sums use generalised residuals (E[z | clipped] for clipped values), so
+                // that clipping at 0 in dark regions does not bias them.
+                let l = if rv <= 0.0 {
+                    let (l, g) = match lv {
+                        Some(v) => tab.low[v],
+                        None => low_term(m, sd, q),
+                    };
+                    bs[b] += g;
+                    bc[b] += 1;
+                    l
+                } else if rv >= fs {
+                    let (l, g) = match lv {
+                        Some(v) => tab.high[v],
+                        None => high_term(m, sd, q, fs),
+                    };
+                    bs[b] += g;
+                    bc[b] += 1;
+                    l
+                } else {
+                    let z = (rv - m) / sd;
+                    bs[b] += z.clamp(-4.0, 4.0);
+                    bc[b] += 1;
+                    if (rv < 3.0 * sd || rv > fs - 3.0 * sd) && z.abs() <= 3.0 {
+                        // Near a clipping bound the rounding interval matters: the exact
+                        // probability of the rounded value (consistent with the censored
+                        // likelihood of the clipped ones), expressed on the scale of ½z².
+                        match lv.and_then(|v| tab.interval_at(rv, v)) {
+                            Some(l) => l,
+                            None => interval(rv, m, sd, q),
                         }
-                        let m = plane.data[i] as f64;
-                        let rv = r[i] as f64;
-                        let sd = self.noise.sd(m);
-                        let b = (y / DBLOCK) * bw + x / DBLOCK;
-                        // Block sums use generalised residuals (E[z | clipped] for clipped
-                        // values), so that clipping at 0 in dark regions does not bias them.
-                        let l = if rv <= 0.0 {
-                            let t = (0.5 * q - m) / sd;
-                            bs[b] += -(stats::norm_pdf(t) / stats::norm_cdf(t).max(1e-12)).max(-4.0);
-                            bc[b] += 1;
-                            censored(m - 0.5 * q, sd)
-                        } else if rv >= fs {
-                            let t = (m - (fs - 0.5 * q)) / sd;
-                            bs[b] += (stats::norm_pdf(t) / stats::norm_cdf(t).max(1e-12)).min(4.0);
-                            bc[b] += 1;
-                            censored(fs - 0.5 * q - m, sd)
-                        } else {
-                            let z = (rv - m) / sd;
-                            bs[b] += z.clamp(-4.0, 4.0);
-                            bc[b] += 1;
-                            if (rv < 3.0 * sd || rv > fs - 3.0 * sd) && z.abs() <= 3.0 {
-                                // Near a clipping bound the rounding interval matters: the exact
-                                // probability of the rounded value (consistent with the censored
-                                // likelihood of the clipped ones), expressed on the scale of ½z².
-                                interval(rv, m, sd, q)
-                            } else {
-                                huber(z)
-                            }
-                        };
-                        total += l;
-                        n += 1;
+                    } else {
+                        huber(z)
                     }
-                }
-                for (s, &cnt) in bs.iter().zip(&bc) {
-                    if cnt >= 32 {
-                        dsum += s * s / cnt as f64;
-                        dn += 1;
-                    }
-                }
+                };
+                total += l;
+                n += 1;
             }
         }
-        LossEval { total, n, design: if dn > 0 { dsum / dn as f64 } else { 1.0 } }
+        for (s, &cnt) in bs.iter().zip(&bc) {
+            if cnt >= 32 {
+                dsum += s * s / cnt as f64;
+                dn += 1;
+            }
+        }
+        (total, n, dsum, dn)
     }
 }
 
@@ -364,7 +518,7 @@ pub struct FitCtx<'a> {
     pub loss: LossData<'a>,
     pub seed: u64,
     /// Number of loss evaluations (for the report).
-    pub evals: std::cell::Cell<usize>,
+    pub evals: std::sync::atomic::AtomicUsize,
 }
 
 /// Keep coupled parameters consistent: after blooming, saturated pixels read the full well, so
@@ -381,6 +535,9 @@ fn sync_coupled(steps: &mut [Step]) {
 }
 
 impl FitCtx<'_> {
+    fn count_eval(&self) {
+        self.evals.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    }
     /// Run `steps[from..]` on `start` (outputs of the steps before `from`).
     fn run_from(
         &self,
@@ -413,7 +570,7 @@ impl FitCtx<'_> {
         Ok(out)
     }
     pub fn eval(&self, steps: &mut [Step]) -> Result<LossEval, DiagnoseError> {
-        self.evals.set(self.evals.get() + 1);
+        self.count_eval();
         Ok(self.loss.eval(&self.run_from(steps, 0, &self.inputs)?))
     }
     /// Model planes of the fit frames.
@@ -541,7 +698,7 @@ fn optimise(
             let mut last = LossEval::default();
             let mut eval = |u: f64| -> f64 {
                 set_coord(steps, c, c.value_at(u));
-                ctx.evals.set(ctx.evals.get() + 1);
+                ctx.count_eval();
                 match ctx.run_from(steps, c.step, &prefix) {
                     Ok(o) => {
                         last = ctx.loss.eval(&o);
@@ -749,7 +906,7 @@ fn clone_steps(steps: &[Step]) -> Vec<Step> {
 #[allow(clippy::too_many_arguments)]
 fn try_candidate(
     ctx: &FitCtx,
-    steps: &[Step],
+    mut trial: Vec<Step>,
     cand: &Candidate,
     current: LossEval,
     current_planes: &[Vec<Plane>],
@@ -757,7 +914,6 @@ fn try_candidate(
     round: usize,
     widths: &[(f64, usize)],
 ) -> Result<(Evidence, Vec<Step>, usize), DiagnoseError> {
-    let mut trial = clone_steps(steps);
     let pos = insert_sorted(&mut trial, Step::new(cand)?);
     let coords = coords_of(&trial, Some(pos));
     let with = optimise(ctx, &mut trial, &coords, widths)?;
@@ -789,6 +945,71 @@ fn refine_quick(ctx: &FitCtx, steps: &mut [Step]) -> Result<LossEval, DiagnoseEr
     optimise(ctx, steps, &coords, &[(0.2, 8), (0.06, 6)])
 }
 
+/// Evidence of the selected step `j` of `steps` (the model whose loss is `current` and physical
+/// planes `planes`): the loss with it dropped and the others refitted, and for tone and additive
+/// effects and motion blur the extra checks of the backward pass.
+fn drop_one(
+    ctx: &FitCtx,
+    steps: &mut [Step],
+    j: usize,
+    current: LossEval,
+    planes: &[Vec<Plane>],
+    z_thr: f64,
+) -> Result<Evidence, DiagnoseError> {
+    if steps[j].fixed {
+        return Ok(Evidence {
+            effect: steps[j].name.to_string(),
+            label: steps[j].label.clone(),
+            loss_without: f64::NAN,
+            loss_with: current.total / current.n.max(1) as f64,
+            delta: f64::NAN,
+            design: current.design,
+            k: 0,
+            z: f64::NAN,
+            bic: true,
+            material_dn: f64::NAN,
+            accepted: true,
+            round: 0,
+            params: Some(steps[j].params),
+        });
+    }
+    let mut without: Vec<Step> =
+        steps.iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s.boxed_clone()).collect();
+    let lw = if without.iter().any(|s| !s.fixed) { refine_quick(ctx, &mut without)? } else { ctx.eval(&mut without)? };
+    let pw = ctx.physical_planes(&without)?;
+    let k = coords_of(steps, Some(j)).len();
+    let mut ev = evidence(steps[j].name, &steps[j].label, lw, current, k, material(planes, &pw), z_thr, 0);
+    ev.accepted &= above_floor(&steps[j].params);
+    ev.params = Some(steps[j].params);
+    if matches!(steps[j].name, "gain_offset" | "gamma" | "dark_current" | "stray_light" | "vignetting") && ev.accepted {
+        // A global tone or additive effect must be supported away from edges and saturated
+        // pixels; evidence only there is the shape of a PSF or an interpolation that another
+        // effect models imperfectly.
+        let li = ctx.loss.eval_on(&ctx.model_planes(&mut without)?, true);
+        let ci = ctx.loss.eval_on(&ctx.model_planes(steps)?, true);
+        let inner = evidence(steps[j].name, &steps[j].label, li, ci, k, f64::INFINITY, z_thr, 0);
+        if !inner.accepted {
+            ev.accepted = false;
+            ev.z = ev.z.min(inner.z);
+        }
+    }
+    if steps[j].name == "motion_blur" && ev.accepted {
+        // A motion blur must show its direction: the same streak turned by 90° has to fit
+        // significantly worse. Otherwise it only reshapes an isotropic blur (e.g. a pillbox PSF
+        // seen through a Gaussian one) along edges it cannot tell apart.
+        let mut turned = clone_steps(steps);
+        let a = turned[j].params.get("angle_deg");
+        let _ = turned[j].params.set("angle_deg", (a + 90.0).rem_euclid(180.0));
+        let lt = ctx.eval(&mut turned)?;
+        let dir = evidence(steps[j].name, &steps[j].label, lt, current, 1, f64::INFINITY, z_thr, 0);
+        if !dir.accepted {
+            ev.accepted = false;
+            ev.z = ev.z.min(dir.z);
+        }
+    }
+    Ok(ev)
+}
+
 /// Forward selection, swaps of selected effects for simpler or better ones, and a backward check.
 /// `start` is the initial model (fixed steps, or the model of an earlier pass).
 pub fn select(
@@ -813,14 +1034,25 @@ pub fn select(
             let current = ctx.eval(&mut steps)?;
             let current_planes = ctx.physical_planes(&steps)?;
             let mut accepted: Vec<(Evidence, Vec<Step>)> = Vec::new();
-            for (ci, cand) in candidates.iter().enumerate() {
-                if steps.iter().any(|s| s.name == cand.name) {
-                    continue;
-                }
-                // Candidates without any evidence so far get a shorter search.
-                let quiet = best_z[ci] < 2.0 && (round > 1 || prior_z.is_some_and(|p| p[ci] < 2.0));
-                let widths: &[(f64, usize)] = if quiet { &[(0.5, 8)] } else { &[(0.5, 12), (0.12, 8)] };
-                let (ev, trial, _) = try_candidate(ctx, &steps, cand, current, &current_planes, z_thr, round, widths)?;
+            // Every candidate is tried on its own copy of the model, in parallel; the results are
+            // taken in candidate order, so the selection does not depend on the thread count.
+            let jobs: Vec<(usize, Vec<Step>)> = candidates
+                .iter()
+                .enumerate()
+                .filter(|(_, cand)| !steps.iter().any(|s| s.name == cand.name))
+                .map(|(ci, _)| (ci, clone_steps(&steps)))
+                .collect();
+            let results: Vec<(usize, Result<(Evidence, Vec<Step>, usize), DiagnoseError>)> = jobs
+                .into_par_iter()
+                .map(|(ci, trial)| {
+                    // Candidates without any evidence so far get a shorter search.
+                    let quiet = best_z[ci] < 2.0 && (round > 1 || prior_z.is_some_and(|p| p[ci] < 2.0));
+                    let widths: &[(f64, usize)] = if quiet { &[(0.5, 8)] } else { &[(0.5, 12), (0.12, 8)] };
+                    (ci, try_candidate(ctx, trial, &candidates[ci], current, &current_planes, z_thr, round, widths))
+                })
+                .collect();
+            for (ci, res) in results {
+                let (ev, trial, _) = res?;
                 best_z[ci] = best_z[ci].max(ev.z);
                 tests.push(ev.clone());
                 if ev.accepted {
@@ -880,8 +1112,16 @@ pub fn select(
                 let mut rest_c = clone_steps(&rest);
                 let rest_eval = ctx.eval(&mut rest_c)?;
                 let rest_planes = ctx.physical_planes(&rest_c)?;
-                let (_, mut trial, _) =
-                    try_candidate(ctx, &rest, cand, rest_eval, &rest_planes, z_thr, round, &[(0.5, 10), (0.12, 6)])?;
+                let (_, mut trial, _) = try_candidate(
+                    ctx,
+                    clone_steps(&rest),
+                    cand,
+                    rest_eval,
+                    &rest_planes,
+                    z_thr,
+                    round,
+                    &[(0.5, 10), (0.12, 6)],
+                )?;
                 // More parameters must buy a material change of the expected image (judged with
                 // the other effects as they were).
                 let k_c = coords_of(&trial, None).len() + k_j - k_full;
@@ -922,66 +1162,14 @@ pub fn select(
         let planes = ctx.physical_planes(&steps)?;
         evidence_final = Vec::new();
         let mut weakest: Option<(usize, f64)> = None;
-        for j in 0..steps.len() {
-            if steps[j].fixed {
-                evidence_final.push(Evidence {
-                    effect: steps[j].name.to_string(),
-                    label: steps[j].label.clone(),
-                    loss_without: f64::NAN,
-                    loss_with: current.total / current.n.max(1) as f64,
-                    delta: f64::NAN,
-                    design: current.design,
-                    k: 0,
-                    z: f64::NAN,
-                    bic: true,
-                    material_dn: f64::NAN,
-                    accepted: true,
-                    round: 0,
-                    params: Some(steps[j].params),
-                });
-                continue;
-            }
-            let mut without: Vec<Step> =
-                steps.iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s.boxed_clone()).collect();
-            let lw = if without.iter().any(|s| !s.fixed) {
-                refine_quick(ctx, &mut without)?
-            } else {
-                ctx.eval(&mut without)?
-            };
-            let pw = ctx.physical_planes(&without)?;
-            let k = coords_of(&steps, Some(j)).len();
-            let mut ev = evidence(steps[j].name, &steps[j].label, lw, current, k, material(&planes, &pw), z_thr, 0);
-            ev.accepted &= above_floor(&steps[j].params);
-            ev.params = Some(steps[j].params);
-            if matches!(steps[j].name, "gain_offset" | "gamma" | "dark_current" | "stray_light" | "vignetting")
-                && ev.accepted
-            {
-                // A global tone or additive effect must be supported away from edges and
-                // saturated pixels; evidence only there is the shape of a PSF or an interpolation
-                // that another effect models imperfectly.
-                let li = ctx.loss.eval_on(&ctx.model_planes(&mut without)?, true);
-                let ci = ctx.loss.eval_on(&ctx.model_planes(&mut steps)?, true);
-                let inner = evidence(steps[j].name, &steps[j].label, li, ci, k, f64::INFINITY, z_thr, 0);
-                if !inner.accepted {
-                    ev.accepted = false;
-                    ev.z = ev.z.min(inner.z);
-                }
-            }
-            if steps[j].name == "motion_blur" && ev.accepted {
-                // A motion blur must show its direction: the same streak turned by 90° has to fit
-                // significantly worse. Otherwise it only reshapes an isotropic blur (e.g. a
-                // pillbox PSF seen through a Gaussian one) along edges it cannot tell apart.
-                let mut turned = clone_steps(&steps);
-                let a = turned[j].params.get("angle_deg");
-                let _ = turned[j].params.set("angle_deg", (a + 90.0).rem_euclid(180.0));
-                let lt = ctx.eval(&mut turned)?;
-                let dir = evidence(steps[j].name, &steps[j].label, lt, current, 1, f64::INFINITY, z_thr, 0);
-                if !dir.accepted {
-                    ev.accepted = false;
-                    ev.z = ev.z.min(dir.z);
-                }
-            }
-            if !ev.accepted && weakest.is_none_or(|(_, z)| ev.z < z) {
+        // Drop-one tests of the selected effects, in parallel on copies of the model; taken in
+        // step order.
+        let jobs: Vec<(usize, Vec<Step>)> = (0..steps.len()).map(|j| (j, clone_steps(&steps))).collect();
+        let results: Vec<Result<Evidence, DiagnoseError>> =
+            jobs.into_par_iter().map(|(j, mut steps)| drop_one(ctx, &mut steps, j, current, &planes, z_thr)).collect();
+        for (j, ev) in results.into_iter().enumerate() {
+            let ev = ev?;
+            if !steps[j].fixed && !ev.accepted && weakest.is_none_or(|(_, z)| ev.z < z) {
                 weakest = Some((j, ev.z));
             }
             evidence_final.push(ev);

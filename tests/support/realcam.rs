@@ -1363,6 +1363,33 @@ pub fn unpaired_corpus() -> Vec<Case> {
     ]
 }
 
+/// `WxH` (e.g. `640x400`) as (width, height).
+pub fn parse_size(s: &str) -> Option<(usize, usize)> {
+    let (w, h) = s.split_once('x')?;
+    Some((w.parse().ok()?, h.parse().ok()?))
+}
+
+/// A case at another size and/or frame count (positions given in pixels, e.g. a stray-light
+/// source, scale with the width).
+pub fn resized(mut c: Case, size: Option<(usize, usize)>, frames: Option<usize>) -> Case {
+    if let Some((w, h)) = size {
+        let f = w as f64 / c.w as f64;
+        for hd in c.hidden.iter_mut() {
+            if let Hidden::StrayLight { src_x, src_y, width_px, .. } = hd {
+                *src_x *= f;
+                *src_y *= f;
+                *width_px *= f;
+            }
+        }
+        c.w = w;
+        c.h = h;
+    }
+    if let Some(n) = frames {
+        c.frames = n;
+    }
+    c
+}
+
 /// The always-on subset: a negative control, one optical, one colour case; the unpaired
 /// negative control and one unpaired effect case.
 pub fn subset_names() -> &'static [&'static str] {
