@@ -99,6 +99,42 @@ fn unpaired_subset_is_diagnosed() {
     assert!(problems.is_empty(), "unpaired diagnosis failed:\n{}", problems.join("\n"));
 }
 
+/// Unpaired, independent forward model: veiling glare (realcam's own block-wise Moffat
+/// convolution of the irradiance) is named `veiling_glare` with its fraction, not a dark level;
+/// a uniform offset of similar size is not called glare.
+#[test]
+fn unpaired_glare_is_told_apart_from_a_uniform_offset() {
+    let cases: Vec<Case> = unpaired_corpus()
+        .into_iter()
+        .filter(|c| matches!(c.name.as_str(), "unpaired_glare_mono" | "unpaired_offset_mono"))
+        .map(|c| c.sized(224, 168, 4))
+        .collect();
+    assert_eq!(cases.len(), 2);
+    let scores = run_all(&cases);
+    let mut problems = Vec::new();
+    for s in &scores {
+        if let Some(e) = &s.error {
+            problems.push(format!("{}: {e}", s.name));
+            continue;
+        }
+        let glare = s.reported.iter().any(|e| e == "veiling_glare");
+        if s.name == "unpaired_glare_mono" {
+            if !glare {
+                problems.push(format!("{}: glare not reported (reported {:?})", s.name, s.reported));
+            }
+            if s.reported.iter().any(|e| e == "dark_current" || e == "gain_offset") {
+                problems.push(format!("{}: glare also read as a uniform level: {:?}", s.name, s.reported));
+            }
+            for p in s.params.iter().filter(|p| p.effect == "veiling_glare" && !p.pass) {
+                problems.push(format!("{}: fraction truth {:.4}, fitted {:?}", s.name, p.truth, p.reported));
+            }
+        } else if glare {
+            problems.push(format!("{}: a uniform offset reported as glare: {:?}", s.name, s.reported));
+        }
+    }
+    assert!(problems.is_empty(), "glare vs offset:\n{}", problems.join("\n"));
+}
+
 fn subset_problems(scores: &[CaseScore]) -> Vec<String> {
     let mut problems = Vec::new();
     for s in scores {

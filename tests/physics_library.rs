@@ -20,6 +20,7 @@ fn params(name: &str, kv: &[(&str, f64)]) -> Params {
 const IDENTITY: &[(&str, &[(&str, f64)])] = &[
     ("lens_flare", &[("intensity", 0.0)]),
     ("stray_light", &[("amplitude_dn", 0.0)]),
+    ("veiling_glare", &[("fraction", 0.0)]),
     ("vignetting", &[("strength", 0.0)]),
     ("defocus", &[("sigma_px", 0.0)]),
     ("motion_blur", &[("length_px", 0.0)]),
@@ -101,6 +102,7 @@ fn the_change_grows_with_the_strength_parameter() {
     let cases: &[Case] = &[
         ("lens_flare", "intensity", [0.02, 0.08, 0.3], &[]),
         ("stray_light", "amplitude_dn", [5.0, 30.0, 120.0], &[]),
+        ("veiling_glare", "fraction", [0.01, 0.05, 0.3], &[]),
         ("vignetting", "strength", [0.1, 0.3, 0.8], &[]),
         ("defocus", "sigma_px", [0.5, 1.5, 4.0], &[]),
         ("motion_blur", "length_px", [2.0, 8.0, 30.0], &[]),
@@ -156,6 +158,7 @@ fn the_full_chain_runs_in_physical_order() {
         [
             // optics: light added by the lens, then focal-plane irradiance shaping, then geometry
             "lens_flare",
+            "veiling_glare",
             "stray_light",
             "vignetting",
             "defocus",

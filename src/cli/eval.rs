@@ -82,6 +82,10 @@ pub struct BloomingArgs {
     /// Blooming parameter `name=value` (repeatable), e.g. `--param spread_px=4`.
     #[arg(long = "param")]
     pub params: Vec<String>,
+    /// Fault configuration (TOML, e.g. diagnose's fitted.toml) applied instead of blooming
+    /// alone: every effect it enables, in physical order. `--param` is then not accepted.
+    #[arg(long)]
+    pub faults: Option<std::path::PathBuf>,
     /// Do not write the crops as PNG.
     #[arg(long)]
     pub no_crops: bool,
@@ -124,6 +128,11 @@ fn run_blooming(a: BloomingArgs) -> anyhow::Result<u8> {
             },
         }
     }
+    let faults = match &a.faults {
+        Some(_) if !a.params.is_empty() => anyhow::bail!("--faults and --param: give the parameters in the file"),
+        Some(p) => Some(faultcam::config::FaultConfig::load(p)?),
+        None => None,
+    };
     let cfg = BloomingConfig {
         threshold: a.threshold,
         min_area: a.min_area,
@@ -132,6 +141,7 @@ fn run_blooming(a: BloomingArgs) -> anyhow::Result<u8> {
         corr_min: a.corr_min,
         orb: OrbConfig { edge_threshold: a.orb_patch, patch_size: a.orb_patch, ..OrbConfig::default() },
         blooming: Some(params),
+        faults,
         seed: a.seed,
         max_generated: a.count,
         real_include: a.real_include,

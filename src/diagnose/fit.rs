@@ -140,6 +140,17 @@ pub fn candidates(pairs: &[Pair], loc: &Located) -> Vec<Candidate> {
         set(&mut p, "width", 0.8);
         out.push(cand("stray_light", "stray_light", p, &["amplitude_dn", "angle_deg", "distance", "width"]));
     }
+    if let Some(mut p) = init("veiling_glare") {
+        // Initial values from the residual floor against the glare the sim's scene predicts.
+        let (f, core, slope) = match super::glare::paired_init(pairs) {
+            Some((f, core, slope, _)) => (f, core, slope),
+            None => (0.01, 20.0, 1.5),
+        };
+        set(&mut p, "fraction", f.clamp(2e-3, 0.3));
+        set(&mut p, "core_px", core);
+        set(&mut p, "slope", slope);
+        out.push(cand("veiling_glare", "veiling_glare", p, &["fraction", "core_px"]));
+    }
     if let Some(mut p) = init("defocus") {
         let s = p.get("sigma_px");
         set(&mut p, "sigma_px", s.clamp(0.3, 6.0));

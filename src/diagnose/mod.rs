@@ -25,6 +25,8 @@
 pub mod edges;
 pub mod fit;
 pub mod fixed;
+/// Veiling glare: signature (background floor against the scene convolved with the PSF) and fit.
+pub mod glare;
 pub mod img;
 pub mod jpeg;
 pub mod locate;

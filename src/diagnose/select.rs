@@ -33,6 +33,7 @@ use rayon::prelude::*;
 /// Effects fitted by pixel loss, in physical order.
 pub const DETERMINISTIC: &[&str] = &[
     "lens_flare",
+    "veiling_glare",
     "stray_light",
     "vignetting",
     "defocus",
@@ -640,6 +641,8 @@ fn search_range(effect: &str, name: &str, lo: f64, hi: f64, init: f64) -> (f64, 
         ("vignetting", "strength") => (0.0, (init * 2.5).clamp(0.2, 1.0)),
         ("vignetting", "field_deg") => (5.0, 75.0),
         ("stray_light", "amplitude_dn") => (0.0, (init * 2.5).max(8.0)),
+        ("veiling_glare", "fraction") => (0.0, (init * 3.0).clamp(0.02, hi)),
+        ("veiling_glare", "core_px") => ((init / 8.0).max(lo), (init * 8.0).min(hi)),
         ("stray_light", "distance") => (0.0, 3.0),
         ("stray_light", "width") => (0.2, 3.0),
         ("smear", "strength") => (0.0, (init * 3.0).max(0.002)),
@@ -752,7 +755,7 @@ pub const MATERIAL_DN: f64 = 0.5;
 /// change the expected image by a whole DN.
 pub fn material_threshold(effect: &str) -> f64 {
     match effect {
-        "gain_offset" | "gamma" | "dark_current" | "stray_light" => 2.0 * MATERIAL_DN,
+        "gain_offset" | "gamma" | "dark_current" | "stray_light" | "veiling_glare" => 2.0 * MATERIAL_DN,
         _ => MATERIAL_DN,
     }
 }
@@ -849,6 +852,7 @@ pub fn above_floor(p: &Params) -> bool {
         "channel_shift" => ["dx_r", "dy_r", "dx_b", "dy_b"].iter().any(|n| g(n).abs() >= 0.1),
         "vignetting" => g("strength") >= 0.02,
         "stray_light" => g("amplitude_dn") >= 1.0,
+        "veiling_glare" => g("fraction") >= 1e-3,
         "dark_current" => g("mean_dn") >= 0.5,
         "gain_offset" => (g("gain") - 1.0).abs() >= 0.005 || g("offset_dn").abs() >= 0.5,
         "gamma" => (g("gamma") - 1.0).abs() >= 0.01,
@@ -933,7 +937,7 @@ fn penalised(ev: LossEval, k: usize, design: f64) -> f64 {
 /// Effects that can stand in for each other (the swap pass only exchanges within a family).
 fn family(name: &str) -> u8 {
     match name {
-        "dark_current" | "gain_offset" | "gamma" | "stray_light" | "vignetting" => 1,
+        "dark_current" | "gain_offset" | "gamma" | "stray_light" | "vignetting" | "veiling_glare" => 1,
         "defocus" | "motion_blur" => 2,
         _ => 0,
     }

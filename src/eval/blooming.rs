@@ -74,6 +74,10 @@ pub struct BloomingConfig {
     pub orb: OrbConfig,
     /// Parameters of the `blooming` effect.
     pub blooming: Option<Params>,
+    /// A whole fault configuration (e.g. diagnose's `fitted.toml`) applied in step 2 instead of
+    /// blooming alone: every effect it enables, in physical order; the control is the image
+    /// before it.
+    pub faults: Option<crate::config::FaultConfig>,
     /// Seed of the effect generators (per image: derived from seed and image index).
     pub seed: u64,
     /// Most generated images read (a source may be endless).
@@ -94,6 +98,7 @@ impl Default for BloomingConfig {
             corr_min: 0.90,
             orb: OrbConfig::default(),
             blooming: None,
+            faults: None,
             seed: 1,
             max_generated: 210,
             real_include: Vec::new(),
@@ -161,6 +166,9 @@ pub struct ArmSummary {
     pub bright_fraction: Option<Stats>,
     /// How often each real crop was the best match.
     pub best_real_counts: std::collections::BTreeMap<String, usize>,
+    /// Per real crop: how many generated crops are accepted against that crop alone (so that
+    /// one real image cannot carry the result).
+    pub accepted_per_real: std::collections::BTreeMap<String, usize>,
 }
 
 /// The original study's published numbers, for side-by-side reporting.
@@ -239,6 +247,11 @@ pub fn run_protocol(
     };
     // Fails early, naming the known effects, if `blooming` is not registered.
     let mut effect = faults::create("blooming")?;
+    let mut chain = match &cfg.faults {
+        Some(fc) => Some(crate::faults::chain::Chain::from_config(fc)?),
+        None => None,
+    };
+    let mut chain_report = crate::faults::chain::FrameReport::default();
 
     // Generated: select, bloom, crop.
     let mut skipped = Vec::new();
@@ -253,12 +266,20 @@ pub fn run_protocol(
             skipped.push((name, format!("{bright} px >= {} (needs {})", cfg.threshold, cfg.min_area)));
             return Ok(());
         }
-        if !effect.info().accepts(frame.format) {
-            frame = before.to_frame();
-        }
         frame.seq = index;
-        let mut ctx = EffectCtx::new(cfg.seed, index, 0);
-        effect.apply(&mut frame, &params, &mut ctx)?;
+        if let Some(chain) = chain.as_mut() {
+            if chain.apply(&mut frame, &mut chain_report)? != faults::Outcome::Keep {
+                skipped.push((name, "dropped by the fault configuration".to_string()));
+                return Ok(());
+            }
+        } else {
+            if !effect.info().accepts(frame.format) {
+                frame = before.to_frame();
+                frame.seq = index;
+            }
+            let mut ctx = EffectCtx::new(cfg.seed, index, 0);
+            effect.apply(&mut frame, &params, &mut ctx)?;
+        }
         let after = Grey::from_frame(&frame);
         let level = zones::zone_level(&after, cfg.threshold);
         let Some(zone) = zones::blooming_zone(&after, level, cfg.min_area) else {
@@ -409,8 +430,19 @@ pub fn run_protocol(
         })
         .collect::<Result<_, _>>()?;
     let bloomed_fraction: Vec<f64> = gens.iter().map(|g| g.info.bright_fraction).collect();
-    let bloomed_sum = summarise(per_image.iter().map(|r| &r.bloomed), &bloomed_fraction);
-    let control_sum = summarise(per_image.iter().map(|r| &r.control), &control_fraction);
+    let mut bloomed_sum = summarise(per_image.iter().map(|r| &r.bloomed), &bloomed_fraction);
+    let mut control_sum = summarise(per_image.iter().map(|r| &r.control), &control_fraction);
+    for (k, (info, _)) in reals.iter().enumerate() {
+        let count = |arm: &[Scored]| -> Result<usize, EvalError> {
+            let mut n = 0;
+            for g in arm {
+                n += usize::from(pair_score(g, &real_scores[k], &info.name, cfg)?.accepted);
+            }
+            Ok(n)
+        };
+        bloomed_sum.accepted_per_real.insert(info.name.clone(), count(&bloomed)?);
+        control_sum.accepted_per_real.insert(info.name.clone(), count(&control)?);
+    }
     let real_fraction: Vec<f64> = reals.iter().map(|r| r.0.bright_fraction).collect();
 
     // Plots.
@@ -487,7 +519,10 @@ pub fn run_protocol(
         fqi_min: cfg.fqi_min,
         corr_min: cfg.corr_min,
         orb: cfg.orb,
-        blooming_params: serde_json::to_value(params).unwrap_or(serde_json::Value::Null),
+        blooming_params: match &cfg.faults {
+            Some(fc) => serde_json::Value::String(format!("fault configuration {}: {}", fc.origin, fc.to_toml())),
+            None => serde_json::to_value(params).unwrap_or(serde_json::Value::Null),
+        },
         seed: cfg.seed,
         generated_read: read,
         generated_skipped: skipped,
@@ -550,30 +585,32 @@ fn best_match(
 ) -> Result<MatchScore, EvalError> {
     let mut best: Option<(f64, MatchScore)> = None;
     for (r, info) in reals.iter().zip(real_info) {
-        #[cfg(feature = "opencv")]
-        let f = g.orb.fqi(&r.orb).map_err(|source| EvalError::Metrics { context: info.0.name.clone(), source })?;
-        #[cfg(not(feature = "opencv"))]
-        let f = {
-            let _ = r;
-            metrics::Fqi { value: None, keypoints_a: 0, keypoints_b: 0, matches: 0 }
-        };
-        let corr = metrics::hist_correlation_hist(&g.hist, &r.hist);
-        let score = f.value.unwrap_or(0.0) + corr;
+        let m = pair_score(g, r, &info.0.name, cfg)?;
+        let score = m.fqi.unwrap_or(0.0) + m.hist_corr;
         // Strictly greater: the first real crop (in file-name order) wins ties.
         if best.as_ref().is_none_or(|(s, _)| score > *s) {
-            let m = MatchScore {
-                best_real: info.0.name.clone(),
-                fqi: f.value,
-                hist_corr: corr,
-                keypoints: f.keypoints_a,
-                keypoints_real: f.keypoints_b,
-                matches: f.matches,
-                accepted: accept(f.value, corr, cfg.fqi_min, cfg.corr_min),
-            };
             best = Some((score, m));
         }
     }
     best.map(|b| b.1).ok_or_else(|| EvalError::Invalid { what: "no real crop to compare with".to_string() })
+}
+
+/// Scores of a generated crop against one real crop.
+fn pair_score(g: &Scored, r: &Scored, real_name: &str, cfg: &BloomingConfig) -> Result<MatchScore, EvalError> {
+    #[cfg(feature = "opencv")]
+    let f = g.orb.fqi(&r.orb).map_err(|source| EvalError::Metrics { context: real_name.to_string(), source })?;
+    #[cfg(not(feature = "opencv"))]
+    let f = metrics::Fqi { value: None, keypoints_a: 0, keypoints_b: 0, matches: 0 };
+    let corr = metrics::hist_correlation_hist(&g.hist, &r.hist);
+    Ok(MatchScore {
+        best_real: real_name.to_string(),
+        fqi: f.value,
+        hist_corr: corr,
+        keypoints: f.keypoints_a,
+        keypoints_real: f.keypoints_b,
+        matches: f.matches,
+        accepted: accept(f.value, corr, cfg.fqi_min, cfg.corr_min),
+    })
 }
 
 /// Acceptance rule of the protocol: `FQI >= fqi_min` and `corr >= corr_min`; an undefined FQI
@@ -602,6 +639,7 @@ fn summarise<'a>(scores: impl Iterator<Item = &'a MatchScore>, bright_fraction: 
             *m.entry(s.best_real.clone()).or_insert(0) += 1;
             m
         }),
+        accepted_per_real: Default::default(),
     }
 }
 
@@ -631,6 +669,9 @@ impl BloomingReport {
             v.sort_by(|x, y| y.1.cmp(x.1).then(x.0.cmp(y.0)));
             v.iter().map(|(n, c)| format!("{n} {c}")).collect::<Vec<_>>().join(", ")
         };
+        let per_real = |a: &ArmSummary| {
+            a.accepted_per_real.iter().map(|(n, c)| format!("{n} {c}/{}", a.total)).collect::<Vec<_>>().join(", ")
+        };
         let s = &self.study;
         format!(
             "generated read {}, selected {}, real crops {} ({} skipped), crop {}x{} px, ORB patch {} px\n\
@@ -640,6 +681,8 @@ impl BloomingReport {
              real crops: bright fraction mean {:.2}\n\
              best matches (bloomed): {}\n\
              best matches (control): {}\n\
+             accepted against each real crop alone (bloomed): {}\n\
+             accepted against each real crop alone (control): {}\n\
              study:   {}/{} accepted, mean FQI {}, mean corr {}; control mean FQI {}, mean corr {}\n",
             self.generated_read,
             self.bloomed.total,
@@ -656,6 +699,8 @@ impl BloomingReport {
             self.real_bright_fraction.map_or(0.0, |m| m.mean),
             best(&self.bloomed),
             best(&self.control),
+            per_real(&self.bloomed),
+            per_real(&self.control),
             s.accepted,
             s.total,
             s.mean_fqi,

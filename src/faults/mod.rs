@@ -20,6 +20,7 @@ pub mod defocus;
 pub mod lens_flare;
 pub mod motion_blur;
 pub mod stray_light;
+pub mod veiling_glare;
 pub mod vignetting;
 // Sensor
 pub mod blooming;

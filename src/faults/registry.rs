@@ -18,6 +18,7 @@ macro_rules! reg {
 static REGISTRY: &[Registration] = &[
     // Optics
     reg!(lens_flare),
+    reg!(veiling_glare),
     reg!(stray_light),
     reg!(vignetting),
     reg!(defocus),
@@ -86,6 +87,7 @@ mod tests {
         ("motion_blur", &["length_px", "angle_deg"]),
         ("vignetting", &["strength"]),
         ("stray_light", &["amplitude_dn"]),
+        ("veiling_glare", &["fraction"]),
         ("lens_flare", &["ghosts", "intensity"]),
         ("channel_shift", &["dx_r", "dy_r", "dx_b", "dy_b"]),
         ("prnu", &["sigma"]),

@@ -12,6 +12,7 @@
 //! | `defocus` | pillbox (uniform disc) PSF of radius R, pixel-area weights | `sigma_px` = the kernel's per-axis standard deviation |
 //! | `channel_shift` | separable Lanczos-3 resampling of R and B | `dx_r, dy_r, dx_b, dy_b` |
 //! | `stray_light` | Cauchy/Moffat lobe (β = 1.5) from a source outside the frame | `amplitude_dn` = maximum inside the frame |
+//! | `veiling_glare` | irradiance spread by a Moffat PSF on 4x4-pixel blocks (PSF at block-centre distances, piecewise constant) | `fraction` |
 //! | `prnu` | uniform (not Gaussian) per-pixel gain with the same std | `sigma` |
 //! | `smear` | per-column (or per-row) count of saturated pixels × strength·FS | `strength`, `direction` |
 //! | `dark_current` | Poisson electrons at the camera's gain (+ optional hot pixels) | `mean_dn`, `hot_pixel_rate` |
@@ -518,6 +519,9 @@ pub enum Hidden {
     /// Moffat-like lobe from a source at (`src_x`, `src_y`) px (may be outside the frame), core
     /// width `width_px`, scaled so its maximum inside the frame is `amplitude_dn`.
     StrayLight { amplitude_dn: f64, src_x: f64, src_y: f64, width_px: f64 },
+    /// Veiling glare: `fraction` of the irradiance scattered by the Moffat PSF
+    /// `(β−1)/(π r0²)·(1 + r²/r0²)^−β` (`core_px` = r0, `beta` = β), added.
+    VeilingGlare { fraction: f64, core_px: f64, beta: f64 },
     /// Uniformly distributed per-pixel gain with standard deviation `sigma`, fixed per case.
     Prnu { sigma: f64 },
     /// Charge `strength·FS` per saturated pixel of the column (vertical) or row (horizontal).
@@ -552,6 +556,7 @@ impl Hidden {
             Hidden::Defocus { .. } => "defocus",
             Hidden::ChannelShift { .. } => "channel_shift",
             Hidden::StrayLight { .. } => "stray_light",
+            Hidden::VeilingGlare { .. } => "veiling_glare",
             Hidden::Prnu { .. } => "prnu",
             Hidden::Smear { .. } => "smear",
             Hidden::DarkCurrent { .. } => "dark_current",
@@ -574,6 +579,7 @@ impl Hidden {
                 vec![("dx_r", dx_r), ("dy_r", dy_r), ("dx_b", dx_b), ("dy_b", dy_b)]
             }
             Hidden::StrayLight { amplitude_dn, .. } => vec![("amplitude_dn", amplitude_dn)],
+            Hidden::VeilingGlare { fraction, .. } => vec![("fraction", fraction)],
             Hidden::Prnu { sigma } => vec![("sigma", sigma)],
             Hidden::Smear { strength, .. } => vec![("strength", strength)],
             Hidden::DarkCurrent { mean_dn, hot_rate } => vec![("mean_dn", mean_dn), ("hot_pixel_rate", hot_rate)],
@@ -605,6 +611,9 @@ impl Hidden {
             Hidden::ChannelShift { .. } => "separable Lanczos-3 shift".into(),
             Hidden::StrayLight { src_x, src_y, width_px, .. } => {
                 format!("Moffat(beta=1.5) lobe from ({src_x:.0},{src_y:.0}) width {width_px:.0} px")
+            }
+            Hidden::VeilingGlare { core_px, beta, .. } => {
+                format!("Moffat PSF core {core_px:.0} px beta {beta:.2} on 4x4 blocks")
             }
             Hidden::Prnu { .. } => "uniform per-pixel gain, fixed per case".into(),
             Hidden::Smear { .. } => "per-line saturated-pixel count x strength x FS".into(),
@@ -838,6 +847,60 @@ pub fn stray_field(w: usize, h: usize, sx: f64, sy: f64, width: f64) -> Vec<f64>
     f
 }
 
+/// Veiling glare: every 4x4 block's flux (sum of its irradiance) is spread with the Moffat PSF
+/// density `p(r) = (β−1)/(π r0²)·(1 + r²/r0²)^−β` (integral 1 over the plane), evaluated at the
+/// distance between block centres; a block keeps for itself the PSF share of the disc of its
+/// own area, `1 − (1 + (16/π)/r0²)^(1−β)`, spread over its 16 pixels. Every pixel of a block
+/// receives the block's density: `fraction` × flux × p per pixel, added to the irradiance.
+pub fn add_veiling_glare(irr: &Img, fraction: f64, core_px: f64, beta: f64) -> Img {
+    const B: usize = 4;
+    let (w, h, c) = (irr.w, irr.h, irr.c);
+    let (bw, bh) = (w.div_ceil(B), h.div_ceil(B));
+    let p = |r2: f64| {
+        (beta - 1.0) / (std::f64::consts::PI * core_px * core_px) * (1.0 + r2 / (core_px * core_px)).powf(-beta)
+    };
+    let own = (1.0 - (1.0 + (16.0 / std::f64::consts::PI) / (core_px * core_px)).powf(1.0 - beta)) / 16.0;
+    // Density per pixel at block offset (dx, dy) from a unit flux.
+    let mut table = vec![0.0; bw * bh];
+    for dy in 0..bh {
+        for dx in 0..bw {
+            let (x, y) = ((dx * B) as f64, (dy * B) as f64);
+            table[dy * bw + dx] = if dx == 0 && dy == 0 { own } else { p(x * x + y * y) };
+        }
+    }
+    let mut out = irr.clone();
+    for ch in 0..c {
+        let mut flux = vec![0.0; bw * bh];
+        for y in 0..h {
+            for x in 0..w {
+                flux[(y / B) * bw + x / B] += irr.at(x, y, ch);
+            }
+        }
+        let mut dens = vec![0.0; bw * bh];
+        for oy in 0..bh {
+            for ox in 0..bw {
+                let mut s = 0.0;
+                for iy in 0..bh {
+                    for ix in 0..bw {
+                        let f = flux[iy * bw + ix];
+                        if f != 0.0 {
+                            s += f * table[oy.abs_diff(iy) * bw + ox.abs_diff(ix)];
+                        }
+                    }
+                }
+                dens[oy * bw + ox] = fraction * s;
+            }
+        }
+        for y in 0..h {
+            for x in 0..w {
+                let v = out.at(x, y, ch);
+                out.set(x, y, ch, v + dens[(y / B) * bw + x / B]);
+            }
+        }
+    }
+    out
+}
+
 /// Fixed-pattern state of one camera (same on every frame of a case).
 pub struct FixedPattern {
     prnu: Option<Vec<f64>>,
@@ -938,6 +1001,11 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
                     }
                 }
             }
+        }
+    }
+    for hd in hidden {
+        if let Hidden::VeilingGlare { fraction, core_px, beta } = *hd {
+            irr = add_veiling_glare(&irr, fraction, core_px, beta);
         }
     }
     // ---- sensor: photo signal in DN ----
@@ -1360,6 +1428,16 @@ pub fn unpaired_corpus() -> Vec<Case> {
         unpaired("unpaired_defocus_mono", Mono8, 402, false, 6.0, 1.5, vec![Defocus { radius_px: 2.0 }]),
         unpaired("unpaired_dark_rgb", Rgb8, 403, false, 6.0, 1.5, vec![DarkCurrent { mean_dn: 4.0, hot_rate: 0.0 }]),
         unpaired("unpaired_smear_mono", Mono8, 404, false, 6.0, 1.5, vec![Smear { strength: 0.01, vertical: true }]),
+        unpaired(
+            "unpaired_glare_mono",
+            Mono8,
+            405,
+            false,
+            6.0,
+            1.5,
+            vec![VeilingGlare { fraction: 0.08, core_px: 12.0, beta: 1.5 }],
+        ),
+        unpaired("unpaired_offset_mono", Mono8, 406, false, 6.0, 1.5, vec![GainOffset { gain: 1.0, offset_dn: 8.0 }]),
     ]
 }
 

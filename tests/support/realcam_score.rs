@@ -29,6 +29,7 @@ pub fn tolerance(effect: &str, param: &str) -> Tol {
         ("smear", "strength") => Tol { abs: 0.0005, rel: 0.30 },
         ("prnu", "sigma") => Tol { abs: 0.004, rel: 0.35 },
         ("stray_light", "amplitude_dn") => Tol { abs: 1.5, rel: 0.35 },
+        ("veiling_glare", "fraction") => Tol { abs: 0.01, rel: 0.5 },
         ("row_noise", "sigma_dn") => Tol { abs: 0.2, rel: 0.30 },
         ("gamma", "gamma") => Tol { abs: 0.03, rel: 0.0 },
         ("jpeg", "quality") => Tol { abs: 10.0, rel: 0.0 },
