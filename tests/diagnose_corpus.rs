@@ -295,3 +295,38 @@ fn hidden_effects_are_comparable_to_the_noise() {
         }
     }
 }
+
+/// The report is the same on one and on two threads: the forward-model selection tries its
+/// candidates and drop-one tests in parallel and sums the loss per plane in parallel, so every
+/// reduction must have a fixed order. A two-effect case with saturation (several candidates and
+/// selected steps) exercises all parallel paths.
+#[test]
+fn diagnose_report_is_the_same_on_one_and_two_threads() {
+    let case = corpus().into_iter().find(|c| c.name == "blooming_smear_mono").expect("case").sized(160, 120, 3);
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let dir = tmp.path().join(&case.name);
+    case.write(&dir).expect("write case");
+    let mut reports = Vec::new();
+    for threads in ["1", "2"] {
+        let out = dir.join(format!("diag{threads}"));
+        let st = std::process::Command::new(faultcam())
+            .env("RAYON_NUM_THREADS", threads)
+            .arg("diagnose")
+            .arg("--sim")
+            .arg(dir.join("sim"))
+            .arg("--real")
+            .arg(dir.join("real"))
+            .arg("--out")
+            .arg(&out)
+            .arg("--no-markdown")
+            .status()
+            .expect("run faultcam diagnose");
+        assert!(st.success(), "diagnose on {threads} thread(s) failed");
+        reports.push(std::fs::read_to_string(out.join("report.json")).expect("report.json"));
+        let toml = std::fs::read_to_string(out.join("fitted.toml")).expect("fitted.toml");
+        reports.push(toml);
+    }
+    assert!(reports[0] == reports[2], "report.json differs between 1 and 2 threads");
+    assert!(reports[1] == reports[3], "fitted.toml differs between 1 and 2 threads");
+    assert!(reports[0].contains("\"findings\""));
+}

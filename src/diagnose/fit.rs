@@ -392,7 +392,9 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         inputs.push(select::work_planes(&pairs[k].sim_frame, k as u64)?);
     }
     let values: usize = fidx.iter().map(|&k| pairs[k].w() * pairs[k].h() * pairs[k].channels()).sum();
-    let row_step = (values / 600_000).max(1);
+    // About 300k values per loss evaluation at most (statistically ample for a handful of
+    // parameters; the forward models still run on the whole frames).
+    let row_step = values.div_ceil(300_000).max(1);
     // JPEG is found by its own test (the quantisation lattice does not depend on any model);
     // when present it is part of every model, so that its softening and blocking are not taken
     // for blur or anything else.

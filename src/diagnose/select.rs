@@ -73,10 +73,47 @@ pub struct Step {
     /// dithered by the noise): with a noise model the step returns the mean of several JPEG round
     /// trips of the image plus noise, which approximates the expected output.
     pub dither: Option<NoiseModel>,
+    dither_draws: DitherDraws,
 }
 
 /// Noise draws averaged by a dithered JPEG step.
 const DITHER_DRAWS: u64 = 3;
+
+/// Standard normal draws of the dithered JPEG step, per (seed, frame seq, step index, values):
+/// the same for every evaluation of a frame, so they are drawn once (for the first few frames;
+/// further frames draw without keeping them). Shared by the clones of a step.
+#[derive(Clone, Default)]
+pub struct DitherDraws(std::sync::Arc<std::sync::Mutex<Vec<((u64, u64, usize, usize), std::sync::Arc<Vec<f64>>)>>>);
+
+impl DitherDraws {
+    const KEEP: usize = 8;
+
+    fn draw(seed: u64, seq: u64, index: usize, n: usize) -> Vec<f64> {
+        let mut out = Vec::with_capacity(DITHER_DRAWS as usize * n);
+        for k in 0..DITHER_DRAWS {
+            let mut rng = crate::rng::Rng::new(crate::rng::mix_seed(&[seed, seq, index as u64, k]));
+            out.extend((0..n).map(|_| rng.normal()));
+        }
+        out
+    }
+
+    fn get(&self, seed: u64, seq: u64, index: usize, n: usize) -> std::sync::Arc<Vec<f64>> {
+        let key = (seed, seq, index, n);
+        if let Ok(c) = self.0.lock()
+            && let Some((_, d)) = c.iter().find(|(k, _)| *k == key)
+        {
+            return d.clone();
+        }
+        let d = std::sync::Arc::new(Self::draw(seed, seq, index, n));
+        if let Ok(mut c) = self.0.lock()
+            && c.len() < Self::KEEP
+            && !c.iter().any(|(k, _)| *k == key)
+        {
+            c.push((key, d.clone()));
+        }
+        d
+    }
+}
 
 impl Step {
     /// A step that is part of the model from the start and never tested (no fitted parameters).
@@ -103,6 +140,7 @@ impl Step {
             fit,
             fixed: false,
             dither: None,
+            dither_draws: DitherDraws::default(),
         })
     }
 
@@ -116,6 +154,7 @@ impl Step {
             fit: self.fit.clone(),
             fixed: self.fixed,
             dither: self.dither.clone(),
+            dither_draws: self.dither_draws.clone(),
         }
     }
 
@@ -139,16 +178,23 @@ impl Step {
             let mut acc: Vec<Vec<f64>> =
                 orig.iter().map(|f| vec![0.0; f.as_u16().map(|d| d.len()).unwrap_or(0)]).collect();
             let mut plain = Step { dither: None, effect: faults::create("jpeg").ok(), ..self.boxed_clone() };
+            // The dither sigma of each 16-bit level, and the normal draws (the same for every
+            // evaluation of this frame: cached).
+            let sd_of: Vec<f64> = (0..65536u32).map(|v| (1.5 * nm.var(v as f64 / 257.0)).sqrt()).collect();
+            let n_values: usize = orig.iter().map(|f| f.as_u16().map(|d| d.len()).unwrap_or(0)).sum();
+            let draws = self.dither_draws.get(seed, seq, index, n_values);
             for k in 0..DITHER_DRAWS {
                 let mut noisy = orig.clone();
-                let mut rng = crate::rng::Rng::new(crate::rng::mix_seed(&[seed, seq, index as u64, k]));
+                let dk = &draws[k as usize * n_values..(k as usize + 1) * n_values];
+                let mut at = 0;
                 for f in noisy.iter_mut() {
                     if let Some(d) = f.as_u16_mut() {
-                        for v in d.iter_mut() {
+                        for (v, &g) in d.iter_mut().zip(&dk[at..]) {
                             let m = *v as f64 / 257.0;
-                            let sd = (1.5 * nm.var(m)).sqrt();
-                            *v = ((m + sd * rng.normal()) * 257.0).round().clamp(0.0, 65535.0) as u16;
+                            let sd = sd_of[*v as usize];
+                            *v = ((m + sd * g) * 257.0).round().clamp(0.0, 65535.0) as u16;
                         }
+                        at += d.len();
                     }
                 }
                 plain.apply(&mut noisy, seed, seq, index)?;
@@ -321,11 +367,14 @@ impl LossTables {
     /// Level index of a model value, if it is a tabulated level.
     #[inline]
     fn index(&self, m: f32) -> Option<usize> {
-        let v = (m * 257.0).round();
-        if !(0.0..LEVELS as f32).contains(&v) {
+        if m.is_nan() || m < 0.0 {
             return None;
         }
-        let v = v as usize;
+        // floor(x + ½) is the nearest level for m >= 0 (the check below catches any other value).
+        let v = (m * 257.0 + 0.5) as usize;
+        if v >= LEVELS {
+            return None;
+        }
         (self.level[v].to_bits() == m.to_bits()).then_some(v)
     }
 
