@@ -10,7 +10,8 @@
 # (faults.py, synth.py, albu_pipeline.py). Their Python environment (numpy,
 # opencv-python-headless, albumentations from PyPI) is created once in a venv under
 # target/anchors-venv (or $FAULTCAM_ANCHORS_VENV) and reused. Other knobs: ANCHOR_ITERS (timed
-# calls per Python pipeline, default 7), FAULTCAM_FRAMES (measured faultcam frames, default 120).
+# calls per Python pipeline, default 7), FAULTCAM_FRAMES (measured faultcam frames, default 120),
+# FAULTCAM_BIN (time this faultcam binary instead of building the release one).
 # Each side runs on one core: faultcam with --threads 1, Python single-threaded (time_chain.py sets
 # the OMP/BLAS/OpenCV thread counts to 1).
 set -euo pipefail
@@ -33,10 +34,14 @@ if ! "$VENV/bin/python" -c 'import numpy, cv2, albumentations' 2>/dev/null; then
   "$VENV/bin/pip" install --quiet numpy opencv-python-headless albumentations
 fi
 
-. scripts/rust-env.sh
-cargo build --release --bin faultcam >&2
-FC=./target/release/faultcam
-[ -n "${CARGO_TARGET_DIR:-}" ] && FC="$CARGO_TARGET_DIR/release/faultcam"
+if [ -n "${FAULTCAM_BIN:-}" ]; then
+  FC=$FAULTCAM_BIN # a given build (no cargo run)
+else
+  . scripts/rust-env.sh
+  cargo build --release --bin faultcam >&2
+  FC=./target/release/faultcam
+  [ -n "${CARGO_TARGET_DIR:-}" ] && FC="$CARGO_TARGET_DIR/release/faultcam"
+fi
 
 CPU=$(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2- | sed 's/^ *//')
 KIND=scalar
