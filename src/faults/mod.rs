@@ -8,6 +8,7 @@
 
 pub mod chain;
 /// Helpers of the physics library: row bands, random lanes, sparse sampling, bench scene.
+pub mod fir16;
 pub mod kit;
 /// Table-driven per-sample noise kernel (scalar reference + AVX2).
 pub mod noise;

@@ -1,6 +1,7 @@
 //! `motion_blur`: linear motion during the exposure, a normalised line PSF.
 
 use super::defocus::mirror;
+use super::fir16;
 use super::kit::{axpy_row, band_rows, bands, mirrored_row_f32, par_bands_with, round_row};
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, FrameData, Sample};
@@ -17,8 +18,12 @@ pub static INFO: EffectInfo = EffectInfo {
             +45 = streak rising to the right on screen, i.e. towards -y in image rows, 90 = vertical. The \
             line is sampled every 1/8 px (trapezoid weights) and each sample is spread bilinearly over its \
             four nearest pixels (sub-pixel accurate, anti-aliased), then normalised to sum 1. Borders are \
-            mirrored. Channels are blurred independently in f32, rounded and clipped. length_px = 0 is the \
-            identity.",
+            mirrored. Channels are blurred independently. 8-bit frames are computed in 16-bit fixed \
+            point (samples x 64, the point-symmetric tap pairs' weights rounded to multiples of 2^-15 \
+            that sum exactly to 1, every product rounded to nearest, the same integer operations on \
+            every CPU path): each output is within 1 DN of the exact convolution (tested against an f64 \
+            reference for lengths 0.7-100 px). 16-bit frames in f32, rounded and clipped. Cost grows \
+            linearly with length_px (about 1.5 taps per px of streak). length_px = 0 is the identity.",
     params: &[
         ParamSpec::float("length_px", "px", 0.0, 100.0, 10.0, "length of the motion streak"),
         ParamSpec::float("angle_deg", "deg", 0.0, 180.0, 0.0, "direction, CCW from +x with y up, modulo 180"),
@@ -68,6 +73,15 @@ pub struct MotionBlur {
     key: Option<(u64, u64)>,
     taps: Vec<(i32, i32, f32)>,
     radius: usize,
+    // allocation: once per parameter change: 8-bit frames: the centre tap and one tap (dx, dy)
+    // of each point-symmetric pair (dy > 0, or dy = 0 and dx > 0), and their Q15 weights
+    pairs: Vec<(i32, i32)>,
+    q15: Vec<i16>,
+    // allocation: once per frame size: 8-bit frames: mirrored Q6 copy of the frame, per band a
+    // Q6 output row and the tap offsets
+    padded16: Vec<i16>,
+    acc16: Vec<i16>,
+    offs: Vec<(usize, usize)>,
     // allocation: once per frame size: mirrored f32 copy of the frame with a border of `radius`
     padded: Vec<f32>,
     // allocation: once per frame size: one accumulator row per band
@@ -111,6 +125,56 @@ fn convolve<T: Sample>(
     });
 }
 
+/// Split point-symmetric taps into the centre weight and one representative per pair.
+fn pair_up(taps: &[(i32, i32, f32)]) -> (Vec<(i32, i32)>, Vec<f64>) {
+    let mut pairs = vec![(0, 0)];
+    let mut half = vec![0.0f64];
+    for &(dx, dy, w) in taps {
+        if (dx, dy) == (0, 0) {
+            half[0] = w as f64;
+        } else if dy > 0 || (dy == 0 && dx > 0) {
+            // The mirror tap has the same weight up to f32 rounding: take the mean.
+            let m = taps.iter().find(|t| t.0 == -dx && t.1 == -dy).map_or(w, |t| t.2);
+            pairs.push((dx, dy));
+            half.push(0.5 * (w as f64 + m as f64));
+        }
+    }
+    let s = half[0] + 2.0 * half[1..].iter().sum::<f64>();
+    half.iter_mut().for_each(|v| *v /= s);
+    (pairs, half)
+}
+
+fn build_padded_q6(src: &[u8], stride: usize, w: usize, h: usize, ch: usize, r: usize, padded: &mut [i16]) {
+    let pw = (w + 2 * r) * ch;
+    padded.par_chunks_mut(pw).enumerate().for_each(|(py, prow)| {
+        let sy = mirror(py as isize - r as isize, h);
+        super::defocus::pad_row_q6(&src[sy * stride..sy * stride + w * ch], w, ch, r, prow);
+    });
+}
+
+/// 8-bit convolution: output row y is the FIR over the padded rows starting at row y, with the
+/// same tap offsets `offs` (relative to that row) for every row.
+fn convolve_q6(
+    dst: &mut [u8],
+    stride: usize,
+    h: usize,
+    rl: usize,
+    pw: usize,
+    center: usize,
+    offs: &[(usize, usize)],
+    q: &[i16],
+    padded: &[i16],
+    acc: &mut [i16],
+) {
+    par_bands_with(dst, stride, h, acc, rl, |_, y0, band, acc| {
+        for (i, orow) in band_rows(band, stride, rl).enumerate() {
+            let y = y0 + i;
+            fir16::sym_fir(acc, &padded[y * pw..], center, offs, q);
+            fir16::q6_to_u8(orow, acc);
+        }
+    });
+}
+
 impl Effect for MotionBlur {
     fn info(&self) -> &'static EffectInfo {
         &INFO
@@ -128,19 +192,32 @@ impl Effect for MotionBlur {
             self.taps = line_taps(len, ang);
             self.radius =
                 self.taps.iter().map(|t| t.0.unsigned_abs().max(t.1.unsigned_abs())).max().unwrap_or(0) as usize;
+            let (pairs, half) = pair_up(&self.taps);
+            self.q15 = fir16::q15_pairs(&half);
+            self.pairs = pairs;
             self.key = Some((len.to_bits(), ang.to_bits()));
         }
         let (w, h, ch, stride, r) =
             (frame.width as usize, frame.height as usize, frame.channels(), frame.stride, self.radius);
-        self.padded.resize((w + 2 * r) * ch * (h + 2 * r), 0.0);
-        self.acc.resize(w * ch * bands(h), 0.0);
         let taps = &self.taps;
         match &mut frame.data {
+            // 8-bit: Q6 fixed point in 16-bit lanes (see `fir16`).
             FrameData::U8(d) => {
-                build_padded(d, stride, w, h, ch, r, &mut self.padded);
-                convolve(d, stride, w, h, ch, r, taps, &self.padded, &mut self.acc);
+                let pw = (w + 2 * r) * ch;
+                self.padded16.resize(pw * (h + 2 * r), 0);
+                self.acc16.resize(w * ch * bands(h), 0);
+                // Offsets relative to the padded row of the output row (no mirroring needed inside).
+                let at = |dx: i32, dy: i32| {
+                    (r as isize + dy as isize) as usize * pw + (r as isize + dx as isize) as usize * ch
+                };
+                self.offs.clear();
+                self.offs.extend(self.pairs.iter().map(|&(dx, dy)| (at(-dx, -dy), at(dx, dy))));
+                build_padded_q6(d, stride, w, h, ch, r, &mut self.padded16);
+                convolve_q6(d, stride, h, w * ch, pw, at(0, 0), &self.offs, &self.q15, &self.padded16, &mut self.acc16);
             }
             FrameData::U16(d) => {
+                self.padded.resize((w + 2 * r) * ch * (h + 2 * r), 0.0);
+                self.acc.resize(w * ch * bands(h), 0.0);
                 build_padded(d, stride, w, h, ch, r, &mut self.padded);
                 convolve(d, stride, w, h, ch, r, taps, &self.padded, &mut self.acc);
             }
@@ -208,6 +285,49 @@ mod tests {
         MotionBlur::default().apply(&mut f, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
         assert!(f.get(25, 15, 0) > 0.0 && f.get(15, 25, 0) > 0.0);
         assert_eq!(f.get(25, 25, 0), 0.0);
+    }
+
+    #[test]
+    fn eight_bit_fixed_point_is_within_one_dn_of_the_exact_line_psf() {
+        let mut orig = crate::faults::kit::bench_scene(140, 120, PixelFormat::Rgb8, 2).unwrap();
+        for y in 30..60 {
+            for x in 70..100 {
+                for c in 0..3 {
+                    orig.set(x, y, c, 255.0);
+                }
+            }
+        }
+        orig.set(30, 90, 1, 255.0);
+        let (w, h) = (140usize, 120usize);
+        let src = orig.packed_samples_f32();
+        for &(len, ang) in &[(0.7, 20.0), (5.0, 0.0), (10.0, 30.0), (24.0, 90.0), (37.5, 137.0), (100.0, 63.0)] {
+            let mut f = orig.clone();
+            let mut p = Params::defaults(&INFO);
+            p.set("length_px", len).unwrap();
+            p.set("angle_deg", ang).unwrap();
+            MotionBlur::default().apply(&mut f, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
+            let got = f.packed_samples_f32();
+            // The exact model: the normalised tap weights in f64, mirrored borders.
+            let taps = line_taps(len, ang);
+            let total: f64 = taps.iter().map(|t| t.2 as f64).sum();
+            let mut worst = 0.0f64;
+            for y in 0..h {
+                for x in 0..w {
+                    for c in 0..3 {
+                        let e: f64 = taps
+                            .iter()
+                            .map(|&(dx, dy, wt)| {
+                                let sx = mirror(x as isize + dx as isize, w);
+                                let sy = mirror(y as isize + dy as isize, h);
+                                wt as f64 / total * src[(sy * w + sx) * 3 + c] as f64
+                            })
+                            .sum();
+                        worst = worst.max((got[(y * w + x) * 3 + c] as f64 - e).abs());
+                    }
+                }
+            }
+            assert!(worst < 1.0, "length {len} angle {ang}: max |error| {worst} DN");
+        }
     }
 
     #[test]

@@ -1,0 +1,228 @@
+//! Symmetric FIR filters on 16-bit fixed-point rows, for the blurs of 8-bit frames (`defocus`).
+//!
+//! Samples are held as `v * 2^6` in `i16` (Q6: 8-bit values up to 16320, so the sum of two
+//! samples fits) and weights as `round(w * 2^15)` (Q15, renormalised to sum exactly 2^15). One
+//! output is `sum_k mulhrs(x_-k + x_+k, q_k)` with `mulhrs(a, b) = (a * b + 2^14) >> 15` (the
+//! `vpmulhrsw` instruction: each product rounded to nearest), so every path (AVX-512 BW, AVX2,
+//! scalar) runs the same integer operations and gives the same bits. Error of one output against
+//! the exact weighted sum: at most 1/128 DN per tap pair from the product rounding, plus the
+//! weights' rounding (|dw| < 2^-15 each, total weight exactly 1).
+
+/// Fractional bits of a sample (`v * 2^6`).
+pub const SAMPLE_Q: u32 = 6;
+
+/// Q15 weights of a symmetric kernel of odd length `2r + 1`: `q[0]` is the centre tap, `q[k]`
+/// the taps at ±k. Rounded with the largest-remainder rule so that `q[0] + 2 sum q[k] = 2^15`
+/// exactly (the filter keeps the mean); every pair weight is within 2^-15 of the exact one, the
+/// centre within 2 * 2^-15.
+pub fn q15_half_kernel(k: &[f64]) -> Vec<i16> {
+    q15_pairs(&k[k.len() / 2..])
+}
+
+/// Q15 weights of a point-symmetric kernel given as `half[0]` (the centre tap) and `half[j]`
+/// (the weight of each tap of pair j): rounded as in [`q15_half_kernel`] so that
+/// `q[0] + 2 sum q[j] = 2^15` (the exact weights must sum to 1).
+pub fn q15_pairs(half: &[f64]) -> Vec<i16> {
+    let r = half.len() - 1;
+    let total = 32768i64;
+    // Units: the centre counts once, every other tap twice (its mirror shares the weight).
+    let want: Vec<f64> = half.iter().map(|w| w * total as f64).collect();
+    let mut q: Vec<i64> = want.iter().map(|w| w.floor() as i64).collect();
+    let mut sum: i64 = q[0] + 2 * q[1..].iter().sum::<i64>();
+    // Hand out the remaining units by largest remainder: the centre takes single units, a pair
+    // takes two. Order: remainders descending, then index ascending (deterministic).
+    let mut order: Vec<usize> = (0..=r).collect();
+    order.sort_by(|&a, &b| {
+        let (ra, rb) = (want[a] - want[a].floor(), want[b] - want[b].floor());
+        rb.partial_cmp(&ra).unwrap_or(std::cmp::Ordering::Equal).then(a.cmp(&b))
+    });
+    for &j in &order {
+        let step = if j == 0 { 1 } else { 2 };
+        if sum + step <= total {
+            q[j] += 1;
+            sum += step;
+        }
+        if sum == total {
+            break;
+        }
+    }
+    // A last odd unit that no pair could take goes to the centre.
+    q[0] += total - sum;
+    sum = total;
+    debug_assert_eq!(sum, total);
+    q.into_iter().map(|v| v.clamp(0, i16::MAX as i64) as i16).collect()
+}
+
+/// `(a * b + 2^14) >> 15`, the rounding high product of `vpmulhrsw`.
+#[inline(always)]
+pub fn mulhrs(a: i16, b: i16) -> i16 {
+    ((a as i32 * b as i32 + 0x4000) >> 15) as i16
+}
+
+/// `out[i] = mulhrs(base[center + i], q[0]) + sum_{k>=1} mulhrs(base[offs[k].0 + i] +
+/// base[offs[k].1 + i], q[k])` (wrapping i16 adds; the caller keeps the sums in range).
+/// `offs[0]` is not used. Panics if a read would leave `base`.
+pub fn sym_fir(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usize)], q: &[i16]) {
+    let n = out.len();
+    assert!(offs.len() == q.len() && !q.is_empty());
+    assert!(center + n <= base.len(), "fir: centre row inside the buffer");
+    for &(a, b) in &offs[1..] {
+        assert!(a + n <= base.len() && b + n <= base.len(), "fir: taps inside the buffer");
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        if super::kit::has_avx512() {
+            // SAFETY: AVX-512 F/BW present (checked); reads are in bounds (asserted above).
+            let done = unsafe { simd::fir_avx512(out, base, center, offs, q) };
+            return fir_scalar(&mut out[done..], base, center + done, offs, q, done);
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: AVX2 present (checked); reads are in bounds (asserted above).
+            let done = unsafe { simd::fir_avx2(out, base, center, offs, q) };
+            return fir_scalar(&mut out[done..], base, center + done, offs, q, done);
+        }
+    }
+    fir_scalar(out, base, center, offs, q, 0)
+}
+
+/// Scalar reference of [`sym_fir`] (outputs from `skip` on: tap offsets are shifted by it).
+fn fir_scalar(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usize)], q: &[i16], skip: usize) {
+    for (i, o) in out.iter_mut().enumerate() {
+        let mut acc = mulhrs(base[center + i], q[0]);
+        for k in 1..q.len() {
+            let (a, b) = (offs[k].0 + skip + i, offs[k].1 + skip + i);
+            acc = acc.wrapping_add(mulhrs(base[a].wrapping_add(base[b]), q[k]));
+        }
+        *o = acc;
+    }
+}
+
+/// `out[i] = clamp(round(acc[i] / 2^6), 0, 255)` (round half up).
+pub fn q6_to_u8(out: &mut [u8], acc: &[i16]) {
+    for (o, &a) in out.iter_mut().zip(acc) {
+        *o = ((a.max(0) as i32 + 32) >> SAMPLE_Q).min(255) as u8;
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod simd {
+    use super::mulhrs;
+    use std::arch::x86_64::*;
+
+    /// Whole chunks of 64 outputs; returns how many outputs were written.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn fir_avx2(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usize)], q: &[i16]) -> usize {
+        let n = out.len() / 64 * 64;
+        let bp = base.as_ptr();
+        let mut i = 0;
+        while i < n {
+            // SAFETY (block): offsets + i + 64 <= offsets + n <= base.len() (checked by the caller).
+            unsafe {
+                let ld = |p: usize| _mm256_loadu_si256(bp.add(p) as *const __m256i);
+                let q0 = _mm256_set1_epi16(q[0]);
+                let c = center + i;
+                let mut a0 = _mm256_mulhrs_epi16(ld(c), q0);
+                let mut a1 = _mm256_mulhrs_epi16(ld(c + 16), q0);
+                let mut a2 = _mm256_mulhrs_epi16(ld(c + 32), q0);
+                let mut a3 = _mm256_mulhrs_epi16(ld(c + 48), q0);
+                for k in 1..q.len() {
+                    let qk = _mm256_set1_epi16(q[k]);
+                    let (lo, hi) = (offs[k].0 + i, offs[k].1 + i);
+                    a0 = _mm256_add_epi16(a0, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo), ld(hi)), qk));
+                    a1 = _mm256_add_epi16(a1, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo + 16), ld(hi + 16)), qk));
+                    a2 = _mm256_add_epi16(a2, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo + 32), ld(hi + 32)), qk));
+                    a3 = _mm256_add_epi16(a3, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo + 48), ld(hi + 48)), qk));
+                }
+                let op = out.as_mut_ptr().add(i) as *mut __m256i;
+                _mm256_storeu_si256(op, a0);
+                _mm256_storeu_si256(op.add(1), a1);
+                _mm256_storeu_si256(op.add(2), a2);
+                _mm256_storeu_si256(op.add(3), a3);
+            }
+            i += 64;
+        }
+        let _ = mulhrs;
+        n
+    }
+
+    /// Whole chunks of 128 outputs; returns how many outputs were written.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub unsafe fn fir_avx512(
+        out: &mut [i16],
+        base: &[i16],
+        center: usize,
+        offs: &[(usize, usize)],
+        q: &[i16],
+    ) -> usize {
+        let n = out.len() / 128 * 128;
+        let bp = base.as_ptr();
+        let mut i = 0;
+        while i < n {
+            // SAFETY (block): offsets + i + 128 <= offsets + n <= base.len() (checked by the caller).
+            unsafe {
+                let ld = |p: usize| _mm512_loadu_si512(bp.add(p) as *const __m512i);
+                let q0 = _mm512_set1_epi16(q[0]);
+                let c = center + i;
+                let mut a0 = _mm512_mulhrs_epi16(ld(c), q0);
+                let mut a1 = _mm512_mulhrs_epi16(ld(c + 32), q0);
+                let mut a2 = _mm512_mulhrs_epi16(ld(c + 64), q0);
+                let mut a3 = _mm512_mulhrs_epi16(ld(c + 96), q0);
+                for k in 1..q.len() {
+                    let qk = _mm512_set1_epi16(q[k]);
+                    let (lo, hi) = (offs[k].0 + i, offs[k].1 + i);
+                    a0 = _mm512_add_epi16(a0, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo), ld(hi)), qk));
+                    a1 = _mm512_add_epi16(a1, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo + 32), ld(hi + 32)), qk));
+                    a2 = _mm512_add_epi16(a2, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo + 64), ld(hi + 64)), qk));
+                    a3 = _mm512_add_epi16(a3, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo + 96), ld(hi + 96)), qk));
+                }
+                let op = out.as_mut_ptr().add(i) as *mut __m512i;
+                _mm512_storeu_si512(op, a0);
+                _mm512_storeu_si512(op.add(1), a1);
+                _mm512_storeu_si512(op.add(2), a2);
+                _mm512_storeu_si512(op.add(3), a3);
+            }
+            i += 128;
+        }
+        n
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    #[test]
+    fn weights_sum_to_one_and_round_to_the_nearest_unit() {
+        for sigma in [0.05, 0.3, 1.5, 4.0, 20.0] {
+            let k: Vec<f64> = crate::faults::defocus::discrete_gaussian_f64(sigma);
+            let q = q15_half_kernel(&k);
+            let r = k.len() / 2;
+            assert_eq!(q[0] as i64 + 2 * q[1..].iter().map(|&v| v as i64).sum::<i64>(), 32768, "{sigma}");
+            assert!((q[0] as f64 - k[r] * 32768.0).abs() < 2.0, "{sigma}: centre");
+            for j in 1..=r {
+                assert!((q[j] as f64 - k[r + j] * 32768.0).abs() < 1.0, "{sigma}: tap {j}");
+            }
+        }
+    }
+
+    #[test]
+    fn simd_paths_equal_the_scalar_reference() {
+        let mut rng = Rng::new(9);
+        let base: Vec<i16> = (0..3000).map(|_| rng.below(16321) as i16).collect();
+        let q: Vec<i16> = vec![9000, 7000, 3000, 500, 884];
+        for n in [0usize, 1, 63, 64, 65, 127, 128, 129, 700, 2000] {
+            let offs: Vec<(usize, usize)> = vec![(0, 0), (40, 60), (30, 70), (10, 90), (0, 100)];
+            let mut fast = vec![0i16; n];
+            let mut slow = vec![0i16; n];
+            sym_fir(&mut fast, &base, 50, &offs, &q);
+            fir_scalar(&mut slow, &base, 50, &offs, &q, 0);
+            assert_eq!(fast, slow, "{n}");
+        }
+        // mulhrs is round-to-nearest (ties up) of a * b / 2^15.
+        for &(a, b) in &[(16320i16, 32767i16), (1, 16384), (3, 16384), (-5, 9000), (32640, 1)] {
+            let exact = a as f64 * b as f64 / 32768.0;
+            assert_eq!(mulhrs(a, b) as f64, (exact + 0.5).floor(), "{a} {b}");
+        }
+    }
+}
