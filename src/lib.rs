@@ -12,6 +12,7 @@ pub mod eval;
 pub mod faults;
 pub mod frame;
 pub mod gtlog;
+pub mod limits;
 pub mod masks;
 pub mod metrics;
 pub mod pipeline;

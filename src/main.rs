@@ -11,6 +11,13 @@ use clap::{Parser, Subcommand};
 struct Cli {
     #[command(subcommand)]
     command: Command,
+    /// Largest image or stream frame accepted, WxH pixels (default 16384x16384): checked from
+    /// the file header, GStreamer caps, camera region or V4L2 format before any allocation.
+    #[arg(long, global = true, value_name = "WxH")]
+    max_image_dims: Option<String>,
+    /// Largest decoded image accepted, in MB (default 1024).
+    #[arg(long, global = true, value_name = "N")]
+    max_image_mb: Option<u64>,
 }
 
 #[derive(Subcommand, Debug)]
@@ -27,10 +34,19 @@ enum Command {
     Eval(cli::eval::Args),
     /// Find the physics a simulation left out, fit it, and report the improvement.
     Diagnose(cli::diagnose::Args),
+    /// Ground-truth logs: `log check FILE` validates one (truncation, summary, accounting).
+    Log(cli::log::Args),
 }
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
+    match faultcam::limits::ImageLimits::from_flags(cli.max_image_dims.as_deref(), cli.max_image_mb) {
+        Ok(l) => l.set_current(),
+        Err(e) => {
+            eprintln!("faultcam: error: {e}");
+            return std::process::ExitCode::from(2);
+        }
+    }
     let result = match cli.command {
         Command::Run(a) => cli::run::run(a),
         Command::Apply(a) => cli::apply::run(a),
@@ -38,6 +54,7 @@ fn main() -> std::process::ExitCode {
         Command::Bench(a) => cli::bench::run(a),
         Command::Eval(a) => cli::eval::run(a),
         Command::Diagnose(a) => cli::diagnose::run(a),
+        Command::Log(a) => cli::log::run(a),
     };
     match result {
         Ok(code) => std::process::ExitCode::from(code),

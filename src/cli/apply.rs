@@ -20,7 +20,7 @@
 use anyhow::{Context, bail};
 use faultcam::faults::Outcome;
 use faultcam::frame::{Frame, FrameData, PixelFormat};
-use faultcam::gtlog::{FrameRecord, FrameStatus, GroundTruthLog};
+use faultcam::gtlog::{DiskFloor, FrameRecord, FrameStatus, GroundTruthLog, LowDiskPolicy};
 use faultcam::masks::{MaskOptions, MaskRecord, MaskRecorder, mask_stem};
 use faultcam::sink::files::{ImageFormat, WriteOptions, output_name, write_image};
 use faultcam::source::SourceError;
@@ -70,6 +70,18 @@ pub struct Args {
     /// (OUT/masks/STEM.delta-KK-EFFECT.tiff, in DN); implies --masks.
     #[arg(long)]
     pub mask_deltas: bool,
+    /// Free-space floor in MB for the output and log folders, checked before each batch is
+    /// written; see --low-disk.
+    #[arg(long, value_name = "N")]
+    pub min_free_mb: Option<u64>,
+    /// Under the --min-free-mb floor: stop (end cleanly with the summary) or drop (do not write
+    /// the images, log them as failed with a `low disk` error, count them, keep going).
+    #[arg(long, default_value = "stop", value_parser = parse_low_disk, requires = "min_free_mb")]
+    pub low_disk: LowDiskPolicy,
+}
+
+fn parse_low_disk(s: &str) -> Result<LowDiskPolicy, String> {
+    s.parse()
 }
 
 /// Per-slot work of one batch.
@@ -159,6 +171,18 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         None => args.out.join("groundtruth.jsonl"),
     });
     let mut log = GroundTruthLog::create(&log_path).with_context(|| format!("cannot create {}", log_path.display()))?;
+    let floor = match args.min_free_mb {
+        Some(n) if n > 1 << 30 => bail!("--min-free-mb {n} is not accepted; accepted: 0..=1073741824 (MB)"),
+        Some(n) => {
+            let log_dir = log_path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+            Some(DiskFloor {
+                min_free_mb: n,
+                dirs: vec![args.out.clone(), log_dir.to_path_buf()],
+                policy: args.low_disk,
+            })
+        }
+        None => None,
+    };
     log.event(&serde_json::json!({
         "event": "start",
         "input": args.input.display().to_string(),
@@ -194,6 +218,10 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
     // allocation: one slot (frame and scratch buffers) per batch position, reused
     let mut slots: Vec<Slot> = (0..batch).map(|_| Slot::new()).collect();
     let (mut delivered, mut dropped, mut failed, mut skipped) = (0u64, 0u64, 0u64, 0u64);
+    let mut dropped_low_disk = 0u64;
+    let mut unlogged = 0u64;
+    // A log write that failed (full disk): the run stops and only the summary is attempted.
+    let mut log_error: Option<String> = None;
     let mut first_error: Option<String> = None;
     'batches: for chunk in indices.chunks(batch) {
         let slots = &mut slots[..chunk.len()];
@@ -234,7 +262,14 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
                 }
             }
         });
-        // 3. Encode in parallel.
+        // 3. Encode in parallel (unless free space is under the floor).
+        let low = floor.as_ref().and_then(|f| f.low());
+        if let Some(why) = &low {
+            for s in slots.iter_mut().filter(|s| s.outcome == Some(Outcome::Keep)) {
+                s.written = Some(Err(why.clone()));
+                s.outcome = None;
+            }
+        }
         let out_dir = &args.out;
         pool.install(|| {
             slots.par_iter_mut().filter(|s| s.outcome == Some(Outcome::Keep)).for_each(|s| {
@@ -254,7 +289,9 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
                     other => other.to_string(),
                 };
                 eprintln!("faultcam: skip {}: {reason}", item.path.display());
-                log.skip(&item.path.display().to_string(), &reason)?;
+                if let Err(e) = log.skip(&item.path.display().to_string(), &reason) {
+                    log_error.get_or_insert(format!("cannot write the ground-truth log {}: {e}", log_path.display()));
+                }
                 skipped += 1;
                 bar.inc(1);
                 continue;
@@ -286,9 +323,18 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
                 }
                 (None, None) => {} // dropped by a fault: status set by from_report
             }
-            log.frame(&rec)?;
+            if let Err(e) = log.frame(&rec) {
+                unlogged += 1;
+                log_error.get_or_insert(format!("cannot write the ground-truth log {}: {e}", log_path.display()));
+            }
             match rec.status {
                 FrameStatus::Delivered => delivered += 1,
+                FrameStatus::Failed
+                    if args.low_disk == LowDiskPolicy::Drop && rec.error.is_some_and(|e| e.starts_with("low disk")) =>
+                {
+                    failed += 1;
+                    dropped_low_disk += 1;
+                }
                 FrameStatus::Failed => {
                     failed += 1;
                     first_error.get_or_insert_with(|| format!("{}: {}", item.path.display(), rec.error.unwrap_or("")));
@@ -297,23 +343,32 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
             }
             bar.inc(1);
         }
-        if first_error.is_some() {
+        if first_error.is_some() || log_error.is_some() {
             break 'batches;
         }
     }
     bar.finish_and_clear();
     let wall_s = t0.elapsed().as_secs_f64();
-    log.summary(&serde_json::json!({
-        "frames_in": delivered + dropped + failed,
-        "delivered": delivered,
-        "dropped": dropped,
-        "failed": failed,
-        "skipped": skipped,
-        "wall_s": wall_s,
-        "threads": threads,
-        "error": first_error,
-    }))?;
-    log.flush()?;
+    let error = log_error.clone().or(first_error.clone());
+    let summary_written = log
+        .summary(&serde_json::json!({
+            "frames_in": delivered + dropped + failed,
+            "delivered": delivered,
+            "dropped": dropped,
+            "failed": failed,
+            "dropped_low_disk": dropped_low_disk,
+            "unlogged": unlogged,
+            "skipped": skipped,
+            "unaccounted": 0,
+            "wall_s": wall_s,
+            "threads": threads,
+            "stopped_by": if error.is_some() { "error" } else { "end of input" },
+            "error": error,
+        }))
+        .and_then(|_| log.flush());
+    if let Err(e) = summary_written {
+        eprintln!("faultcam: the summary could not be written to {}: {e}", log_path.display());
+    }
     eprintln!(
         "faultcam: {} files{}: {delivered} written, {dropped} dropped by faults, {failed} failed, {skipped} skipped \
          ({wall_s:.2} s, {threads} threads); log {}",
@@ -321,6 +376,14 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         shard.map(|(k, n)| format!(" (shard {k}/{n})")).unwrap_or_default(),
         log_path.display()
     );
+    if dropped_low_disk > 0 {
+        eprintln!(
+            "faultcam: {dropped_low_disk} images not written: free space under --min-free-mb (counted as failed)"
+        );
+    }
+    if let Some(e) = log_error {
+        bail!("{e}");
+    }
     if let Some(e) = first_error {
         bail!("stopped at the first failure: {e}");
     }

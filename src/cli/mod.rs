@@ -5,4 +5,5 @@ pub mod bench;
 pub mod diagnose;
 pub mod effects;
 pub mod eval;
+pub mod log;
 pub mod run;

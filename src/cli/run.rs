@@ -87,6 +87,18 @@ pub struct Args {
     /// (STEM.delta-KK-EFFECT.tiff, in DN).
     #[arg(long, requires = "masks")]
     pub mask_deltas: bool,
+    /// Free-space floor in MB for the folders written to (the log's, a `files:` sink's, the
+    /// masks'): checked before each frame is written; see --low-disk.
+    #[arg(long, value_name = "N")]
+    pub min_free_mb: Option<u64>,
+    /// Under the --min-free-mb floor: stop (end the run cleanly, with its summary) or drop (do
+    /// not write the frame, log it as failed with a `low disk` error, count it, keep going).
+    #[arg(long, default_value = "stop", value_parser = parse_low_disk, requires = "min_free_mb")]
+    pub low_disk: faultcam::gtlog::LowDiskPolicy,
+}
+
+fn parse_low_disk(s: &str) -> Result<faultcam::gtlog::LowDiskPolicy, String> {
+    s.parse()
 }
 
 fn parse_overrun(s: &str) -> Result<OverrunPolicy, String> {
@@ -270,6 +282,23 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
             None => None,
         },
         masks: mask_settings.clone(),
+        disk_floor: match args.min_free_mb {
+            Some(n) if n > 1 << 30 => anyhow::bail!("--min-free-mb {n} is not accepted; accepted: 0..=1073741824 (MB)"),
+            Some(n) => {
+                let mut dirs = vec![
+                    log_path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).to_path_buf(),
+                ];
+                let (scheme, body, _) = source::split_uri(sink_uri);
+                if scheme == "files" && !body.is_empty() {
+                    dirs.push(PathBuf::from(body));
+                }
+                if let Some(m) = &mask_settings {
+                    dirs.push(m.dir.clone());
+                }
+                Some(faultcam::gtlog::DiskFloor { min_free_mb: n, dirs, policy: args.low_disk })
+            }
+            None => None,
+        },
         ..Default::default()
     };
     opts.validate()?;

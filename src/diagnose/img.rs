@@ -342,8 +342,8 @@ pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>, DiagnoseError> {
 
 /// Decode an image file into a frame (Mono8, Mono16 or Rgb8).
 pub fn load_image(path: &Path) -> Result<Frame, DiagnoseError> {
-    let img =
-        image::open(path).map_err(|e| DiagnoseError::Decode { path: path.to_path_buf(), message: e.to_string() })?;
+    let img = crate::limits::load_image(path, &crate::limits::ImageLimits::current())
+        .map_err(|message| DiagnoseError::Decode { path: path.to_path_buf(), message })?;
     let (w, h) = (img.width(), img.height());
     let bad = |what: &str| DiagnoseError::Decode { path: path.to_path_buf(), message: what.to_string() };
     use image::DynamicImage as D;

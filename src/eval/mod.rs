@@ -55,12 +55,8 @@ pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>, EvalError> {
 /// Decode an image file into a [`Frame`]: 8-bit grey → `Mono8`, 16-bit grey → `Mono16`, colour
 /// → `Rgb8` (alpha dropped, 16-bit colour reduced to 8 bits).
 pub fn load_frame(path: &Path) -> Result<Frame, EvalError> {
-    let img = image::ImageReader::open(path)
-        .map_err(|source| EvalError::Io { path: path.to_path_buf(), source })?
-        .with_guessed_format()
-        .map_err(|source| EvalError::Io { path: path.to_path_buf(), source })?
-        .decode()
-        .map_err(|e| EvalError::Image { path: path.to_path_buf(), message: e.to_string() })?;
+    let img = crate::limits::load_image(path, &crate::limits::ImageLimits::current())
+        .map_err(|message| EvalError::Image { path: path.to_path_buf(), message })?;
     let (w, h) = (img.width(), img.height());
     let (format, data) = match img {
         image::DynamicImage::ImageLuma8(b) => (PixelFormat::Mono8, FrameData::U8(b.into_raw())),

@@ -143,6 +143,8 @@ pub struct PipelineOptions {
     /// Record per-pixel fault masks of every delivered frame and write them to this folder
     /// (see [`crate::masks`]); named in the frame records' `masks` field.
     pub masks: Option<MaskSettings>,
+    /// Free-space floor checked before each sink write (`--min-free-mb`, `--low-disk`).
+    pub disk_floor: Option<crate::gtlog::DiskFloor>,
 }
 
 /// Where and what per-pixel fault masks the pipeline writes.
@@ -168,6 +170,7 @@ impl Default for PipelineOptions {
             stop_grace: Duration::from_secs(2),
             progress_every: None,
             masks: None,
+            disk_floor: None,
         }
     }
 }
@@ -777,6 +780,8 @@ struct SinkEnd {
     held: u64,
     drained: u64,
     late: u64,
+    dropped_low_disk: u64,
+    unlogged: u64,
     latency: LatencyHistogram,
     chain: LatencyHistogram,
     write: LatencyHistogram,
@@ -804,10 +809,11 @@ impl SinkStage<'_> {
     }
 
     fn log_frame(&mut self, rec: &FrameRecord<'_>) {
-        if let Err(e) = self.log.frame(rec)
-            && self.out.error.is_none()
-        {
-            self.fatal(format!("cannot write the ground-truth log: {e}"));
+        if let Err(e) = self.log.frame(rec) {
+            self.out.unlogged += 1;
+            if self.out.error.is_none() {
+                self.fatal(format!("cannot write the ground-truth log: {e}"));
+            }
         }
     }
 
@@ -863,10 +869,12 @@ impl SinkStage<'_> {
             timing: Some(&timing),
             error,
         };
-        if let Err(e) = self.log.frame(&rec)
-            && self.out.error.is_none()
-        {
-            self.fatal(format!("cannot write the ground-truth log: {e}"));
+        if let Err(e) = self.log.frame(&rec) {
+            self.out.unlogged += 1;
+            if self.out.error.is_none() {
+                self.out.error = Some(format!("cannot write the ground-truth log: {e}"));
+                self.sh.halt.store(true, Ordering::Relaxed);
+            }
         }
         if slot.controlled {
             let _ = self.done_tx.send(Done { seq: slot.frame.seq, t_ns: slot.t_ns, status });
@@ -897,6 +905,19 @@ impl SinkStage<'_> {
             slot.state = SlotState::DroppedOverrun;
             slot.reason = Some("overrun: over budget before the sink write");
             self.record(slot, Some("drop"));
+            return;
+        }
+        if let Some(floor) = &self.opts.disk_floor
+            && let Some(why) = floor.low()
+        {
+            slot.state = SlotState::Failed;
+            match floor.policy {
+                crate::gtlog::LowDiskPolicy::Drop => self.out.dropped_low_disk += 1,
+                // Frames still in flight meet the same check and are logged as failed.
+                crate::gtlog::LowDiskPolicy::Stop => self.fatal(format!("{why} (policy stop)")),
+            }
+            slot.error = Some(why);
+            self.record(slot, None);
             return;
         }
         let t = Instant::now();
@@ -1223,6 +1244,8 @@ pub fn run(
     summary.dropped_overrun = sink_end.dropped_overrun;
     summary.dropped = summary.dropped_by_fault + summary.dropped_overrun;
     summary.failed = sink_end.failed;
+    summary.dropped_low_disk = sink_end.dropped_low_disk;
+    summary.unlogged = sink_end.unlogged;
     summary.held = sink_end.held;
     summary.drained = sink_end.drained;
     summary.unaccounted = summary.frames_in as i64 - summary.accounted() as i64;

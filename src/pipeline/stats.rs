@@ -180,8 +180,14 @@ pub struct Summary {
     /// Frames dropped by the `drop` overrun policy (at capture, before the chain or before the
     /// sink write).
     pub dropped_overrun: u64,
-    /// Frames that could not be processed (effect or sink error).
+    /// Frames that could not be processed (effect or sink error, or not written because free
+    /// space was under the `--min-free-mb` floor).
     pub failed: u64,
+    /// Frames counted here whose frame record could not be written to the log (full disk):
+    /// the log's records fall short of these counts by exactly this many.
+    pub unlogged: u64,
+    /// Of `failed`: frames not written under `--low-disk drop` (free space under the floor).
+    pub dropped_low_disk: u64,
     /// Records of frames an effect held back (`reorder` while its buffer fills: logged as
     /// `dropped_by_fault` with `dropped_by = "reorder"`); each such frame is logged again when
     /// it is released, so these records are not counted as drops.
@@ -241,6 +247,12 @@ impl std::fmt::Display for Summary {
             self.failed,
             self.unaccounted
         )?;
+        if self.unlogged > 0 {
+            writeln!(f, "  frame records not written to the log (log write failed): {}", self.unlogged)?;
+        }
+        if self.dropped_low_disk > 0 {
+            writeln!(f, "  not written for low disk (--low-disk drop, counted as failed): {}", self.dropped_low_disk)?;
+        }
         if self.skipped_inputs > 0 || self.drained > 0 || self.held > 0 {
             writeln!(
                 f,

@@ -162,7 +162,20 @@ impl AravisSource {
             rate.map(|v| format!("{v:.2}")).unwrap_or_else(|| "?".into())
         );
 
+        // The region is checked against the image limits before the buffer ring is allocated.
+        let limits = crate::limits::ImageLimits::current();
+        let bpp = (format.channels() * format.bytes_per_sample()) as u64;
+        limits
+            .check("the camera region", w.max(0) as u32, h.max(0) as u32, bpp)
+            .map_err(|e| fatal(format!("{shown}: {e}")))?;
         let payload = camera.payload().map_err(|e| cam_err("reading the payload size", e))?;
+        if payload as u64 > limits.max_bytes {
+            return Err(fatal(format!(
+                "{shown}: payload of {payload} bytes per buffer is over the image limit of {} MB ({})",
+                limits.max_bytes >> 20,
+                crate::limits::FLAGS_HINT
+            )));
+        }
         let stream = camera.create_stream().map_err(|e| cam_err("creating the stream", e))?;
         for _ in 0..buffers {
             // allocation: once per stream (the driver's buffer ring)

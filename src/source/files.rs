@@ -20,10 +20,12 @@
 //!   <pts_ns>` lines (`#` comments allowed) and uses the recorded times instead; pacing in
 //!   real time is the pipeline's job. `loop=true` restarts at the end (for timed replay).
 //! - `shard=K/N` (0-based K) yields only the files whose index mod N == K.
+//! - A header claiming a size over [`crate::limits::ImageLimits`] (default 16384 x 16384,
+//!   1024 MB decoded) is a [`SourceError::BadInput`] found before any allocation.
 
 use super::{Source, SourceError, UriOptions, split_uri};
 use crate::frame::{Frame, FrameData, PixelFormat};
-use image::{ColorType, ImageDecoder, ImageReader};
+use image::{ColorType, ImageDecoder};
 use std::path::{Path, PathBuf};
 
 /// Extensions listed as images (case-insensitive).
@@ -100,18 +102,12 @@ fn bad(item: &Item, reason: impl Into<String>) -> SourceError {
     SourceError::BadInput { item: item.path.display().to_string(), reason: reason.into() }
 }
 
-fn decoder(item: &Item) -> Result<impl ImageDecoder, SourceError> {
+fn decoder(item: &Item) -> Result<impl ImageDecoder + use<>, SourceError> {
     if !item.is_image() {
         return Err(bad(item, format!("not an image file (accepted extensions: {})", IMAGE_EXTENSIONS.join(", "))));
     }
-    let reader = ImageReader::open(&item.path)
-        .map_err(|e| bad(item, format!("cannot open: {e}")))?
-        .with_guessed_format()
-        .map_err(|e| bad(item, format!("cannot read: {e}")))?;
-    if reader.format().is_none() {
-        return Err(bad(item, "unsupported or unrecognised image format (accepted: PNG, JPEG, PNM, TIFF)"));
-    }
-    reader.into_decoder().map_err(|e| bad(item, format!("corrupt or unsupported image: {e}")))
+    // The header's size is checked against the limits before anything is allocated.
+    crate::limits::open_decoder(&item.path, &crate::limits::ImageLimits::current()).map_err(|e| bad(item, e))
 }
 
 /// Size and pixel format from the file header only (cheap).

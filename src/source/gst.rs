@@ -164,6 +164,15 @@ impl GstSource {
                 info.format()
             ))
         })?;
+        // A negotiated size over the image limits stops the stream before a frame is allocated.
+        crate::limits::ImageLimits::current()
+            .check(
+                &format!("the negotiated caps {caps}"),
+                info.width(),
+                info.height(),
+                (format.channels() * format.bytes_per_sample()) as u64,
+            )
+            .map_err(|e| self.fatal(e))?;
         self.format = format;
         self.info = Some(info);
         self.caps = Some(caps.to_owned());

@@ -462,7 +462,12 @@ pub struct SynthSource {
 
 impl SynthSource {
     pub fn open(uri: &str) -> Result<SynthSource, SourceError> {
-        Ok(SynthSource::new(SynthConfig::from_uri(uri)?))
+        let cfg = SynthConfig::from_uri(uri)?;
+        let f = cfg.format;
+        crate::limits::ImageLimits::current()
+            .check("the requested size", cfg.width, cfg.height, (f.channels() * f.bytes_per_sample()) as u64)
+            .map_err(|reason| SourceError::BadUri { uri: uri.to_string(), reason })?;
+        Ok(SynthSource::new(cfg))
     }
 
     pub fn new(cfg: SynthConfig) -> SynthSource {

@@ -211,6 +211,11 @@ impl V4l2Source {
             .filter(|p| p.interval.numerator > 0)
             .map(|p| format!(", {:.2} fps", p.interval.denominator as f64 / p.interval.numerator as f64))
             .unwrap_or_default();
+        // The negotiated size is checked against the image limits before buffers are mapped.
+        let pf = layout.pixel_format();
+        crate::limits::ImageLimits::current()
+            .check("the negotiated format", fmt.width, fmt.height, (pf.channels() * pf.bytes_per_sample()) as u64)
+            .map_err(|e| fatal(format!("{path}: {e}")))?;
         let min_stride = fmt.width as usize * layout.bytes_per_pixel();
         let bytesperline = (fmt.stride as usize).max(min_stride);
         let note = match (width, height) {
