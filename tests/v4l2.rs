@@ -621,7 +621,7 @@ fn refused_formats_name_both_formats() {
     let _turn = DEVICE.lock().unwrap_or_else(|e| e.into_inner());
     // v4l2loopback's max_width is 4096 (scripts/v4l2-vm.sh): 8192 wide is refused or clamped.
     let mut sink = V4l2Sink::open(&format!("v4l2:{dev}")).unwrap();
-    let e = sink.write_frame(&pattern(0, 8192, 8), None).err().expect("8192 px wide accepted").to_string();
+    let e = sink.write_frame(&pattern(0, 8192, 8), None).expect_err("8192 px wide accepted").to_string();
     eprintln!("sink: {e}");
     assert!(e.contains("8192x8 GREY") && e.contains(dev.as_str()), "{e}");
     drop(sink);
