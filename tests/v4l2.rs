@@ -186,3 +186,522 @@ fn faultcam_run_streams_into_and_out_of_the_loopback_device() {
         last = Some(k);
     }
 }
+
+// ---------------------------------------------------------------------------------------------
+// End-to-end checks against a real kernel (run by scripts/v4l2-e2e.sh inside scripts/v4l2-vm.sh):
+// faultcam run → v4l2loopback → GStreamer v4l2src, vivid → faultcam run → files, and the failure
+// cases. They need gst-launch-1.0 besides the device.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::Instant;
+
+const FAULTS: &str = "[[effects]]\nname = \"gain_offset\"\noffset_dn = 3\n";
+
+fn faultcam(args: &[&str]) -> Command {
+    let mut c = Command::new(FAULTCAM);
+    c.arg("run").args(args);
+    c
+}
+
+fn last_json(log: &Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(log).unwrap_or_else(|e| panic!("{}: {e}", log.display()));
+    serde_json::from_str(text.lines().last().unwrap()).unwrap()
+}
+
+/// The summary must account for every input frame.
+fn assert_accounted(s: &serde_json::Value, frames: u64, ctx: &str) {
+    assert_eq!(s["frames_in"].as_u64(), Some(frames), "{ctx}: {s}");
+    assert_eq!(s["unaccounted"].as_i64(), Some(0), "{ctx}: {s}");
+}
+
+/// Waits until the loopback device offers CAPTURE (exclusive_caps=1: a writer has set a format).
+fn wait_capturable(dev: &str, within: Duration) {
+    let t = Instant::now();
+    while t.elapsed() < within {
+        if let Ok(d) = v4l::Device::with_path(dev)
+            && let Ok(c) = d.query_caps()
+            && c.capabilities.contains(v4l::capability::Flags::VIDEO_CAPTURE)
+        {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    panic!("{dev} never became a capture device within {within:?}");
+}
+
+/// `gst-launch-1.0 -v v4l2src ... ! CAPS [! EXTRA] ! identity silent=false ! filesink`.
+fn gst_reader(dev: &str, caps: &str, buffers: usize, extra: &str, out: &Path) -> Child {
+    let mut pipeline = format!("v4l2src device={dev} num-buffers={buffers} ! {caps}");
+    if !extra.is_empty() {
+        pipeline += &format!(" ! {extra}");
+    }
+    pipeline += &format!(" ! identity silent=false ! filesink location={}", out.display());
+    Command::new("gst-launch-1.0")
+        .arg("-v")
+        .args(pipeline.split(' '))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("gst-launch-1.0 (apt install gstreamer1.0-tools)")
+}
+
+struct GstRead {
+    bytes: Vec<u8>,
+    pts_ns: Vec<u64>,
+    caps: String,
+}
+
+fn gst_finish(child: Child, out: &Path) -> GstRead {
+    let o: Output = child.wait_with_output().unwrap();
+    let text = String::from_utf8_lossy(&o.stdout).to_string();
+    assert!(o.status.success(), "gst-launch-1.0 failed: {text}\n{}", String::from_utf8_lossy(&o.stderr));
+    let caps =
+        text.lines().find(|l| l.contains("GstIdentity") && l.contains("caps = video/x-raw")).unwrap_or("").to_string();
+    let pts_ns = text
+        .lines()
+        .filter(|l| l.contains("last-message = chain"))
+        .filter_map(|l| {
+            let p = l.split("pts: ").nth(1)?.split(',').next()?;
+            let mut it = p.split(':');
+            let (h, m, s) = (it.next()?, it.next()?, it.next()?);
+            let (s, ns) = s.split_once('.')?;
+            Some(
+                ((h.parse::<u64>().ok()? * 60 + m.parse::<u64>().ok()?) * 60 + s.parse::<u64>().ok()?) * 1_000_000_000
+                    + ns.parse::<u64>().ok()?,
+            )
+        })
+        .collect();
+    GstRead { bytes: std::fs::read(out).unwrap(), pts_ns, caps }
+}
+
+/// Reference frames: the same source and faults into `files:` (PGM/PPM), in the V4L2 layout of
+/// `fourcc` (GREY, Y16 little-endian, RGB3, YUYV converted as the sink does).
+fn reference(source: &str, frames: usize, fourcc: &str, dir: &Path, cfg: &Path) -> Vec<Vec<u8>> {
+    let out = dir.join(format!("ref-{}", fourcc.trim()));
+    let o = faultcam(&["--source", source, "--fps", "30", "--sink", &format!("files:{}?format=pgm", out.display())])
+        .arg("--faults")
+        .arg(cfg)
+        .arg("--log")
+        .arg(dir.join("ref.jsonl"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let mut names: Vec<PathBuf> = std::fs::read_dir(&out).unwrap().map(|e| e.unwrap().path()).collect();
+    names.sort();
+    assert_eq!(names.len(), frames);
+    names
+        .iter()
+        .map(|p| {
+            let img = image::open(p).unwrap();
+            let (w, h) = (img.width(), img.height());
+            match fourcc {
+                "GREY" => img.to_luma8().into_raw(),
+                "Y16" => img.to_luma16().into_raw().iter().flat_map(|v| v.to_le_bytes()).collect(),
+                "RGB3" => img.to_rgb8().into_raw(),
+                "YUYV" => {
+                    let mut f = Frame::new(w, h, PixelFormat::Rgb8).unwrap();
+                    f.as_u8_mut().unwrap().copy_from_slice(img.to_rgb8().as_raw());
+                    let mut v = vec![0u8; (w * h * 2) as usize];
+                    for (y, row) in v.chunks_exact_mut(w as usize * 2).enumerate() {
+                        faultcam::sink::v4l2::row_to_yuyv(&f, y, row);
+                    }
+                    v
+                }
+                _ => unreachable!(),
+            }
+        })
+        .collect()
+}
+
+/// Indices of `refs` the captured frames are, in order; panics on a frame that is none of them.
+fn match_frames(bytes: &[u8], refs: &[Vec<u8>], ctx: &str) -> Vec<usize> {
+    let n = refs[0].len();
+    assert_eq!(bytes.len() % n, 0, "{ctx}: {} bytes are no whole number of {n}-byte frames", bytes.len());
+    let mut from = 0;
+    bytes
+        .chunks_exact(n)
+        .enumerate()
+        .map(|(i, f)| {
+            let k = (from..refs.len())
+                .find(|&k| refs[k] == f)
+                .unwrap_or_else(|| panic!("{ctx}: captured frame {i} is byte-equal to no later written frame"));
+            from = k + 1;
+            k
+        })
+        .collect()
+}
+
+/// synth → faultcam run → v4l2loopback → gst v4l2src, for each format the sink offers:
+/// frame count, size, pixel format, bytes equal to the `files:` sink's for the same seed, in
+/// order, pts monotone; the writer's summary accounts for every frame.
+#[test]
+fn gst_v4l2src_reads_exactly_what_the_files_sink_writes() {
+    let Some(dev) = device("gst_v4l2src_reads_exactly_what_the_files_sink_writes") else { return };
+    let _turn = DEVICE.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("f.toml");
+    std::fs::write(&cfg, FAULTS).unwrap();
+    let frames = 45usize;
+    for (synth_format, fourcc, gst_format) in
+        [("mono8", "GREY", "GRAY8"), ("mono16", "Y16", "GRAY16_LE"), ("rgb8", "RGB3", "RGB"), ("rgb8", "YUYV", "YUY2")]
+    {
+        let source = format!("synth:?width=64&height=48&frames={frames}&format={synth_format}&seed=7");
+        let refs = reference(&source, frames, fourcc, dir.path(), &cfg);
+        let log = dir.path().join(format!("{fourcc}.jsonl"));
+        let writer = faultcam(&["--source", &source, "--fps", "30", "--sink", &format!("v4l2:{dev}?format={fourcc}")])
+            .arg("--faults")
+            .arg(&cfg)
+            .arg("--log")
+            .arg(&log)
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        wait_capturable(&dev, Duration::from_secs(10));
+        let raw = dir.path().join(format!("{fourcc}.raw"));
+        let want = 20;
+        let reader = gst_reader(&dev, &format!("video/x-raw,format={gst_format},width=64,height=48"), want, "", &raw);
+        let got = gst_finish(reader, &raw);
+        let w = writer.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&w.stderr);
+        assert!(w.status.success(), "{fourcc}: {err}");
+        let s = last_json(&log);
+        assert_accounted(&s, frames as u64, fourcc);
+        assert_eq!(s["delivered"].as_u64(), Some(frames as u64), "{fourcc}: {s}");
+        assert!(s["sink"].as_str().unwrap().contains(&format!("driver chose 64x48 {fourcc}")), "{s}");
+        assert!(
+            got.caps.contains(&format!("format=(string){gst_format}"))
+                && got.caps.contains("width=(int)64")
+                && got.caps.contains("height=(int)48"),
+            "{fourcc}: caps {}",
+            got.caps
+        );
+        let ks = match_frames(&got.bytes, &refs, fourcc);
+        assert_eq!(ks.len(), want, "{fourcc}: frame count");
+        assert!(
+            got.pts_ns.len() == want && got.pts_ns.windows(2).all(|p| p[1] > p[0]),
+            "{fourcc}: pts {:?}",
+            got.pts_ns
+        );
+        eprintln!("{fourcc}: the reader got written frames {ks:?}");
+    }
+}
+
+/// Driver timestamps as a V4L2 reader sees them: monotone, and spaced like the frames' pts.
+#[test]
+fn driver_timestamps_are_monotone_and_follow_the_frame_pts() {
+    let Some(dev) = device("driver_timestamps_are_monotone_and_follow_the_frame_pts") else { return };
+    let _turn = DEVICE.lock().unwrap_or_else(|e| e.into_inner());
+    let mut sink = V4l2Sink::open(&format!("v4l2:{dev}")).unwrap();
+    // Frame 0 has pts 0 (as synth's and files' first frames do).
+    sink.write_frame(&pattern(0, 64, 48), None).unwrap();
+    let (rx, handle) = reader(format!("v4l2:{dev}?format=GREY&timeout_ms=3000"), 1000);
+    let mut seen: Vec<(u64, u64)> = Vec::new();
+    for k in 1..=10u64 {
+        sink.write_frame(&pattern(k, 64, 48), None).unwrap();
+        loop {
+            let f = rx.recv_timeout(Duration::from_secs(5)).unwrap();
+            let got = which(&f, 0..11).unwrap();
+            seen.push((got, f.pts_ns));
+            if got == k {
+                break;
+            }
+        }
+    }
+    drop(sink);
+    drop(rx);
+    let _ = handle.join();
+    for w in seen.windows(2) {
+        let ((k0, t0), (k1, t1)) = (w[0], w[1]);
+        assert!(t1 > t0, "timestamps not monotone: {seen:?}");
+        // pattern(k) has pts k·33.333 ms: the reader's timestamps keep that spacing (µs resolution).
+        let want = (k1 - k0) as i64 * 33_333_333;
+        assert!(((t1 - t0) as i64 - want).abs() <= 2_000, "spacing {} ns, want {want}: {seen:?}", t1 - t0);
+    }
+}
+
+/// A reader that starts late, a slow reader and a reader that closes mid-stream: the writer never
+/// waits for readers, its summary accounts for every frame, and what the readers get are written
+/// frames in order.
+#[test]
+fn late_slow_and_closing_readers_do_not_disturb_the_writer() {
+    let Some(dev) = device("late_slow_and_closing_readers_do_not_disturb_the_writer") else { return };
+    let _turn = DEVICE.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("f.toml");
+    std::fs::write(&cfg, FAULTS).unwrap();
+    let frames = 90usize;
+    let source = format!("synth:?width=64&height=48&frames={frames}&seed=3");
+    let refs = reference(&source, frames, "GREY", dir.path(), &cfg);
+    let log = dir.path().join("w.jsonl");
+    let t = Instant::now();
+    let writer = faultcam(&["--source", &source, "--fps", "30", "--sink", &format!("v4l2:{dev}")])
+        .arg("--faults")
+        .arg(&cfg)
+        .arg("--log")
+        .arg(&log)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    wait_capturable(&dev, Duration::from_secs(10));
+    let caps = "video/x-raw,format=GRAY8,width=64,height=48";
+    // Slow: 150 ms per buffer against 33 ms frames (v4l2loopback overwrites what it did not take).
+    let slow_out = dir.path().join("slow.raw");
+    let slow = gst_reader(&dev, caps, 8, "identity sleep-time=150000", &slow_out);
+    // Closing mid-stream: 5 buffers, then gst-launch exits.
+    let short_out = dir.path().join("short.raw");
+    let short = gst_reader(&dev, caps, 5, "", &short_out);
+    // Late: starts a second into the stream.
+    std::thread::sleep(Duration::from_millis(1000));
+    let late_out = dir.path().join("late.raw");
+    let late = gst_reader(&dev, caps, 10, "", &late_out);
+    let short = match_frames(&gst_finish(short, &short_out).bytes, &refs, "short reader");
+    let late = match_frames(&gst_finish(late, &late_out).bytes, &refs, "late reader");
+    let slow = match_frames(&gst_finish(slow, &slow_out).bytes, &refs, "slow reader");
+    let w = writer.wait_with_output().unwrap();
+    let wall = t.elapsed();
+    assert!(w.status.success(), "{}", String::from_utf8_lossy(&w.stderr));
+    let s = last_json(&log);
+    assert_accounted(&s, frames as u64, "writer");
+    assert_eq!(s["delivered"].as_u64(), Some(frames as u64), "{s}");
+    assert_eq!((short.len(), late.len(), slow.len()), (5, 10, 8));
+    assert!(late[0] >= 20, "the late reader started ~1 s (30 frames) in, got frame {}", late[0]);
+    let slow_gaps = slow.windows(2).filter(|w| w[1] > w[0] + 1).count();
+    assert!(slow_gaps > 0, "a reader at ~7 fps cannot see every frame of 30 fps: {slow:?}");
+    eprintln!("short {short:?}\nlate {late:?}\nslow {slow:?}\nwriter: {frames} frames in {wall:?}");
+}
+
+/// `modprobe -r v4l2loopback` while faultcam streams into the device. Whether the kernel lets
+/// it go (V4L2 takes no module reference per open file) or refuses (`in use`), the run ends with
+/// either a clear error naming the device or a complete stream, and a summary that accounts for
+/// every frame. The module is loaded again afterwards (`FAULTCAM_V4L2LOOPBACK_OPTS`).
+#[test]
+fn module_removed_mid_stream_gives_a_clear_error_and_an_accounted_summary() {
+    let Some(dev) = device("module_removed_mid_stream_gives_a_clear_error_and_an_accounted_summary") else { return };
+    let Ok(opts) = std::env::var("FAULTCAM_V4L2LOOPBACK_OPTS") else {
+        eprintln!("skipped: only inside scripts/v4l2-vm.sh (it unloads and reloads the module)");
+        return;
+    };
+    let _turn = DEVICE.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("f.toml");
+    std::fs::write(&cfg, FAULTS).unwrap();
+    let log = dir.path().join("w.jsonl");
+    let frames = 600u64;
+    let writer = faultcam(&["--source", &format!("synth:?width=64&height=48&frames={frames}"), "--fps", "30"])
+        .arg("--sink")
+        .arg(format!("v4l2:{dev}"))
+        .arg("--faults")
+        .arg(&cfg)
+        .arg("--log")
+        .arg(&log)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    wait_capturable(&dev, Duration::from_secs(10));
+    std::thread::sleep(Duration::from_millis(1000));
+    let rm = Command::new("modprobe").args(["-r", "v4l2loopback"]).output().unwrap();
+    let rm_err = String::from_utf8_lossy(&rm.stderr).to_string();
+    let w = writer.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&w.stderr).to_string();
+    if rm.status.success() {
+        let back = Command::new("sh").arg("-c").arg(format!("modprobe v4l2loopback {opts}")).status().unwrap();
+        assert!(back.success(), "could not load v4l2loopback again");
+        wait_for_node(&dev);
+    }
+    let s = last_json(&log);
+    eprintln!(
+        "modprobe -r: {:?} {rm_err}
+writer: {err}
+summary: {s}",
+        rm.status
+    );
+    assert_accounted(&s, s["frames_in"].as_u64().unwrap(), "writer");
+    if rm.status.success() {
+        assert!(!w.status.success(), "the device went away, the run must fail: {err}");
+        assert!(err.contains(dev.as_str()), "the error names the device: {err}");
+        assert!(s["frames_in"].as_u64().unwrap() < frames, "{s}");
+    } else {
+        assert!(rm_err.contains("in use"), "{rm_err}");
+        assert!(w.status.success(), "{err}");
+        assert_eq!(s["frames_in"].as_u64(), Some(frames), "{s}");
+    }
+}
+
+fn wait_for_node(dev: &str) {
+    for _ in 0..100 {
+        if Path::new(dev).exists() {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    panic!("{dev} did not come back");
+}
+
+/// vivid (the kernel's test camera) as a `v4l2:` source through faultcam into files, then the
+/// camera disconnecting mid-stream (vivid's `disconnect` control, as a USB camera unplugged):
+/// a clear error naming the device, and a summary with nothing unaccounted.
+#[test]
+fn vivid_source_into_files_and_disconnect_mid_stream() {
+    let Some(vivid) = std::env::var("FAULTCAM_VIVID_DEVICE").ok().filter(|d| !d.is_empty()) else {
+        eprintln!("skipped: set FAULTCAM_VIVID_DEVICE=/dev/videoN (modprobe vivid; scripts/v4l2-vm.sh does)");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("f.toml");
+    std::fs::write(&cfg, FAULTS).unwrap();
+    for (fmt, ext) in [("GREY&width=320&height=240", "png"), ("YUYV&width=320&height=240&yuyv=rgb8", "png")] {
+        let out = dir.path().join(format!("vivid-{}", &fmt[..4]));
+        let log = dir.path().join(format!("vivid-{}.jsonl", &fmt[..4]));
+        let o = faultcam(&["--source", &format!("v4l2:{vivid}?format={fmt}"), "--frames", "12", "--sink"])
+            .arg(format!("files:{}", out.display()))
+            .arg("--faults")
+            .arg(&cfg)
+            .arg("--log")
+            .arg(&log)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "{err}");
+        assert!(err.contains(&format!("320x240 {}", &fmt[..4])), "the negotiated format is reported: {err}");
+        let s = last_json(&log);
+        assert_eq!(s["unaccounted"].as_i64(), Some(0), "{s}");
+        let files: Vec<_> = std::fs::read_dir(&out)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|e| e == ext))
+            .collect();
+        assert_eq!(files.len() as u64, s["delivered"].as_u64().unwrap(), "{s}");
+        assert!(files.len() >= 12 - s["failed"].as_u64().unwrap_or(0) as usize, "{s}");
+        let img = image::open(&files[0]).unwrap();
+        assert_eq!((img.width(), img.height()), (320, 240));
+        // vivid's test pattern is not flat.
+        let px = img.to_luma8();
+        let (lo, hi) = px.iter().fold((255u8, 0u8), |(l, h), &v| (l.min(v), h.max(v)));
+        assert!(hi > lo + 50, "vivid's colour bars: {lo}..{hi}");
+    }
+    // Disconnect mid-stream.
+    let log = dir.path().join("disc.jsonl");
+    // (`timeout`: should the disconnect go unnoticed, the run still ends, with its summary.)
+    let child = Command::new("timeout")
+        .args(["60", FAULTCAM, "run", "--source", &format!("v4l2:{vivid}?format=GREY&timeout_ms=1000")])
+        .args(["--frames", "100000", "--sink"])
+        .arg("null:")
+        .arg("--faults")
+        .arg(&cfg)
+        .arg("--log")
+        .arg(&log)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(1500));
+    let c = Command::new("v4l2-ctl").args(["-d", &vivid, "-c", "disconnect=1"]).output().unwrap();
+    assert!(c.status.success(), "v4l2-ctl: {}", String::from_utf8_lossy(&c.stderr));
+    let o = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    if o.status.success() {
+        let l = Command::new("v4l2-ctl").args(["-d", &vivid, "-l"]).output().unwrap();
+        panic!(
+            "a camera that went away must fail the run: {err}\nv4l2-ctl -c disconnect=1: {}\ncontrols: {}",
+            String::from_utf8_lossy(&c.stdout),
+            String::from_utf8_lossy(&l.stdout)
+        );
+    }
+    assert!(err.contains(vivid.as_str()), "the error names the device: {err}");
+    let s = last_json(&log);
+    assert_eq!(s["unaccounted"].as_i64(), Some(0), "{s}");
+    assert!(s["frames_in"].as_u64().unwrap() > 0, "{s}");
+    eprintln!("disconnect: {err}");
+}
+
+/// A format the device refuses: the error names the asked and the chosen format.
+#[test]
+fn refused_formats_name_both_formats() {
+    let Some(dev) = device("refused_formats_name_both_formats") else { return };
+    let _turn = DEVICE.lock().unwrap_or_else(|e| e.into_inner());
+    // v4l2loopback's max_width is 4096 (scripts/v4l2-vm.sh): 8192 wide is refused or clamped.
+    let mut sink = V4l2Sink::open(&format!("v4l2:{dev}")).unwrap();
+    let e = sink.write_frame(&pattern(0, 8192, 8), None).expect_err("8192 px wide accepted").to_string();
+    eprintln!("sink: {e}");
+    assert!(e.contains("8192x8 GREY") && e.contains(dev.as_str()), "{e}");
+    drop(sink);
+    if let Some(vivid) = std::env::var("FAULTCAM_VIVID_DEVICE").ok().filter(|d| !d.is_empty()) {
+        // vivid has no MJPG: it answers VIDIOC_S_FMT with a format of its own.
+        let e = V4l2Source::open(&format!("v4l2:{vivid}?format=MJPG")).err().expect("MJPG accepted").to_string();
+        eprintln!("source: {e}");
+        assert!(e.contains("MJPG (driver chose ") && e.contains(vivid.as_str()), "{e}");
+    }
+}
+
+/// Latency through the loopback: from the start of the sink's `write_frame` (faultcam hands the
+/// frame over) to the reader's `VIDIOC_DQBUF` returning that buffer, at 1920x1200 mono8, 60 fps,
+/// `io=mmap`. A measurement, not a check: runs only with FAULTCAM_V4L2_LATENCY_FRAMES=N set and
+/// prints p50/p99/max (see BENCHMARKS.md for the command).
+#[test]
+fn loopback_latency_1920x1200_mono8_60fps() {
+    let Some(dev) = device("loopback_latency_1920x1200_mono8_60fps") else { return };
+    let Some(n) = std::env::var("FAULTCAM_V4L2_LATENCY_FRAMES").ok().and_then(|v| v.parse::<usize>().ok()) else {
+        eprintln!("skipped: set FAULTCAM_V4L2_LATENCY_FRAMES=600 to measure the loopback latency");
+        return;
+    };
+    use v4l::io::traits::CaptureStream;
+    let _turn = DEVICE.lock().unwrap_or_else(|e| e.into_inner());
+    let (w, h) = (1920u32, 1200u32);
+    let mut sink = V4l2Sink::open(&format!("v4l2:{dev}?fps=60")).unwrap();
+    let mut frame = pattern(0, w, h);
+    sink.write_frame(&frame, None).unwrap();
+    let origin = Instant::now();
+    let reader_dev = dev.clone();
+    let (ready_tx, ready_rx) = mpsc::channel();
+    let reader = std::thread::spawn(move || {
+        let d = v4l::Device::with_path(&reader_dev).unwrap();
+        let mut s = v4l::io::mmap::Stream::with_buffers(&d, v4l::buffer::Type::VideoCapture, 4).unwrap();
+        s.set_timeout(Duration::from_millis(2000));
+        // Until the writer's first tagged frame arrives (after `ready`): (k, ns since origin).
+        let mut got = Vec::with_capacity(n);
+        let _ = ready_tx.send(());
+        while let Ok((buf, _)) = CaptureStream::next(&mut s) {
+            let t = origin.elapsed().as_nanos() as u64;
+            let k = u64::from_le_bytes(buf[..8].try_into().unwrap());
+            got.push((k, t));
+            if k as usize == n {
+                break;
+            }
+        }
+        got
+    });
+    ready_rx.recv().unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    let mut sent = vec![0u64; n + 1];
+    let period = Duration::from_nanos(1_000_000_000 / 60);
+    let start = Instant::now();
+    for k in 1..=n as u64 {
+        let due = start + period * k as u32;
+        if let Some(wait) = due.checked_duration_since(Instant::now()) {
+            std::thread::sleep(wait);
+        }
+        frame.seq = k;
+        frame.pts_ns = k * period.as_nanos() as u64;
+        frame.as_u8_mut().unwrap()[..8].copy_from_slice(&k.to_le_bytes());
+        sent[k as usize] = origin.elapsed().as_nanos() as u64;
+        sink.write_frame(&frame, None).unwrap();
+    }
+    let got = reader.join().unwrap();
+    drop(sink);
+    let mut lat: Vec<f64> = got
+        .iter()
+        .filter(|(k, _)| (1..=n as u64).contains(k))
+        .map(|&(k, t)| (t - sent[k as usize]) as f64 / 1e6)
+        .collect();
+    let received = lat.len();
+    assert!(received > 0, "the reader got none of the {n} frames");
+    lat.sort_by(f64::total_cmp);
+    let q = |p: f64| lat[((lat.len() - 1) as f64 * p).round() as usize];
+    println!(
+        "v4l2loopback latency 1920x1200 mono8 60 fps io=mmap: {received}/{n} frames seen, p50 {:.3} ms, p99 {:.3} ms, \
+         max {:.3} ms",
+        q(0.5),
+        q(0.99),
+        lat[lat.len() - 1]
+    );
+}

@@ -14,7 +14,12 @@
 //! * `io=mmap` (default): streaming I/O. `buffers` driver buffers are requested
 //!   (`VIDIOC_REQBUFS`, `V4L2_MEMORY_MMAP`; v4l2loopback grants at most its `max_buffers`) and
 //!   mapped once; each frame is written straight into a free buffer in the driver's layout and
-//!   queued (`VIDIOC_QBUF`) at once, with the frame's `pts_ns` as its timestamp; buffers the
+//!   queued (`VIDIOC_QBUF`) at once, stamped with the frame's `pts_ns` moved onto
+//!   `CLOCK_MONOTONIC` (the clock V4L2 readers assume): the first frame is stamped with the
+//!   time it is queued and later ones keep their pts spacing, unless the pts already are
+//!   monotonic-clock times (within 10 s of now, as from a live `v4l2:` camera), which pass
+//!   unchanged. (A zero timestamp would be replaced by v4l2loopback with the queue time, so a
+//!   stream starting at pts 0 would read back non-monotone.) Buffers the
 //!   driver has consumed come back with `VIDIOC_DQBUF` (waiting up to `timeout_ms` when all
 //!   are queued). Streaming starts (`VIDIOC_STREAMON`) with the first frame.
 //! * `io=write`: each frame is written with `write(2)` (v4l2loopback's read/write I/O, as
@@ -57,6 +62,17 @@ struct MmapOut {
     /// Buffers `0..fresh` have been queued at least once; the others are free to fill.
     fresh: usize,
     streaming: bool,
+    /// Added to `pts_ns` to get a `CLOCK_MONOTONIC` timestamp; set on the first frame.
+    ts_offset: Option<i128>,
+}
+
+/// `CLOCK_MONOTONIC` now, in ns.
+fn monotonic_ns() -> i128 {
+    // SAFETY: all-zero is a valid timespec; clock_gettime fills it.
+    let mut t: libc::timespec = unsafe { std::mem::zeroed() };
+    // SAFETY: `t` outlives the call; CLOCK_MONOTONIC always exists on Linux.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut t) };
+    t.tv_sec as i128 * 1_000_000_000 + t.tv_nsec as i128
 }
 
 // SAFETY: the mappings belong to this value alone (no other reference to them exists), and the
@@ -89,7 +105,13 @@ impl MmapOut {
         if req.count == 0 {
             return Err(std::io::Error::other("the driver granted no buffers"));
         }
-        let mut out = MmapOut { handle, bufs: Vec::with_capacity(req.count as usize), fresh: 0, streaming: false };
+        let mut out = MmapOut {
+            handle,
+            bufs: Vec::with_capacity(req.count as usize),
+            fresh: 0,
+            streaming: false,
+            ts_offset: None,
+        };
         for index in 0..req.count {
             let mut b = v4l2_buffer(index);
             // SAFETY: VIDIOC_QUERYBUF fills the v4l2_buffer it is given; then the buffer is
@@ -147,8 +169,14 @@ impl MmapOut {
         let mut b = v4l2_buffer(i as u32);
         b.bytesused = bytesused as u32;
         b.field = v4l::v4l_sys::v4l2_field_V4L2_FIELD_NONE;
-        b.timestamp.tv_sec = (pts_ns / 1_000_000_000) as _;
-        b.timestamp.tv_usec = ((pts_ns % 1_000_000_000) / 1000) as _;
+        let offset = *self.ts_offset.get_or_insert_with(|| {
+            let now = monotonic_ns();
+            if (now - pts_ns as i128).abs() < 10_000_000_000 { 0 } else { now - pts_ns as i128 }
+        });
+        // Never 0 (v4l2loopback would stamp it itself) and never before the clock's origin.
+        let ts = (pts_ns as i128 + offset).max(1000) as u64;
+        b.timestamp.tv_sec = (ts / 1_000_000_000) as _;
+        b.timestamp.tv_usec = ((ts % 1_000_000_000) / 1000) as _;
         let fd = self.handle.fd();
         // SAFETY: VIDIOC_QBUF reads the v4l2_buffer it is given.
         unsafe { v4l::v4l2::ioctl(fd, v4l::v4l2::vidioc::VIDIOC_QBUF, &mut b as *mut _ as *mut std::ffi::c_void)? };

@@ -6,7 +6,8 @@
 //! * Format negotiation: the requested fourcc/size (or, if none is given, the driver's current
 //!   format when faultcam can use it, else the first of GREY, Y16, RGB3, YUYV the driver takes)
 //!   is set with `VIDIOC_S_FMT`, and what the driver *chose* (it may change size or format) is
-//!   read back and reported by `describe()`; frames follow the chosen format.
+//!   read back and reported by `describe()`; frames follow the chosen format. An explicit
+//!   `format=` the driver answers with another fourcc is an error naming both.
 //! * Pixel formats: `GREY` → mono8, `Y16` (little-endian) → mono16, `RGB3` → rgb8, 8-bit Bayer
 //!   (`BA81`, `GBRG`, `GRBG`, `RGGB`) → bayer8, `YUYV` → mono8 (the Y samples, exact) or, with
 //!   `yuyv=rgb8`, rgb8 by ITU-R BT.601 limited range (`R = 1.164(Y−16) + 1.596(V−128)`, `G =
@@ -185,6 +186,11 @@ impl V4l2Source {
                 want.height = h as u32;
             }
             match device.set_format(&want) {
+                // An explicit `format=` must be what the driver chose (it answers a fourcc it
+                // does not have with one of its own).
+                Ok(got) if fourcc.is_some() && got.fourcc.repr != f => {
+                    tried.push(format!("{} (driver chose {})", FourCC::new(&f), got.fourcc))
+                }
                 Ok(got) if usable(&got.fourcc.repr) => {
                     chosen = Some(got);
                     break;
