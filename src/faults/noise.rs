@@ -869,7 +869,7 @@ mod tests {
     /// The dispatched kernel (whatever this CPU runs) against the scalar reference on rows of
     /// every length class, with the resolve calls in the same order.
     /// A noise kernel under test: row, lanes, table, resolve.
-    type Kernel<T> = dyn Fn(&mut [T], &mut RngLanes, &NoiseTable, &mut dyn FnMut(usize) -> i32);
+    type Kernel<'a, T> = dyn Fn(&mut [T], &mut RngLanes, &NoiseTable, &mut dyn FnMut(usize) -> i32) + 'a;
 
     fn compare<T: Sample + std::fmt::Debug + PartialEq>(table: &NoiseTable, max: u32, r: &mut Rng) {
         compare_kernel::<T>(table, max, r, &|row, lanes, t, res| add_table_noise(row, lanes, t, res));
@@ -894,7 +894,7 @@ mod tests {
         table: &NoiseTable,
         max: u32,
         r: &mut Rng,
-        kernel: &Kernel<T>,
+        kernel: &Kernel<'_, T>,
     ) {
         let bits = table.bits();
         for n in [0usize, 1, 15, 16, 17, 31, 32, 33, 63, 64, 65, 100, 1921, 5760] {
