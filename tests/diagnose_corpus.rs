@@ -16,7 +16,7 @@ mod realcam;
 #[path = "support/realcam_score.rs"]
 mod realcam_score;
 
-use realcam::{Case, Hidden, corpus, subset_names, unpaired_corpus};
+use realcam::{Case, Hidden, corpus, subset_names, unpaired_corpus, unpaired_glare_cases};
 use realcam_score::{CaseScore, effect_visibility, markdown, run_case, summarise};
 use std::path::Path;
 
@@ -105,11 +105,7 @@ fn unpaired_subset_is_diagnosed() {
 #[test]
 #[ignore = "fails: the glare case is not detected (scene surfaces in the background cells give the sim a larger slope than the real); the offset case passes"]
 fn unpaired_glare_is_told_apart_from_a_uniform_offset() {
-    let cases: Vec<Case> = unpaired_corpus()
-        .into_iter()
-        .filter(|c| matches!(c.name.as_str(), "unpaired_glare_mono" | "unpaired_offset_mono"))
-        .map(|c| c.sized(224, 168, 4))
-        .collect();
+    let cases: Vec<Case> = unpaired_glare_cases().into_iter().map(|c| c.sized(224, 168, 4)).collect();
     assert_eq!(cases.len(), 2);
     let scores = run_all(&cases);
     let mut problems = Vec::new();

@@ -19,6 +19,8 @@ fn bin() -> std::path::PathBuf {
 }
 
 /// Run the binary, returning (exit code, stderr, peak RSS in MB) measured for this child only.
+// The child is reaped by `wait4` (which also gives its peak RSS), not by `Child::wait`.
+#[allow(clippy::zombie_processes)]
 fn run_measured(args: &[&str], dir: &Path) -> (i32, String, u64) {
     let err_path = dir.join("stderr.txt");
     let child = Command::new(bin())

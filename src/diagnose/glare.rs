@@ -174,11 +174,13 @@ pub fn unpaired(
     seed: u64,
     apply: &mut dyn FnMut(Params) -> Result<Vec<Frame>, DiagnoseError>,
 ) -> Result<GlareResult, DiagnoseError> {
+    /// Per image, the flat cells as `cells_of` returns them.
+    type CellsPerImage = Vec<Vec<(f64, f64)>>;
     let mut sig = Signature::new("veiling_glare");
     sig.where_ = "flat background cells of the real images, against the glare their own scenes predict".into();
     let flat_dn = (6.0 * noise_sd).max(8.0);
     // Shape: the one that explains the real floors best.
-    let mut best: Option<(f64, (f64, f64), Vec<Vec<(f64, f64)>>)> = None;
+    let mut best: Option<(f64, (f64, f64), CellsPerImage)> = None;
     for &shape in SHAPES {
         let rc = cells_of(real, shape, flat_dn);
         let refs: Vec<&[(f64, f64)]> = rc.iter().map(|c| c.as_slice()).collect();

@@ -83,7 +83,16 @@ const DITHER_DRAWS: u64 = 3;
 /// the same for every evaluation of a frame, so they are drawn once (for the first few frames;
 /// further frames draw without keeping them). Shared by the clones of a step.
 #[derive(Clone, Default)]
-pub struct DitherDraws(std::sync::Arc<std::sync::Mutex<Vec<((u64, u64, usize, usize), std::sync::Arc<Vec<f64>>)>>>);
+pub struct DitherDraws(std::sync::Arc<std::sync::Mutex<Vec<KeptDraws>>>);
+
+/// Key of one kept set of dither draws: (seed, frame seq, step index, values).
+type DrawKey = (u64, u64, usize, usize);
+
+/// One kept set of draws with its key.
+type KeptDraws = (DrawKey, std::sync::Arc<Vec<f64>>);
+
+/// One forward-selection trial: its evidence, its fitted steps and its evaluation count.
+type TrialResult = Result<(Evidence, Vec<Step>, usize), DiagnoseError>;
 
 impl DitherDraws {
     const KEEP: usize = 8;
@@ -1095,7 +1104,7 @@ pub fn select(
                 .filter(|(_, cand)| !steps.iter().any(|s| s.name == cand.name))
                 .map(|(ci, _)| (ci, clone_steps(&steps)))
                 .collect();
-            let results: Vec<(usize, Result<(Evidence, Vec<Step>, usize), DiagnoseError>)> = jobs
+            let results: Vec<(usize, TrialResult)> = jobs
                 .into_par_iter()
                 .map(|(ci, trial)| {
                     // Candidates without any evidence so far get a shorter search.

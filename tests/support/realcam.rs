@@ -1428,6 +1428,16 @@ pub fn unpaired_corpus() -> Vec<Case> {
         unpaired("unpaired_defocus_mono", Mono8, 402, false, 6.0, 1.5, vec![Defocus { radius_px: 2.0 }]),
         unpaired("unpaired_dark_rgb", Rgb8, 403, false, 6.0, 1.5, vec![DarkCurrent { mean_dn: 4.0, hot_rate: 0.0 }]),
         unpaired("unpaired_smear_mono", Mono8, 404, false, 6.0, 1.5, vec![Smear { strength: 0.01, vertical: true }]),
+    ]
+}
+
+/// Unpaired glare cases, kept out of the scored corpus (their levels are above the noise, by
+/// design): veiling glare and a uniform offset of similar size, to test that the two are told
+/// apart.
+pub fn unpaired_glare_cases() -> Vec<Case> {
+    use Fmt::Mono8;
+    use Hidden::*;
+    vec![
         unpaired(
             "unpaired_glare_mono",
             Mono8,
