@@ -76,7 +76,7 @@ pub fn sym_fir(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usi
             let done = unsafe { simd::fir_avx512(out, base, center, offs, q) };
             return fir_scalar(&mut out[done..], base, center + done, offs, q, done);
         }
-        if std::arch::is_x86_feature_detected!("avx2") {
+        if super::kit::has_avx2() {
             // SAFETY: AVX2 present (checked); reads are in bounds (asserted above).
             let done = unsafe { simd::fir_avx2(out, base, center, offs, q) };
             return fir_scalar(&mut out[done..], base, center + done, offs, q, done);

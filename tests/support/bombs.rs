@@ -99,9 +99,9 @@ pub fn jpeg(w: u16, h: u16) -> Vec<u8> {
 /// (file name, bytes) of one bomb per decoder, named to sort before ordinary inputs.
 pub fn all() -> Vec<(&'static str, Vec<u8>)> {
     vec![
-        ("0-bomb.png", png(100_000, 100_000)),
-        ("0-bomb.tiff", tiff(100_000, 100_000)),
-        ("0-bomb.pgm", pnm(100_000, 100_000)),
-        ("0-bomb.jpg", jpeg(65_535, 65_535)),
+        ("0-bomb-png.png", png(100_000, 100_000)),
+        ("0-bomb-tiff.tiff", tiff(100_000, 100_000)),
+        ("0-bomb-pgm.pgm", pnm(100_000, 100_000)),
+        ("0-bomb-jpg.jpg", jpeg(65_535, 65_535)),
     ]
 }
