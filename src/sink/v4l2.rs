@@ -18,7 +18,7 @@
 //!   `CLOCK_MONOTONIC` (the clock V4L2 readers assume): the first frame is stamped with the
 //!   time it is queued and later ones keep their pts spacing, unless the pts already are
 //!   monotonic-clock times (within 10 s of now, as from a live `v4l2:` camera), which pass
-//!   unchanged. (A zero timestamp would be replaced by v4l2loopback with the queue time, so a
+//!   unchanged (a pts under 1 s is always taken as a stream origin). (A zero timestamp would be replaced by v4l2loopback with the queue time, so a
 //!   stream starting at pts 0 would read back non-monotone.) Buffers the
 //!   driver has consumed come back with `VIDIOC_DQBUF` (waiting up to `timeout_ms` when all
 //!   are queued). Streaming starts (`VIDIOC_STREAMON`) with the first frame.
@@ -171,7 +171,10 @@ impl MmapOut {
         b.field = v4l::v4l_sys::v4l2_field_V4L2_FIELD_NONE;
         let offset = *self.ts_offset.get_or_insert_with(|| {
             let now = monotonic_ns();
-            if (now - pts_ns as i128).abs() < 10_000_000_000 { 0 } else { now - pts_ns as i128 }
+            // A pts under 1 s is a stream's own origin (synth and files start at 0), not a
+            // monotonic-clock time, even on a machine that booted less than 10 s ago.
+            let live = pts_ns >= 1_000_000_000 && (now - pts_ns as i128).abs() < 10_000_000_000;
+            if live { 0 } else { now - pts_ns as i128 }
         });
         // Never 0 (v4l2loopback would stamp it itself) and never before the clock's origin.
         let ts = (pts_ns as i128 + offset).max(1000) as u64;
