@@ -83,6 +83,20 @@ fn corpus_subset_is_diagnosed() {
     assert!(problems.is_empty(), "diagnosis failed on the subset:\n{}", problems.join("\n"));
 }
 
+/// Row noise is new every frame (EFFECTS.md), whatever its spectrum along y: white offsets and
+/// offsets with a 1/f spectrum (most of their power in slow drifts over the frame, which a
+/// row-to-row difference cannot see) are both found with their RMS within tolerance and nothing
+/// else reported.
+#[test]
+fn row_noise_is_sized_white_and_1f() {
+    let cases: Vec<Case> =
+        corpus().into_iter().filter(|c| matches!(c.name.as_str(), "row_noise_mono" | "row_noise_1f_mono")).collect();
+    assert_eq!(cases.len(), 2);
+    let scores = run_all(&cases);
+    let problems = subset_problems(&scores);
+    assert!(problems.is_empty(), "row noise:\n{}", problems.join("\n"));
+}
+
 /// Unpaired mode on independent-forward-model data: the real frames show another spacecraft at
 /// other poses. A negative control (camera noise only) and a hidden defocus, at a reduced size
 /// so that the test stays fast in a debug build.

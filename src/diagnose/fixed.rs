@@ -215,6 +215,69 @@ pub fn hot_pixels(
     (sig, cand, mean_excess)
 }
 
+/// Across-frame products for [`row_noise`]: for each channel and row, over the frames that see
+/// it (enough quiet lit pixels in even and odd columns; at least two), the deviation of each
+/// frame's row mean from the mean over those frames, less the frame's own mean and linear trend
+/// over y; the product of the even- and odd-column deviations, times K/(K−1) for the K frames
+/// seeing that row, has expectation sigma² (the offsets are independent between frames, pixel
+/// noise between columns). Cluster = (channel, block of 8 rows), all frames together.
+/// `None` with fewer than two frames or frames of different heights.
+fn across_frames(means: &[Vec<(Vec<f64>, Vec<f64>)>]) -> Option<Vec<(f64, usize)>> {
+    let nk = means.len();
+    if nk < 2 {
+        return None;
+    }
+    let nc = means[0].len();
+    let h = means[0].first()?.0.len();
+    if means.iter().any(|m| m.len() != nc || m.iter().any(|(e, o)| e.len() != h || o.len() != h)) {
+        return None;
+    }
+    let mut out = Vec::new();
+    for c in 0..nc {
+        let seen = |k: usize, y: usize| means[k][c].0[y].is_finite() && means[k][c].1[y].is_finite();
+        // Per row: number of frames seeing it and the mean over them (even, odd).
+        let row_mean: Vec<Option<(f64, f64, f64)>> = (0..h)
+            .map(|y| {
+                let ks: Vec<usize> = (0..nk).filter(|&k| seen(k, y)).collect();
+                if ks.len() < 2 {
+                    return None;
+                }
+                let n = ks.len() as f64;
+                let e = ks.iter().map(|&k| means[k][c].0[y]).sum::<f64>() / n;
+                let o = ks.iter().map(|&k| means[k][c].1[y]).sum::<f64>() / n;
+                Some((n, e, o))
+            })
+            .collect();
+        for k in 0..nk {
+            let rows: Vec<(usize, f64, f64, f64)> = (0..h)
+                .filter(|&y| seen(k, y))
+                .filter_map(|y| {
+                    row_mean[y].map(|(n, e, o)| (y, n / (n - 1.0), means[k][c].0[y] - e, means[k][c].1[y] - o))
+                })
+                .collect();
+            if rows.len() < 16 {
+                continue;
+            }
+            // The frame's least-squares line over y (mean and slope), per column half.
+            let n = rows.len() as f64;
+            let ym = rows.iter().map(|r| r.0 as f64).sum::<f64>() / n;
+            let syy = rows.iter().map(|r| (r.0 as f64 - ym).powi(2)).sum::<f64>().max(1e-9);
+            let line = |d: fn(&(usize, f64, f64, f64)) -> f64| {
+                let a = rows.iter().map(d).sum::<f64>() / n;
+                let b = rows.iter().map(|r| (r.0 as f64 - ym) * d(r)).sum::<f64>() / syy;
+                (a, b)
+            };
+            let (ae, be) = line(|r| r.2);
+            let (ao, bo) = line(|r| r.3);
+            for &(y, f, de, dd) in &rows {
+                let t = y as f64 - ym;
+                out.push(((de - ae - be * t) * (dd - ao - bo * t) * f, c * (h / 8 + 1) + y / 8));
+            }
+        }
+    }
+    Some(out)
+}
+
 /// Row-to-row fluctuation of the residual (median of each row, less a running median over nine
 /// rows), per frame and channel.
 pub fn row_offsets(pairs: &[Pair], masks: &[Masks], resid: &[Vec<Plane>], hot: &[Vec<bool>]) -> RowOffsets {
@@ -255,7 +318,15 @@ pub fn row_offsets(pairs: &[Pair], masks: &[Masks], resid: &[Vec<Plane>], hot: &
         .collect()
 }
 
-/// Row noise by split-half covariance of detrended row means.
+/// Row noise by split-half covariance of row means (even vs odd columns, so pixel noise cancels).
+///
+/// Row noise is new every frame (EFFECTS.md), so with two or more frames the offsets are measured
+/// against the mean over frames of each row: whatever does not change between frames (the scene,
+/// a static model mismatch) cancels whatever its spatial frequency, and the RMS offset is found
+/// whatever the offsets' spectrum along y — white, or 1/f with most of its power in slow drifts
+/// over the frame. Each frame's mean and linear trend over y are removed first (a frame-wide
+/// flicker or gradient change is not row noise). With one frame the second difference of row
+/// means along y is used (white offsets only: it sees little of a 1/f spectrum).
 pub fn row_noise(
     pairs: &[Pair],
     masks: &[Masks],
@@ -270,7 +341,10 @@ pub fn row_noise(
     let mut prods: Vec<(f64, usize)> = Vec::new();
     let mut n_cluster = 0usize;
     let mut prof = Vec::new();
+    // Row means per (frame, channel), for the across-frame estimator.
+    let mut means: Vec<Vec<(Vec<f64>, Vec<f64>)>> = Vec::new();
     for (k, p) in pairs.iter().enumerate() {
+        means.push(Vec::new());
         let m = &masks[k];
         let (w, h) = (p.w(), p.h());
         for c in 0..p.channels() {
@@ -286,8 +360,9 @@ pub fn row_noise(
                         continue;
                     }
                     let qv = qq[i] as f64;
-                    // Dark pixels count too: clipping at 0 shrinks the offsets but cannot create
-                    // a covariance between even and odd columns.
+                    // Dark pixels count too: clipping at 0 shrinks the offsets (on a mostly
+                    // black sky the size comes out ~10 % low) but cannot create a covariance
+                    // between even and odd columns; leaving them out leaves too few rows.
                     if p.real[c].data[i] >= FS {
                         continue;
                     }
@@ -319,8 +394,14 @@ pub fn row_noise(
                 }
             }
             n_cluster += h / 8 + 1;
+            means[k].push((me, mo));
         }
     }
+    let temporal = across_frames(&means);
+    let (prods, scale, how) = match temporal {
+        Some(t) if t.len() >= 30 => (t, 1.0, "across frames"),
+        _ => (prods, 1.0 / 6.0, "second difference along y"),
+    };
     if prods.len() < 30 {
         sig.evidence = format!("too few rows with quiet unclipped pixels ({})", prods.len());
         return sig;
@@ -338,17 +419,19 @@ pub fn row_noise(
     }
     let g = cs.len() as f64;
     let se = (cs.values().map(|s| s * s).sum::<f64>() * g / (g - 1.0).max(1.0)).sqrt() / n;
-    let s2 = m / 6.0;
-    let se2 = se / 6.0;
+    let s2 = m * scale;
+    let se2 = se * scale;
     let sd = s2.max(0.0).sqrt();
     sig.z = s2 / se2;
     sig.size = sd;
     sig.size_unit = "DN row offset sigma";
     sig.set_param("sigma_dn", sd);
     sig.stderr = vec![("sigma_dn".into(), se2 / (2.0 * sd.max(0.05)))];
-    sig.where_ = format!("{} row triples in all frames", prods.len());
-    sig.evidence =
-        format!("row offsets shared by even and odd columns: sigma² = {s2:.4} ± {se2:.4} DN² (z = {:.1})", sig.z);
+    sig.where_ = format!("{} row products ({how}) in all frames", prods.len());
+    sig.evidence = format!(
+        "row offsets shared by even and odd columns ({how}): sigma² = {s2:.4} ± {se2:.4} DN² (z = {:.1})",
+        sig.z
+    );
     sig.profiles.push(Profile {
         title: "row noise: row means of the residual, even vs odd columns (first frame)".into(),
         x_label: "row y (px)".into(),

@@ -531,6 +531,10 @@ pub enum Hidden {
     DarkCurrent { mean_dn: f64, hot_rate: f64 },
     /// Gaussian row offsets of std `sigma_dn`, new per frame.
     RowNoise { sigma_dn: f64 },
+    /// Row offsets with a 1/f power spectrum along y (flicker-like readout noise): per frame a sum
+    /// of cosines of 1..h/2 cycles per frame, amplitude ∝ 1/√f, random phases, scaled so the RMS
+    /// offset over the frame is `sigma_dn` exactly; new per frame.
+    RowNoise1f { sigma_dn: f64 },
     /// Tone curve after clipping.
     Gamma { gamma: f64 },
     /// JPEG round trip through the `image` crate encoder.
@@ -560,7 +564,7 @@ impl Hidden {
             Hidden::Prnu { .. } => "prnu",
             Hidden::Smear { .. } => "smear",
             Hidden::DarkCurrent { .. } => "dark_current",
-            Hidden::RowNoise { .. } => "row_noise",
+            Hidden::RowNoise { .. } | Hidden::RowNoise1f { .. } => "row_noise",
             Hidden::Gamma { .. } => "gamma",
             Hidden::Jpeg { .. } => "jpeg",
             Hidden::MotionBlur { .. } => "motion_blur",
@@ -583,7 +587,7 @@ impl Hidden {
             Hidden::Prnu { sigma } => vec![("sigma", sigma)],
             Hidden::Smear { strength, .. } => vec![("strength", strength)],
             Hidden::DarkCurrent { mean_dn, hot_rate } => vec![("mean_dn", mean_dn), ("hot_pixel_rate", hot_rate)],
-            Hidden::RowNoise { sigma_dn } => vec![("sigma_dn", sigma_dn)],
+            Hidden::RowNoise { sigma_dn } | Hidden::RowNoise1f { sigma_dn } => vec![("sigma_dn", sigma_dn)],
             Hidden::Gamma { gamma } => vec![("gamma", gamma)],
             Hidden::Jpeg { quality } => vec![("quality", quality as f64)],
             Hidden::MotionBlur { length_px, angle_deg } => vec![("length_px", length_px), ("angle_deg", angle_deg)],
@@ -619,6 +623,7 @@ impl Hidden {
             Hidden::Smear { .. } => "per-line saturated-pixel count x strength x FS".into(),
             Hidden::DarkCurrent { .. } => "Poisson electrons at camera gain; hot pixels 40-120 DN".into(),
             Hidden::RowNoise { .. } => "Gaussian row offsets per frame".into(),
+            Hidden::RowNoise1f { .. } => "row offsets with a 1/f spectrum along y, per frame".into(),
             Hidden::Gamma { .. } => "FS*(v/FS)^gamma after clip".into(),
             Hidden::Jpeg { .. } => "image crate JPEG encoder".into(),
             Hidden::MotionBlur { .. } => "box-filtered line streak, 64 samples".into(),
@@ -1097,8 +1102,30 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
         .find_map(|hd| if let Hidden::GainOffset { gain, offset_dn } = *hd { Some((gain, offset_dn)) } else { None });
     let g = cam.gain_e_per_dn;
     let mut out = Img::new(w, h, c);
+    let row_1f = hidden.iter().find_map(|hd| if let Hidden::RowNoise1f { sigma_dn } = *hd { Some(sigma_dn) } else { None });
+    let offsets_1f: Vec<f64> = match row_1f {
+        Some(sigma) => {
+            // Σ_f a_f cos(2π f y / h + φ_f), f = 1..h/2, a_f² ∝ 1/f with Σ a_f²/2 = σ²: whole
+            // cycles over the frame, so the cross terms vanish and the RMS over y is σ.
+            let nf = (h / 2).max(1);
+            let hsum: f64 = (1..=nf).map(|f| 1.0 / f as f64).sum();
+            let comps: Vec<(f64, f64)> = (1..=nf)
+                .map(|f| ((2.0 * sigma * sigma / (f as f64 * hsum)).sqrt(), rng.range(0.0, std::f64::consts::TAU)))
+                .collect();
+            (0..h)
+                .map(|y| {
+                    comps
+                        .iter()
+                        .enumerate()
+                        .map(|(i, &(a, ph))| a * (std::f64::consts::TAU * (i + 1) as f64 * y as f64 / h as f64 + ph).cos())
+                        .sum()
+                })
+                .collect()
+        }
+        None => vec![0.0; h],
+    };
     for y in 0..h {
-        let row_off = if row_sigma > 0.0 { row_sigma * rng.normal() } else { 0.0 };
+        let row_off = if row_sigma > 0.0 { row_sigma * rng.normal() } else { 0.0 } + offsets_1f[y];
         for x in 0..w {
             for ch in 0..c {
                 let i = (y * w + x) * c + ch;
@@ -1352,6 +1379,7 @@ pub fn corpus() -> Vec<Case> {
             vec![StrayLight { amplitude_dn: 6.0, src_x: -60.0, src_y: -40.0, width_px: 140.0 }],
         ),
         case("row_noise_mono", Mono8, 214, true, 6.0, 1.2, vec![RowNoise { sigma_dn: 1.2 }]),
+        case("row_noise_1f_mono", Mono8, 229, true, 6.0, 1.2, vec![RowNoise1f { sigma_dn: 1.2 }]),
         case("gamma_mono", Mono8, 215, true, 6.0, 1.5, vec![Gamma { gamma: 0.92 }]),
         case("gain_offset_lab_mono", Mono8, 227, false, 6.0, 1.5, vec![GainOffset { gain: 1.05, offset_dn: -2.0 }])
             .in_lab(),
