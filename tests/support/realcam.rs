@@ -1102,7 +1102,8 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
         .find_map(|hd| if let Hidden::GainOffset { gain, offset_dn } = *hd { Some((gain, offset_dn)) } else { None });
     let g = cam.gain_e_per_dn;
     let mut out = Img::new(w, h, c);
-    let row_1f = hidden.iter().find_map(|hd| if let Hidden::RowNoise1f { sigma_dn } = *hd { Some(sigma_dn) } else { None });
+    let row_1f =
+        hidden.iter().find_map(|hd| if let Hidden::RowNoise1f { sigma_dn } = *hd { Some(sigma_dn) } else { None });
     let offsets_1f: Vec<f64> = match row_1f {
         Some(sigma) => {
             // Σ_f a_f cos(2π f y / h + φ_f), f = 1..h/2, a_f² ∝ 1/f with Σ a_f²/2 = σ²: whole
@@ -1117,7 +1118,9 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
                     comps
                         .iter()
                         .enumerate()
-                        .map(|(i, &(a, ph))| a * (std::f64::consts::TAU * (i + 1) as f64 * y as f64 / h as f64 + ph).cos())
+                        .map(|(i, &(a, ph))| {
+                            a * (std::f64::consts::TAU * (i + 1) as f64 * y as f64 / h as f64 + ph).cos()
+                        })
                         .sum()
                 })
                 .collect()

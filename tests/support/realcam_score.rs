@@ -326,7 +326,12 @@ pub fn effect_visibility(case: &Case) -> (f64, f64, f64) {
     let sim = scene.render(0, case.frames, case.fmt);
     // Noise-free exposure: enormous gain (no shot noise), no read noise, no per-frame row noise.
     let cam = crate::realcam::Camera { gain_e_per_dn: 1e9, read_sigma_dn: 0.0 };
-    let hidden: Vec<Hidden> = case.hidden.iter().filter(|h| !matches!(h, Hidden::RowNoise { .. } | Hidden::RowNoise1f { .. })).cloned().collect();
+    let hidden: Vec<Hidden> = case
+        .hidden
+        .iter()
+        .filter(|h| !matches!(h, Hidden::RowNoise { .. } | Hidden::RowNoise1f { .. }))
+        .cloned()
+        .collect();
     let fp = FixedPattern::new(case.w, case.h, case.fmt.channels(), &hidden, case.seed);
     let clean = expose(&sim, &cam, &hidden, &fp, &mut Prng::new(1));
     let d: Vec<f64> = clean.v.iter().zip(&sim.v).map(|(a, b)| a - b).collect();
