@@ -36,9 +36,12 @@ for _ in $(seq 50); do [ -e "$OUT/dut" ] && break; sleep 0.1; done
 
 # The rig: 1 kHz, about one line in three garbage.
 python3 - "$OUT/rig" "$MINUTES" >"$OUT/rig.log" 2>&1 <<'EOF' &
-import os, random, sys, time
+import os, random, signal, sys, time
+stop = []
+signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
 rig, minutes = sys.argv[1], float(sys.argv[2])
-fd = os.open(rig, os.O_WRONLY | os.O_NOCTTY)
+fd = os.open(rig, os.O_WRONLY | os.O_NOCTTY | os.O_NONBLOCK)
+full = 0
 rnd = random.Random(18)
 valid = ["START flash", "STOP flash", "SET gaussian_noise.sigma_dn 3.5", "SET gaussian_noise.enabled true",
          "PING", "MARK soak", "ARM", "SET smear.strength 0.002"]
@@ -50,7 +53,7 @@ garbage = [lambda: bytes(rnd.getrandbits(8) for _ in range(rnd.randint(1, 40))) 
            lambda: b"10 FIRE\r\n"]                                  # unknown command
 seq, sent, junk, t0 = 0, 0, 0, time.monotonic()
 end = t0 + minutes * 60
-while time.monotonic() < end:
+while time.monotonic() < end and not stop:
     seq += 1
     if rnd.random() < 0.33:
         line = rnd.choice(garbage)(); junk += 1
@@ -59,7 +62,7 @@ while time.monotonic() < end:
     try:
         os.write(fd, line)
     except BlockingIOError:
-        pass
+        full += 1  # the pty buffer is full: faultcam is stopped or behind
     except OSError as e:
         print("rig: write failed:", e); break
     sent += 1
@@ -67,7 +70,7 @@ while time.monotonic() < end:
     delay = t0 + sent / 1000.0 - time.monotonic()
     if delay > 0:
         time.sleep(delay)
-print(f"rig: {sent} lines sent ({junk} garbage) in {time.monotonic() - t0:.1f} s")
+print(f"rig: {sent} lines written ({junk} garbage), {full} not written (pty buffer full), in {time.monotonic() - t0:.1f} s")
 EOF
 RIG=$!
 
@@ -76,20 +79,26 @@ RIG=$!
   --duration "${MINUTES}m" --progress-s 60 --log "$OUT/groundtruth.jsonl" 2>"$OUT/run.stderr" &
 PID=$!
 trap 'kill -INT $PID 2>/dev/null || true; kill $RIG $SOCAT 2>/dev/null || true' INT TERM EXIT
-t=0
+T0=$SECONDS
+NEXT_STOP=10
+STOPS=0
 while kill -0 "$PID" 2>/dev/null; do
+  t=$((SECONDS - T0))
   RSS=$(awk '/VmRSS/{print $2}' "/proc/$PID/status" 2>/dev/null || true)
   [ -n "$RSS" ] && echo "soak-faults: t=${t}s rss ${RSS} kB, load $(cut -d' ' -f1-3 /proc/loadavg)"
-  if [ $((t % 20)) -eq 10 ]; then
-    kill -STOP "$PID" 2>/dev/null && sleep 2 && kill -CONT "$PID" 2>/dev/null && echo "soak-faults: t=${t}s SIGSTOP 2 s, SIGCONT"
-    t=$((t + 2))
+  if [ "$t" -ge "$NEXT_STOP" ]; then
+    kill -STOP "$PID" 2>/dev/null && sleep 2 && kill -CONT "$PID" 2>/dev/null && STOPS=$((STOPS + 1)) &&
+      echo "soak-faults: t=${t}s SIGSTOP 2 s, SIGCONT"
+    NEXT_STOP=$((NEXT_STOP + 20))
   fi
   for _ in $(seq 10); do kill -0 "$PID" 2>/dev/null || break; sleep 1; done
-  t=$((t + 10))
 done
+echo "soak-faults: $STOPS SIGSTOP/SIGCONT pairs"
 set +e
 wait "$PID"
 RC=$?
+# The rig runs for the same minutes; stop it (and let it print its counts) once faultcam is done.
+kill -TERM "$RIG" 2>/dev/null
 wait "$RIG"
 set -e
 cat "$OUT/rig.log"
