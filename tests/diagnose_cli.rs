@@ -150,3 +150,76 @@ fn diagnose_errors_name_the_folder() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("paired by file name"), "{err}");
 }
+
+/// Blooming's full well shows only inside saturated regions. Here the sim's saturated sources are
+/// 2x2 "stars" (no interior), and the real frames read them at a lower level with charge spilled
+/// into the neighbours (a forward model written here, not the library's): diagnose must not put a
+/// full-well number on it; the blooming test says why it is untestable.
+#[test]
+fn blooming_without_a_saturated_interior_is_untestable_and_gets_no_number() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (sim, real, out) = (tmp.path().join("sim"), tmp.path().join("real"), tmp.path().join("out"));
+    std::fs::create_dir_all(&sim).unwrap();
+    std::fs::create_dir_all(&real).unwrap();
+    let (w, h) = (192u32, 144u32);
+    let mut z = 0x2545_f491_4f6c_dd1du64;
+    let mut unif = move || {
+        z ^= z << 13;
+        z ^= z >> 7;
+        z ^= z << 17;
+        ((z >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    };
+    for k in 0..4u32 {
+        // Sim: a smooth lit backdrop with texture, and 12 saturated 2x2 stars that move per frame.
+        let mut s = vec![0f64; (w * h) as usize];
+        for y in 0..h {
+            for x in 0..w {
+                let t = (x as f64 * 0.07).sin() * (y as f64 * 0.05).cos();
+                s[(y * w + x) as usize] = 60.0 + 0.3 * x as f64 + 12.0 * t;
+            }
+        }
+        let mut stars = Vec::new();
+        for i in 0..12u32 {
+            let sx = 10 + (i * 37 + k * 3) % (w - 20);
+            let sy = 10 + (i * 53 + k * 5) % (h - 20);
+            stars.push((sx, sy));
+            for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                s[((sy + dy) * w + sx + dx) as usize] = 255.0;
+            }
+        }
+        // Real: the stars' pixels read a 0.88 FS well, the excess charge spills 30 DN into each
+        // 4-neighbour outside the star; then Gaussian read noise (sigma 1.5 DN), rounding, clipping.
+        let mut r = s.clone();
+        for &(sx, sy) in &stars {
+            for (dx, dy) in [(0i32, 0i32), (1, 0), (0, 1), (1, 1)] {
+                let (x, y) = (sx as i32 + dx, sy as i32 + dy);
+                r[(y as u32 * w + x as u32) as usize] = 0.88 * 255.0;
+                for (ex, ey) in [(-1, 0), (1, 0), (0, -1), (0, 1)] {
+                    let (nx, ny) = ((x + ex) as u32, (y + ey) as u32);
+                    let j = (ny * w + nx) as usize;
+                    if s[j] < 255.0 {
+                        r[j] += 30.0;
+                    }
+                }
+            }
+        }
+        let quantise = |v: f64| v.round().clamp(0.0, 255.0) as u8;
+        let sim_img = image::GrayImage::from_fn(w, h, |x, y| image::Luma([quantise(s[(y * w + x) as usize])]));
+        let real_img = image::GrayImage::from_fn(w, h, |x, y| {
+            let n = (-2.0 * unif().ln()).sqrt() * (std::f64::consts::TAU * unif()).cos();
+            image::Luma([quantise(r[(y * w + x) as usize] + 1.5 * n)])
+        });
+        sim_img.save(sim.join(format!("f{k}.png"))).unwrap();
+        real_img.save(real.join(format!("f{k}.png"))).unwrap();
+    }
+    faultcam().args(["diagnose", "--sim"]).arg(&sim).arg("--real").arg(&real).arg("--out").arg(&out).assert().success();
+    let rep: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report.json")).expect("json");
+    let findings: Vec<&str> =
+        rep["findings"].as_array().expect("findings").iter().filter_map(|f| f["effect"].as_str()).collect();
+    assert!(!findings.contains(&"blooming"), "a full well fitted without a saturated interior: {findings:?}");
+    let fitted = std::fs::read_to_string(out.join("fitted.toml")).expect("fitted.toml");
+    assert!(!fitted.contains("blooming"), "{fitted}");
+    let test = rep["tests"].as_array().expect("tests").iter().find(|t| t["effect"] == "blooming").expect("blooming test");
+    assert!(test["untestable"].as_str().is_some_and(|s| s.contains("interior")), "{test}");
+}
