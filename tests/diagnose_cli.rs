@@ -220,6 +220,7 @@ fn blooming_without_a_saturated_interior_is_untestable_and_gets_no_number() {
     assert!(!findings.contains(&"blooming"), "a full well fitted without a saturated interior: {findings:?}");
     let fitted = std::fs::read_to_string(out.join("fitted.toml")).expect("fitted.toml");
     assert!(!fitted.contains("blooming"), "{fitted}");
-    let test = rep["tests"].as_array().expect("tests").iter().find(|t| t["effect"] == "blooming").expect("blooming test");
+    let test =
+        rep["tests"].as_array().expect("tests").iter().find(|t| t["effect"] == "blooming").expect("blooming test");
     assert!(test["untestable"].as_str().is_some_and(|s| s.contains("interior")), "{test}");
 }
