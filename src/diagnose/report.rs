@@ -24,6 +24,58 @@ pub struct Finding {
     pub stderr: serde_json::Map<String, serde_json::Value>,
     /// How the parameters were obtained.
     pub method: String,
+    /// Other effects that explained the data about as well when this one was chosen (BIC
+    /// difference < [`ALTERNATIVE_BIC`]) and are not in the model: the data do not tell them
+    /// apart, so both are listed with their evidence.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub alternatives: Vec<Alternative>,
+}
+
+/// A near-equivalent reading of a finding (see [`Finding::alternatives`]).
+#[derive(Debug, Clone, Serialize)]
+pub struct Alternative {
+    pub effect: String,
+    pub label: String,
+    /// BIC difference to the chosen effect in the round it was chosen (≥ 0).
+    pub bic_gap: f64,
+    /// Significance of its own loss drop (one-sided normal z).
+    pub z: f64,
+    pub evidence: String,
+}
+
+/// BIC difference below which two readings count as explaining the data equally (Kass and
+/// Raftery: "not worth more than a bare mention").
+pub const ALTERNATIVE_BIC: f64 = 2.0;
+
+/// Alternatives of the finding `name` from the selection's forward rounds.
+fn alternatives(name: &str, sel: &[super::select::Evidence], in_model: &[&str]) -> Vec<Alternative> {
+    // Rounds in which `name` won (gap 0).
+    let rounds: Vec<usize> = sel
+        .iter()
+        .filter(|e| e.effect == name && e.round > 0 && e.gap_to_best.is_some_and(|g| g <= 0.0))
+        .map(|e| e.round)
+        .collect();
+    let mut out: Vec<Alternative> = Vec::new();
+    for e in sel {
+        let Some(gap) = e.gap_to_best else { continue };
+        if !rounds.contains(&e.round) || e.effect == name || in_model.contains(&e.effect.as_str()) {
+            continue;
+        }
+        let bic_gap = 2.0 * gap;
+        if bic_gap < ALTERNATIVE_BIC && !out.iter().any(|a| a.label == e.label) {
+            out.push(Alternative {
+                effect: e.effect.clone(),
+                label: e.label.clone(),
+                bic_gap: round_sig(bic_gap, 3),
+                z: round_sig(e.z, 4),
+                evidence: format!(
+                    "{} explains the data about as well as {name} did when {name} was chosen (loss drop {:.1}, z = {:.1}, BIC difference {:.2} < {ALTERNATIVE_BIC}): the data do not tell them apart",
+                    e.label, e.delta, e.z, bic_gap
+                ),
+            });
+        }
+    }
+    out
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -87,6 +139,7 @@ fn jnum(v: f64) -> serde_json::Value {
 }
 
 pub fn build(pairs: &[Pair], loc: &Located, fitted: &Fitted, mut notes: Vec<String>, _opts: &Options) -> Report {
+    let in_model: Vec<&str> = fitted.effects.iter().map(|e| e.name).collect();
     let findings = fitted
         .effects
         .iter()
@@ -100,6 +153,7 @@ pub fn build(pairs: &[Pair], loc: &Located, fitted: &Fitted, mut notes: Vec<Stri
             z: round_sig(e.z, 4),
             stderr: e.stderr.iter().map(|(n, v)| (n.clone(), jnum(*v))).collect(),
             method: e.method.clone(),
+            alternatives: alternatives(e.name, &fitted.selection_tests, &in_model),
         })
         .collect();
     notes.extend(loc.notes.iter().cloned());
@@ -186,6 +240,9 @@ pub fn write(
         md.push('\n');
         for f in &rep.findings {
             md.push_str(&format!("- **{}**: {}\n", f.effect, f.evidence));
+            for a in &f.alternatives {
+                md.push_str(&format!("  - or **{}**: {}\n", a.effect, a.evidence));
+            }
         }
         md.push('\n');
     }
@@ -348,4 +405,48 @@ pub fn write_unpaired(rep: &UnpairedReport, out: &Path, _opts: &Options) -> Resu
     }
     let mp = out.join("report.md");
     std::fs::write(&mp, md).map_err(|e| werr(&mp, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::diagnose::select::Evidence;
+
+    fn ev(effect: &str, round: usize, gap: Option<f64>) -> Evidence {
+        Evidence {
+            effect: effect.into(),
+            label: effect.into(),
+            loss_without: 10.0,
+            loss_with: 9.0,
+            delta: 100.0,
+            design: 1.0,
+            k: 1,
+            z: 8.0,
+            bic: true,
+            material_dn: 2.0,
+            accepted: gap.is_some_and(|g| g <= 0.0),
+            round,
+            gap_to_best: gap,
+            params: None,
+        }
+    }
+
+    #[test]
+    fn alternatives_are_near_equal_passing_rivals_of_the_winning_round_not_in_the_model() {
+        let sel = vec![
+            ev("gamma", 1, Some(0.0)),
+            ev("gain_offset", 1, Some(0.4)),  // BIC gap 0.8: listed
+            ev("vignetting", 1, Some(3.0)),   // BIC gap 6: clearly worse
+            ev("stray_light", 1, None),       // did not pass its tests
+            ev("dark_current", 2, Some(0.1)), // another round
+            ev("defocus", 1, Some(0.2)),      // ends up in the model itself
+        ];
+        let alts = alternatives("gamma", &sel, &["gamma", "defocus"]);
+        let names: Vec<&str> = alts.iter().map(|a| a.effect.as_str()).collect();
+        assert_eq!(names, ["gain_offset"]);
+        assert!((alts[0].bic_gap - 0.8).abs() < 1e-9);
+        assert!(alts[0].evidence.contains("do not tell them apart"));
+        // An effect that never won a round has no alternatives.
+        assert!(alternatives("vignetting", &sel, &["vignetting"]).is_empty());
+    }
 }

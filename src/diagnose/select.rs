@@ -856,6 +856,11 @@ pub struct Evidence {
     pub accepted: bool,
     /// Selection round (0 = the final backward check).
     pub round: usize,
+    /// For a candidate that passed in a forward round: how far its penalised loss drop was
+    /// behind the round's winner, in units of the round's design effect (half a BIC
+    /// difference; 0 for the winner).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gap_to_best: Option<f64>,
     #[serde(skip)]
     pub params: Option<Params>,
 }
@@ -955,6 +960,7 @@ fn evidence(
         material_dn,
         accepted: z >= z_thr && bic && material_dn >= material_threshold(name),
         round,
+        gap_to_best: None,
         params: None,
     }
 }
@@ -1032,6 +1038,7 @@ fn drop_one(
             material_dn: f64::NAN,
             accepted: true,
             round: 0,
+            gap_to_best: None,
             params: Some(steps[j].params),
         });
     }
@@ -1126,10 +1133,12 @@ pub fn select(
             // that fits worse must not win because its residual happens to be less correlated).
             let d_ref = accepted.iter().map(|a| a.0.design).fold(1.0f64, f64::max);
             let ln_n = (current.n.max(2) as f64).ln();
-            let best = accepted.into_iter().max_by(|a, b| {
-                (a.0.delta - 0.5 * a.0.k as f64 * ln_n * d_ref)
-                    .total_cmp(&(b.0.delta - 0.5 * b.0.k as f64 * ln_n * d_ref))
-            });
+            let score = |e: &Evidence| e.delta - 0.5 * e.k as f64 * ln_n * d_ref;
+            let best_score = accepted.iter().map(|a| score(&a.0)).fold(f64::NEG_INFINITY, f64::max);
+            for t in tests.iter_mut().filter(|t| t.round == round && t.accepted) {
+                t.gap_to_best = Some((best_score - score(t)) / d_ref);
+            }
+            let best = accepted.into_iter().max_by(|a, b| score(&a.0).total_cmp(&score(&b.0)));
             let Some((ev, trial)) = best else { break };
             for t in tests.iter_mut().filter(|t| t.round == round) {
                 t.accepted = t.label == ev.label;

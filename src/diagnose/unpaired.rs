@@ -1130,6 +1130,7 @@ pub fn run(
             z: round_sig(f.sig.z, 4),
             stderr: f.sig.stderr.iter().map(|(n, v)| (n.clone(), serde_json::Value::from(round_sig(*v, 4)))).collect(),
             method: f.method.clone(),
+            alternatives: Vec::new(),
         });
     }
     // Most significant first.
