@@ -176,10 +176,7 @@ pub fn candidates(pairs: &[Pair], loc: &Located) -> Vec<Candidate> {
                 out.push(cand("smear", &format!("smear ({dir})"), q, &["strength"]));
             }
         }
-        // Blooming's full well shows only inside saturated regions: without such an interior in
-        // the sim it is untestable, and no number is fitted for it.
-        let blooming_testable = loc.signature("blooming").is_none_or(|s| s.untestable.is_none());
-        if blooming_testable && let Some(mut p) = init("blooming") {
+        if let Some(mut p) = init("blooming") {
             let f = p.get("full_well_fraction");
             set(&mut p, "full_well_fraction", f.clamp(0.5, 0.995));
             out.push(cand("blooming", "blooming", p, &["full_well_fraction", "spread_px"]));

@@ -117,10 +117,6 @@ pub struct Signature {
     #[serde(rename = "where")]
     pub where_: String,
     pub evidence: String,
-    /// Why the data cannot test this effect at all (e.g. blooming without a saturated interior
-    /// in the sim): the effect is then neither a candidate of the model nor given a number.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub untestable: Option<String>,
     #[serde(skip)]
     pub profiles: Vec<Profile>,
 }
@@ -138,7 +134,6 @@ impl Signature {
             size_unit: "",
             where_: String::new(),
             evidence: String::new(),
-            untestable: None,
             profiles: Vec::new(),
         }
     }

@@ -95,9 +95,6 @@ pub struct TestRow {
     #[serde(rename = "where")]
     pub where_: String,
     pub evidence: String,
-    /// Set when the data cannot test the effect (then it gets no number).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub untestable: Option<String>,
 }
 
 impl TestRow {
@@ -111,7 +108,6 @@ impl TestRow {
             size_unit: s.size_unit.to_string(),
             where_: s.where_.clone(),
             evidence: s.evidence.clone(),
-            untestable: s.untestable.clone(),
         }
     }
 }

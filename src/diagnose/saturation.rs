@@ -75,7 +75,6 @@ pub fn blooming(
     }
     if all_r.is_empty() {
         sig.evidence = "no saturated regions with an interior in the sim: blooming cannot be tested".into();
-        sig.untestable = Some("the sim has no saturated region with an interior, where the full well shows".into());
         return sig;
     }
     let rm = stats::median(&all_r);
