@@ -53,7 +53,7 @@ pub struct Args {
     pub timeout_s: Option<f64>,
     /// Output folder: report.json, report.md, frames.jsonl, plots/ (or the shard file).
     #[arg(long, value_name = "DIR")]
-    pub out: PathBuf,
+    pub out: Option<PathBuf>,
     /// Run only shard K of N (1-based K: cells with index % N == K-1) and write
     /// OUT/shard-K-of-N.json; join with `faultcam sweep merge`.
     #[arg(long, value_name = "K/N")]
@@ -139,6 +139,7 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         settings.campaign = None;
     }
     let plan = settings.resolve().map_err(anyhow::Error::msg)?;
+    let Some(out) = args.out.clone() else { bail!("--out DIR is required (the report's folder)") };
     // The source must end: a sweep renders it once per cell.
     if plan.source.starts_with("synth:") {
         let c = faultcam::source::synth::SynthConfig::from_uri(&plan.source)?;
@@ -159,20 +160,20 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         None => (1, 1),
     };
     let plan_json = serde_json::to_value(&plan)?;
-    std::fs::create_dir_all(&args.out)?;
-    let work = args.out.join("work");
+    std::fs::create_dir_all(&out)?;
+    let work = out.join("work");
     let opts = RunOptions { keep: args.keep_work, verbose: true };
     let results = run_cells(&plan, shard, args.jobs, &work, &opts);
     if !args.keep_work {
         let _ = std::fs::remove_dir(&work);
     }
     if args.shard.is_some() {
-        let path = args.out.join(format!("shard-{}-of-{}.json", shard.0, shard.1));
+        let path = out.join(format!("shard-{}-of-{}.json", shard.0, shard.1));
         let f = ShardFile { plan: plan_json, shard: [shard.0, shard.1], cells: results };
         std::fs::write(&path, serde_json::to_vec(&f)?)?;
         eprintln!("faultcam sweep: wrote {} ({} cells)", path.display(), f.cells.len());
         return Ok(0);
     }
-    write_report(&args.out, &plan_json, &results)?;
+    write_report(&out, &plan_json, &results)?;
     Ok(0)
 }

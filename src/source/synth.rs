@@ -557,6 +557,14 @@ impl SynthSource {
     /// Render frame `seq` into `frame` (reusing its buffer).
     pub fn render_into(&mut self, seq: u64, frame: &mut Frame) {
         let pose = self.pose(seq);
+        self.render_pose(seq, &pose, frame);
+    }
+
+    /// Render the scene at an explicit `pose` into `frame` (labelled `seq`): what
+    /// [`SynthSource::render_into`] draws for the frame whose pose this is. Model-based pose
+    /// estimators (the reference SUT) use it to render hypotheses.
+    pub fn render_pose(&mut self, seq: u64, pose: &Pose, frame: &mut Frame) {
+        let pose = *pose;
         let bbox = self.prepare(&pose);
         self.glint_screen(&pose);
         let c = &self.cfg;

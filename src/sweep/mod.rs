@@ -7,7 +7,8 @@
 //! seeded by the cell's seed), writes them as PNG into a folder and runs the batch SUT:
 //! `sh -c 'CMD'` with `{in_dir}` (the images), `{out_file}` (where the SUT writes one pose per
 //! image; without the placeholder its stdout is read) and `{camera}` (a JSON file with the
-//! intrinsics `{"fx","fy","cx","cy"}` when the source knows them) replaced by quoted paths.
+//! intrinsics `{"fx","fy","cx","cy"}` when the source knows them) and `{cell_dir}` (a scratch
+//! folder of the cell) replaced by quoted paths; it runs in faultcam's working directory.
 //! Output lines: JSON `{"file":"frame_000000.png","q":[w,x,y,z],"t":[x,y,z]}` or CSV
 //! `file,qw,qx,qy,qz,x,y,z`, the [`crate::pose`] convention. The SUT runs in its own process
 //! group with a time-out (the whole group is killed); a crash, a time-out or garbage lines are
@@ -124,7 +125,8 @@ fn run_sut(template: &str, dir: &Path, in_dir: &Path, camera: Option<&Path>, tim
     let cmd = template
         .replace("{in_dir}", &shell_quote(in_dir))
         .replace("{out_file}", &shell_quote(&out_file))
-        .replace("{camera}", &cam);
+        .replace("{camera}", &cam)
+        .replace("{cell_dir}", &shell_quote(dir));
     let to_stdout = !template.contains("{out_file}");
     let files =
         std::fs::File::create(&stdout_file).and_then(|o| Ok((o, std::fs::File::create(dir.join("sut.stderr"))?)));
@@ -135,7 +137,6 @@ fn run_sut(template: &str, dir: &Path, in_dir: &Path, camera: Option<&Path>, tim
     let child = std::process::Command::new("sh")
         .arg("-c")
         .arg(&cmd)
-        .current_dir(dir)
         .stdin(std::process::Stdio::null())
         .stdout(so)
         .stderr(se)
