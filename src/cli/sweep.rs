@@ -139,7 +139,6 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         settings.campaign = None;
     }
     let plan = settings.resolve().map_err(anyhow::Error::msg)?;
-    let Some(out) = args.out.clone() else { bail!("--out DIR is required (the report's folder)") };
     // The source must end: a sweep renders it once per cell.
     if plan.source.starts_with("synth:") {
         let c = faultcam::source::synth::SynthConfig::from_uri(&plan.source)?;
@@ -155,6 +154,7 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         println!("{} cells", cells.len());
         return Ok(0);
     }
+    let Some(out) = args.out.clone() else { bail!("--out DIR is required (the report's folder)") };
     let shard = match &args.shard {
         Some(s) => parse_shard(s).map_err(anyhow::Error::msg)?,
         None => (1, 1),
