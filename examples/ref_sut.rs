@@ -11,14 +11,16 @@
 //! renders hypotheses with `faultcam::source::synth`, the same model and lighting) and that the
 //! target is centred on the optical axis, as `synth:` renders it: it estimates attitude and
 //! range (4 degrees of freedom), `t = [0, 0, range]`.
-//! 1. The image is reduced by area averaging to about 160 px wide and box-blurred.
+//! 1. The image's median (the dark level of space) is subtracted; the image is reduced by area
+//!    averaging to about 160 px wide and box-blurred.
 //! 2. Coarse search: yaw and roll every 30°, pitch every 30° in −90..=90 (1008 attitudes); for
 //!    each, the range follows from the silhouette area (area ∝ 1/range²: render at 25 m, count
-//!    pixels above 8 DN, scale), then the hypothesis is rendered at that range and scored by the
+//!    pixels above 8 DN against those of the blurred image, scale), then the hypothesis is rendered at that range and scored by the
 //!    sum of squared differences to the observed image.
 //! 3. The six best hypotheses are refined by Nelder–Mead over (yaw, pitch, roll, ln range) at the
 //!    reduced size, the best of them again at full size (blur radius 1).
-//! An image with no pixel above 8 DN gets no pose. Clean `synth:` frames come out within a
+//!
+//! An image with no blurred pixel 8 DN above its median gets no pose. Clean `synth:` frames come out within a
 //! fraction of a degree and of a per cent of range; faults move the optimum (noise, blur) or
 //! break the silhouette (glare, glitches), which is what a sweep measures.
 
@@ -138,8 +140,8 @@ fn nelder_mead(f: &mut dyn FnMut(&[f64; 4]) -> f64, x0: [f64; 4], step: [f64; 4]
         pts.sort_by(|a, b| a.1.total_cmp(&b.1));
         let mut c = [0.0; 4];
         for p in &pts[..4] {
-            for i in 0..4 {
-                c[i] += p.0[i] / 4.0;
+            for (ci, v) in c.iter_mut().zip(&p.0) {
+                *ci += v / 4.0;
             }
         }
         let worst = pts[4];
@@ -172,19 +174,22 @@ fn nelder_mead(f: &mut dyn FnMut(&[f64; 4]) -> f64, x0: [f64; 4], step: [f64; 4]
 
 /// Largest k <= `w / 120` dividing both sides (1 for small images).
 fn reduction(w: usize, h: usize) -> usize {
-    (1..=(w / 120).max(1)).rev().find(|k| w % k == 0 && h % k == 0).unwrap_or(1)
+    (1..=(w / 120).max(1)).rev().find(|k| w.is_multiple_of(*k) && h.is_multiple_of(*k)).unwrap_or(1)
 }
 
 fn estimate(path: &Path, fov_deg: f64) -> Option<Pose> {
     let img = image::open(path).ok()?.to_luma8();
     let (fw, fh) = (img.width() as usize, img.height() as usize);
-    let full: Vec<f32> = img.as_raw().iter().map(|&v| v as f32).collect();
+    // Background subtraction: most of the frame is space, so its median is the dark level
+    // (offsets, dark current, stray light); the renderer's space is 0.
+    let mut sorted = img.as_raw().clone();
+    sorted.sort_unstable();
+    let bg = sorted[sorted.len() / 2] as f32;
+    let full: Vec<f32> = img.as_raw().iter().map(|&v| v as f32 - bg).collect();
     let k = reduction(fw, fh);
     let mut lo = Level::new(&full, fw, fh, k, fov_deg, 2);
-    let raw_area = {
-        let l = Level::new(&full, fw, fh, k, fov_deg, 0);
-        l.obs.iter().filter(|&&v| v > FG_DN).count()
-    };
+    // Silhouette area on the blurred, reduced image (noise averages out).
+    let raw_area = lo.obs.iter().filter(|&&v| v > FG_DN).count();
     if raw_area == 0 {
         return None;
     }

@@ -191,10 +191,13 @@ fn parse_output(
             Ok(Some(p)) => {
                 if !known.contains_key(&p.file) {
                     sut.unknown_files += 1;
-                } else if poses.contains_key(&p.file) {
-                    sut.duplicates += 1;
                 } else {
-                    poses.insert(p.file, p.pose);
+                    match poses.entry(p.file) {
+                        std::collections::btree_map::Entry::Occupied(_) => sut.duplicates += 1,
+                        std::collections::btree_map::Entry::Vacant(v) => {
+                            v.insert(p.pose);
+                        }
+                    }
                 }
             }
             Err(e) => {

@@ -200,6 +200,9 @@ impl Plan {
     }
 }
 
+/// An `[[effect]]` table: name, swept parameter, values, fixed parameters.
+pub type GridSpec = (String, Option<String>, Option<Vec<f64>>, toml::Table);
+
 /// Settings as read from a config file and the command line, before resolution.
 #[derive(Debug, Clone, Default)]
 pub struct Settings {
@@ -216,7 +219,7 @@ pub struct Settings {
     /// A fault campaign whose effects (and their parameters as the base) are swept.
     pub campaign: Option<String>,
     /// Explicit grids: name, param, values, fixed params (TOML table).
-    pub grids: Vec<(String, Option<String>, Option<Vec<f64>>, toml::Table)>,
+    pub grids: Vec<GridSpec>,
     pub pairs: Vec<(String, String)>,
 }
 

@@ -289,7 +289,7 @@ pub fn build(plan_json: &serde_json::Value, cells: &[CellResult]) -> Result<Repo
 fn f(v: Option<f64>) -> String {
     match v {
         None => "–".into(),
-        Some(x) if x == 0.0 => "0".into(),
+        Some(0.0) => "0".into(),
         Some(x) if x.abs() >= 1000.0 || x.abs() < 1e-3 => format!("{x:.2e}"),
         Some(x) => format!("{x:.3}"),
     }
