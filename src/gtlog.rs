@@ -44,6 +44,14 @@ pub struct FrameRecord<'a> {
     pub pts_ns: u64,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub input: Option<&'a str>,
+    /// Target pose in the camera frame when the source knows it (`synth:`, `files:` with
+    /// `poses=`): `{"q":[w,x,y,z],"t":[x,y,z]}`, q scalar first, rotation target → camera,
+    /// camera x right, y down, z forward, metres (see [`crate::pose`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pose: Option<crate::pose::Pose>,
+    /// Camera intrinsics `{"fx","fy","cx","cy"}` in pixels (OpenCV convention).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub camera: Option<crate::pose::Intrinsics>,
     pub status: FrameStatus,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub dropped_by: Option<&'a str>,
@@ -65,6 +73,8 @@ impl<'a> FrameRecord<'a> {
             seq,
             pts_ns,
             input: None,
+            pose: None,
+            camera: None,
             status: if report.dropped_by.is_some() { FrameStatus::DroppedByFault } else { FrameStatus::Delivered },
             dropped_by: report.dropped_by,
             effects: &report.applied,

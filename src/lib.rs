@@ -16,10 +16,12 @@ pub mod limits;
 pub mod masks;
 pub mod metrics;
 pub mod pipeline;
+pub mod pose;
 pub mod rng;
 pub mod schedule;
 pub mod sink;
 pub mod source;
+pub mod sweep;
 pub mod trigger;
 
 pub use config::FaultConfig;

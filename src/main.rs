@@ -34,6 +34,8 @@ enum Command {
     Eval(cli::eval::Args),
     /// Find the physics a simulation left out, fit it, and report the improvement.
     Diagnose(cli::diagnose::Args),
+    /// Robustness sweeps: a pose stack under test against every fault and severity.
+    Sweep(cli::sweep::Args),
     /// Ground-truth logs: `log check FILE` validates one (truncation, summary, accounting).
     Log(cli::log::Args),
 }
@@ -55,6 +57,7 @@ fn main() -> std::process::ExitCode {
         Command::Eval(a) => cli::eval::run(a),
         Command::Diagnose(a) => cli::diagnose::run(a),
         Command::Log(a) => cli::log::run(a),
+        Command::Sweep(a) => cli::sweep::run(a),
     };
     match result {
         Ok(code) => std::process::ExitCode::from(code),

@@ -7,3 +7,4 @@ pub mod effects;
 pub mod eval;
 pub mod log;
 pub mod run;
+pub mod sweep;

@@ -234,6 +234,8 @@ struct Slot {
     report: FrameReport,
     item: String,
     has_item: bool,
+    /// Pose truth and camera the source reported for the frame.
+    truth: crate::pose::Truth,
     capture_ns: u64,
     /// Stream time handed to controllers.
     t_ns: u64,
@@ -279,6 +281,7 @@ impl Slot {
             report: FrameReport::default(),
             item: String::new(),
             has_item: false,
+            truth: crate::pose::Truth::default(),
             capture_ns: 0,
             t_ns: 0,
             state: SlotState::Pending,
@@ -298,6 +301,7 @@ impl Slot {
         self.report.clear();
         self.item.clear();
         self.has_item = false;
+        self.truth = crate::pose::Truth::default();
         self.state = SlotState::Pending;
         self.reason = None;
         self.error = None;
@@ -320,7 +324,7 @@ enum Msg {
 
 /// Source thread → sink thread (outside the frame queues, so a full pipeline can still log).
 enum Note {
-    Dropped { seq: u64, pts_ns: u64, capture_ns: u64, item: Option<String> },
+    Dropped { seq: u64, pts_ns: u64, capture_ns: u64, item: Option<String>, truth: crate::pose::Truth },
     Skip { item: String, reason: String },
 }
 
@@ -525,6 +529,7 @@ fn source_loop(
             slot.item.push_str(name);
             slot.has_item = true;
         }
+        slot.truth = source.truth();
         slot.frame = frame;
         slot.capture_ns = capture_ns;
         slot.t_ns = t_ns;
@@ -540,6 +545,7 @@ fn source_loop(
                         pts_ns: s.frame.pts_ns,
                         capture_ns,
                         item: s.has_item.then(|| s.item.clone()),
+                        truth: s.truth,
                     };
                     if note_tx.send(note).is_ok() {
                         sh.frames_in.fetch_add(1, Ordering::Relaxed);
@@ -861,6 +867,8 @@ impl SinkStage<'_> {
             seq: slot.frame.seq,
             pts_ns: slot.frame.pts_ns,
             input: slot.has_item.then_some(slot.item.as_str()),
+            pose: slot.truth.pose,
+            camera: slot.truth.camera,
             status,
             dropped_by: slot.report.dropped_by,
             effects: if status == FrameStatus::DroppedOverrun { &[] } else { &slot.report.applied },
@@ -961,12 +969,14 @@ impl SinkStage<'_> {
 
     fn note(&mut self, n: Note) {
         match n {
-            Note::Dropped { seq, pts_ns, capture_ns, item } => {
+            Note::Dropped { seq, pts_ns, capture_ns, item, truth } => {
                 let timing = self.timing(capture_ns, self.sh.now_ns(), 0, Some("drop"));
                 let rec = FrameRecord {
                     seq,
                     pts_ns,
                     input: item.as_deref(),
+                    pose: truth.pose,
+                    camera: truth.camera,
                     status: FrameStatus::DroppedOverrun,
                     dropped_by: None,
                     effects: &[],

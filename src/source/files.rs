@@ -1,6 +1,6 @@
 //! `files:` source: a folder of images replayed in file-name order.
 //!
-//! URI: `files:DIR[?loop=true&fps=30&timestamps=FILE&shard=K/N]`.
+//! URI: `files:DIR[?loop=true&fps=30&timestamps=FILE&shard=K/N&poses=FILE&fx=..&fy=..&cx=..&cy=..]`.
 //!
 //! - Formats: PNG (8 and 16 bit), JPEG, PGM/PPM/PNM/PAM, TIFF (by content; the extension only
 //!   decides what is listed as an image).
@@ -20,6 +20,12 @@
 //!   <pts_ns>` lines (`#` comments allowed) and uses the recorded times instead; pacing in
 //!   real time is the pipeline's job. `loop=true` restarts at the end (for timed replay).
 //! - `shard=K/N` (0-based K) yields only the files whose index mod N == K.
+//! - `poses=FILE` (JSON Lines `{"file":..,"q":[w,x,y,z],"t":[x,y,z]}` or SPEED+-style CSV
+//!   `filename,qw,qx,qy,qz,x,y,z`, see [`crate::pose`] for the convention) gives each file's
+//!   target pose, carried into the ground-truth log; files without a line have no pose. A JSON
+//!   line may carry `"camera":{"fx":..,"fy":..,"cx":..,"cy":..}`; `fx,fy,cx,cy` options (all
+//!   four, pixels) give the camera of every file. A relative path is tried as given, then
+//!   inside DIR; a poses file inside DIR is not an input.
 //! - A header claiming a size over [`crate::limits::ImageLimits`] (default 16384 x 16384,
 //!   1024 MB decoded) is a [`SourceError::BadInput`] found before any allocation.
 
@@ -266,6 +272,8 @@ pub struct FilesSource {
     current: Option<usize>,
     pool: Vec<Frame>,
     scratch: Vec<u8>,
+    /// Truth per item (`poses=FILE` and the camera options), by index into `items`.
+    truths: Vec<crate::pose::Truth>,
 }
 
 impl FilesSource {
@@ -284,6 +292,19 @@ impl FilesSource {
         let fps = o.num("fps", 1e-3, 1e6).map_err(bad_uri)?.unwrap_or(30.0);
         let ts_path = o.raw("timestamps");
         let shard = o.raw("shard").map(|s| parse_shard(&s)).transpose().map_err(bad_uri)?;
+        let poses_path = o.raw("poses");
+        let mut k = [0.0; 4];
+        let mut given = 0;
+        for (v, key) in k.iter_mut().zip(["fx", "fy", "cx", "cy"]) {
+            if let Some(x) = o.num(key, -1e9, 1e9).map_err(bad_uri)? {
+                *v = x;
+                given += 1;
+            }
+        }
+        if given != 0 && given != 4 {
+            return Err(bad_uri("give all four of fx, fy, cx, cy (pixels) or none".into()));
+        }
+        let camera = (given == 4).then_some(crate::pose::Intrinsics { fx: k[0], fy: k[1], cx: k[2], cy: k[3] });
         o.finish().map_err(bad_uri)?;
 
         let mut items = list(&dir)?;
@@ -291,8 +312,12 @@ impl FilesSource {
             let p = PathBuf::from(p);
             if p.exists() { p } else { dir.join(p) }
         });
-        if let Some(tp) = &ts_path {
-            // The timestamps file may live in the folder: it is not an input.
+        let poses_path = poses_path.map(|p| {
+            let p = PathBuf::from(p);
+            if p.exists() { p } else { dir.join(p) }
+        });
+        for tp in ts_path.iter().chain(poses_path.iter()) {
+            // The timestamps and poses files may live in the folder: they are not inputs.
             let canon = std::fs::canonicalize(tp).ok();
             items.retain(|i| std::fs::canonicalize(&i.path).ok() != canon);
         }
@@ -304,8 +329,17 @@ impl FilesSource {
             Some((k, n)) => (0..items.len()).filter(|i| *i as u64 % n == k).collect(),
             None => (0..items.len()).collect(),
         };
+        let poses = poses_path.map(|p| crate::pose::read_poses(&p)).transpose().map_err(bad_uri)?;
+        let truths = items
+            .iter()
+            .map(|it| {
+                let line = poses.as_ref().and_then(|m| m.get(&it.name));
+                crate::pose::Truth { pose: line.map(|l| l.pose), camera: line.and_then(|l| l.camera).or(camera) }
+            })
+            .collect();
         let reference = reference_shape(&items);
         Ok(FilesSource {
+            truths,
             dir,
             items,
             order,
@@ -402,6 +436,10 @@ impl Source for FilesSource {
 
     fn item_name(&self) -> Option<&str> {
         self.current.map(|i| self.items[i].name.as_str())
+    }
+
+    fn truth(&self) -> crate::pose::Truth {
+        self.current.map(|i| self.truths[i]).unwrap_or_default()
     }
 
     fn recycle(&mut self, frame: Frame) {

@@ -45,6 +45,11 @@ pub trait Source: Send {
     fn item_name(&self) -> Option<&str> {
         None
     }
+    /// Pose truth and camera intrinsics of the last frame, when the source knows them
+    /// (`synth:` always, `files:` with `poses=FILE`). Convention: [`crate::pose`].
+    fn truth(&self) -> crate::pose::Truth {
+        crate::pose::Truth::default()
+    }
     /// Give a frame back so its buffer can be reused (frame pool). Default: drop it.
     fn recycle(&mut self, _frame: Frame) {}
 }

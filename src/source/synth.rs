@@ -522,6 +522,25 @@ impl SynthSource {
         self.cfg.width as f64 / 2.0 / (self.cfg.fov_deg.to_radians() / 2.0).tan()
     }
 
+    /// Camera intrinsics (OpenCV convention, see [`crate::pose`]): square pixels, principal
+    /// point at the image centre.
+    pub fn intrinsics(&self) -> crate::pose::Intrinsics {
+        let f = self.focal_px();
+        crate::pose::Intrinsics {
+            fx: f,
+            fy: f,
+            cx: self.cfg.width as f64 / 2.0 - 0.5,
+            cy: self.cfg.height as f64 / 2.0 - 0.5,
+        }
+    }
+
+    /// Pose truth of frame `seq` in the [`crate::pose`] convention: `q` of `R = Rz(roll) ·
+    /// Rx(pitch) · Ry(yaw)` (body → camera, scalar first), `t = [0, 0, distance_m]`.
+    pub fn pose_truth(&self, seq: u64) -> crate::pose::Pose {
+        let p = self.pose(seq);
+        crate::pose::Pose { q: crate::pose::quat_from_matrix(&p.rotation()), t: [0.0, 0.0, p.distance_m] }
+    }
+
     /// Pixel position of a body-frame point at `pose` (None when behind the camera).
     pub fn project(&self, pose: &Pose, p: V3) -> Option<(f64, f64)> {
         let q = add(mul_mv(&pose.rotation(), p), [0.0, 0.0, pose.distance_m]);
@@ -538,6 +557,14 @@ impl SynthSource {
     /// Render frame `seq` into `frame` (reusing its buffer).
     pub fn render_into(&mut self, seq: u64, frame: &mut Frame) {
         let pose = self.pose(seq);
+        self.render_pose(seq, &pose, frame);
+    }
+
+    /// Render the scene at an explicit `pose` into `frame` (labelled `seq`): what
+    /// [`SynthSource::render_into`] draws for the frame whose pose this is. Model-based pose
+    /// estimators (the reference SUT) use it to render hypotheses.
+    pub fn render_pose(&mut self, seq: u64, pose: &Pose, frame: &mut Frame) {
+        let pose = *pose;
         let bbox = self.prepare(&pose);
         self.glint_screen(&pose);
         let c = &self.cfg;
@@ -858,6 +885,13 @@ impl Source for SynthSource {
         Ok(Some(frame))
     }
 
+    fn truth(&self) -> crate::pose::Truth {
+        match self.seq.checked_sub(1) {
+            Some(last) => crate::pose::Truth { pose: Some(self.pose_truth(last)), camera: Some(self.intrinsics()) },
+            None => crate::pose::Truth::default(),
+        }
+    }
+
     fn recycle(&mut self, frame: Frame) {
         if self.pool.len() < POOL_SIZE {
             self.pool.push(frame);
@@ -884,6 +918,25 @@ mod tests {
         let s = SynthSource::open("synth:?width=32&height=32&fps=10&spin_dps=5&yaw=0").unwrap();
         assert_eq!(s.pose(0).yaw_deg, 0.0);
         assert!((s.pose(20).yaw_deg - 10.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn pose_truth_reprojects_the_glints() {
+        // The logged q, t and intrinsics reproduce the renderer's projection of the model.
+        let mut s = SynthSource::open("synth:?width=160&height=120&frames=3&spin_dps=40&fps=2").unwrap();
+        for seq in 0..3 {
+            s.next_frame().unwrap().unwrap();
+            let truth = s.truth();
+            let (pose, k) = (truth.pose.unwrap(), truth.camera.unwrap());
+            let r = crate::pose::matrix_from_quat(pose.q);
+            for g in s.glint_points().to_vec() {
+                let c = add(mul_mv(&r, g), pose.t);
+                let (u, v) = (k.fx * c[0] / c[2] + k.cx, k.fy * c[1] / c[2] + k.cy);
+                let (pu, pv) = s.project(&s.pose(seq), g).unwrap();
+                // project() is in corner-origin coordinates (pixel centres at +0.5).
+                assert!((u + 0.5 - pu).abs() < 1e-9 && (v + 0.5 - pv).abs() < 1e-9, "{seq}: {u},{v} vs {pu},{pv}");
+            }
+        }
     }
 
     #[test]
