@@ -26,6 +26,14 @@
 //!   ffmpeg's v4l2 output does) from one buffer allocated once per stream.
 //! * Either way a frame is handed to readers when `write_frame` returns: no extra frame of
 //!   queueing inside faultcam, and no allocation per frame.
+//! * v4l2loopback (0.12.7, Debian 12) quirks worked around: with `io=mmap` the buffers are
+//!   filled in turn instead of in the order output `VIDIOC_DQBUF` returns them (it returns the
+//!   buffer queued last, so every frame would go into one buffer and GStreamer's `v4l2src`
+//!   fails with "buffer N was not queued"); with `io=write` the sink also calls
+//!   `VIDIOC_STREAMON`, without which the device is left neither output nor capture after the
+//!   writer closes. The reader-side quirks (a reader's `VIDIOC_REQBUFS` restamps every buffer,
+//!   so the first buffer a late reader gets carries its start time) are in
+//!   `hil/v4l2loopback.md`.
 
 use super::{Sink, SinkError};
 use crate::frame::{Frame, FrameData, PixelFormat};
@@ -61,6 +69,8 @@ struct MmapOut {
     bufs: Vec<Mapped>,
     /// Buffers `0..fresh` have been queued at least once; the others are free to fill.
     fresh: usize,
+    /// v4l2loopback: fill the buffers in turn (see `acquire`); the next one to fill.
+    in_turn: Option<usize>,
     streaming: bool,
     /// Added to `pts_ns` to get a `CLOCK_MONOTONIC` timestamp; set on the first frame.
     ts_offset: Option<i128>,
@@ -90,7 +100,7 @@ fn v4l2_buffer(index: u32) -> v4l::v4l_sys::v4l2_buffer {
 
 impl MmapOut {
     /// Request `count` buffers and map them.
-    fn new(device: &Device, count: u32) -> std::io::Result<MmapOut> {
+    fn new(device: &Device, count: u32, in_turn: bool) -> std::io::Result<MmapOut> {
         let handle = device.handle();
         let fd = handle.fd();
         // SAFETY: all-zero is a valid v4l2_requestbuffers.
@@ -109,6 +119,7 @@ impl MmapOut {
             handle,
             bufs: Vec::with_capacity(req.count as usize),
             fresh: 0,
+            in_turn: in_turn.then_some(0),
             streaming: false,
             ts_offset: None,
         };
@@ -133,6 +144,14 @@ impl MmapOut {
     }
 
     /// A buffer the application may fill: a never-queued one, else one the driver gives back.
+    ///
+    /// v4l2loopback (0.12.7) answers an output `VIDIOC_DQBUF` with the buffer queued *last*, so a
+    /// writer that fills what it gets back writes every frame into one buffer: the one readers
+    /// were just handed (torn frames), and a reader's `VIDIOC_DQBUF` returns that same index
+    /// again and again — GStreamer's v4l2src stops with "buffer N was not queued, this indicate
+    /// a driver bug" / "Failed to allocate a buffer". For v4l2loopback the buffer is still
+    /// dequeued (the protocol), but the buffers are filled in turn, as its own `write(2)` path
+    /// does (it hands no buffer to anyone: a queued output buffer is consumed at once).
     fn acquire(&mut self, timeout_ms: i32) -> std::io::Result<usize> {
         if self.fresh < self.bufs.len() {
             self.fresh += 1;
@@ -153,6 +172,11 @@ impl MmapOut {
         let i = b.index as usize;
         if i >= self.bufs.len() {
             return Err(std::io::Error::other(format!("the driver returned buffer {i} of {}", self.bufs.len())));
+        }
+        if let Some(next) = self.in_turn.as_mut() {
+            let i = *next;
+            *next = (i + 1) % self.bufs.len();
+            return Ok(i);
         }
         Ok(i)
     }
@@ -230,6 +254,8 @@ pub struct V4l2Sink {
     want: Option<[u8; 4]>,
     fps: Option<u64>,
     io: Io,
+    /// The driver is v4l2loopback (its quirks are worked around, see `MmapOut::acquire`).
+    loopback: bool,
     buffers: u32,
     timeout_ms: i32,
     shape: Option<(u32, u32, PixelFormat)>,
@@ -344,6 +370,7 @@ impl V4l2Sink {
             want,
             fps,
             io,
+            loopback: caps.driver == "v4l2 loopback",
             buffers,
             timeout_ms,
             shape: None,
@@ -413,7 +440,7 @@ impl V4l2Sink {
         self.frame_bytes = (got.size as usize).max(self.bytesperline * frame.height as usize);
         let io = match self.io {
             Io::Mmap => {
-                let m = MmapOut::new(&self.device, self.buffers).map_err(|e| {
+                let m = MmapOut::new(&self.device, self.buffers, self.loopback).map_err(|e| {
                     self.failed(format!(
                         "{}: cannot map {} output buffers: {e} (try io=write)",
                         self.path, self.buffers
@@ -431,6 +458,21 @@ impl V4l2Sink {
             }
             Io::Write => {
                 self.buf = vec![0; self.frame_bytes];
+                if self.loopback {
+                    // v4l2loopback 0.12.7 takes an opener for its writer only on
+                    // VIDIOC_STREAMON; a write(2)-only writer leaves the device, once closed,
+                    // neither an output nor a capture device until the module is reloaded.
+                    let mut typ = v4l::buffer::Type::VideoOutput as u32;
+                    // SAFETY: VIDIOC_STREAMON reads the buffer type it is given. An error is
+                    // harmless here (write(2) works without it).
+                    let _ = unsafe {
+                        v4l::v4l2::ioctl(
+                            self.device.handle().fd(),
+                            v4l::v4l2::vidioc::VIDIOC_STREAMON,
+                            &mut typ as *mut _ as *mut std::ffi::c_void,
+                        )
+                    };
+                }
                 "write".to_string()
             }
         };

@@ -16,7 +16,9 @@
 //! * Rows are read with the driver's `bytesperline` (padding is dropped). `pts_ns` is the
 //!   driver timestamp; `seq` counts from the first buffer's sequence number, so frames the
 //!   driver dropped leave a gap and are reported one by one as recoverable errors (logged as
-//!   `skip` records), as are buffers flagged `ERROR` or shorter than a frame.
+//!   `skip` records), as are buffers flagged `ERROR` or shorter than a frame. A driver whose
+//!   sequence numbers do not advance (v4l2loopback 0.12.7 leaves them at 0 when the writer uses
+//!   streaming I/O) gets consecutive numbers instead (no gaps can be seen then).
 //! * No buffer within `timeout_ms` ends the stream with an error naming the device.
 
 use super::{Source, SourceError, UriOptions, split_uri};
@@ -124,6 +126,8 @@ pub struct V4l2Source {
     chosen: String,
     pool: FramePool,
     first_seq: Option<u32>,
+    /// The last buffer's driver sequence number, relative to the first.
+    last_raw: Option<u64>,
     next: u64,
     gaps: VecDeque<u64>,
     ready: Option<Frame>,
@@ -253,6 +257,7 @@ impl V4l2Source {
             chosen,
             pool: FramePool::new(8),
             first_seq: None,
+            last_raw: None,
             next: 0,
             gaps: VecDeque::new(),
             ready: None,
@@ -306,7 +311,12 @@ impl Source for V4l2Source {
             }
         };
         let first = *self.first_seq.get_or_insert(meta.sequence);
-        let seq = meta.sequence.wrapping_sub(first) as u64;
+        // A driver whose sequence numbers do not advance (v4l2loopback 0.12 leaves them at 0 for
+        // a streaming-I/O writer) gets consecutive numbers: without them every frame would be
+        // frame 0 (a `files:` sink then writes one file, over and over).
+        let raw = meta.sequence.wrapping_sub(first) as u64;
+        let seq = if self.last_raw.is_some_and(|l| raw <= l) { self.next } else { raw.max(self.next) };
+        self.last_raw = Some(raw);
         let pts_ns = meta.timestamp.sec.max(0) as u64 * 1_000_000_000 + meta.timestamp.usec.max(0) as u64 * 1000;
         let need = self.bytesperline * (h as usize - 1) + w as usize * self.layout.bytes_per_pixel();
         let used = if meta.bytesused == 0 { buf.len() } else { (meta.bytesused as usize).min(buf.len()) };
