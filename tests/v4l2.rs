@@ -339,9 +339,9 @@ fn wait_capturable(dev: &str, within: Duration) {
 }
 
 /// `gst-launch-1.0 -v v4l2src ... ! CAPS [! EXTRA] ! identity silent=false ! filesink`.
-fn gst_reader(dev: &str, caps: &str, buffers: usize, extra: &str, out: &Path) -> Child {
-    // GStreamer builds its plugin registry on first use (seconds under TCG); not inside a reader
-    // that has to keep up with a stream.
+/// GStreamer builds and checks its plugin registry on first use (seconds under TCG): done once,
+/// before a test starts a writer whose stream a reader has to catch.
+fn gst_warm() {
     static WARM: std::sync::Once = std::sync::Once::new();
     WARM.call_once(|| {
         let t = Instant::now();
@@ -353,6 +353,10 @@ fn gst_reader(dev: &str, caps: &str, buffers: usize, extra: &str, out: &Path) ->
         assert!(o.status.success(), "gst-inspect-1.0 v4l2src (apt install gstreamer1.0-plugins-good)");
         eprintln!("gst-inspect-1.0 v4l2src: {:?}", t.elapsed());
     });
+}
+
+fn gst_reader(dev: &str, caps: &str, buffers: usize, extra: &str, out: &Path) -> Child {
+    gst_warm();
     let mut pipeline = format!("v4l2src device={dev} num-buffers={buffers} ! {caps}");
     if !extra.is_empty() {
         pipeline += &format!(" ! {extra}");
@@ -386,7 +390,7 @@ struct GstRead {
 fn gst_finish(child: Child, out: &Path, within: Duration, what: &str) -> GstRead {
     let o = finish_within(child, within, &format!("gst-launch-1.0 v4l2src ({what})"));
     let text = String::from_utf8_lossy(&o.stdout).to_string();
-    assert!(o.status.success(), "gst-launch-1.0 failed: {text}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success(), "gst-launch-1.0 ({what}) failed: {text}\n{}", String::from_utf8_lossy(&o.stderr));
     let caps =
         text.lines().find(|l| l.contains("GstIdentity") && l.contains("caps = video/x-raw")).unwrap_or("").to_string();
     let pts_ns = text
@@ -486,6 +490,7 @@ fn gst_v4l2src_reads_exactly_what_the_files_sink_writes() {
     let Some((dev, _turn)) = device("gst_v4l2src_reads_exactly_what_the_files_sink_writes", SLOT_GST) else {
         return;
     };
+    gst_warm();
     let dir = tempfile::tempdir().unwrap();
     let cfg = dir.path().join("f.toml");
     std::fs::write(&cfg, FAULTS).unwrap();
@@ -509,8 +514,14 @@ fn gst_v4l2src_reads_exactly_what_the_files_sink_writes() {
         let raw = dir.path().join(format!("{fourcc}.raw"));
         let want = 20;
         let reader = gst_reader(&dev, &format!("video/x-raw,format={gst_format},width=64,height=48"), want, "", &raw);
-        let got = gst_finish(reader, &raw, Duration::from_secs(60), fourcc);
+        let got = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            gst_finish(reader, &raw, Duration::from_secs(60), fourcc)
+        }));
         let w = finish_within(writer, Duration::from_secs(60), &format!("faultcam run into {dev} ({fourcc})"));
+        let got = got.unwrap_or_else(|e| {
+            eprintln!("{fourcc}: the writer: {}", String::from_utf8_lossy(&w.stderr));
+            std::panic::resume_unwind(e)
+        });
         let refs = reference(reference_run, frames, fourcc);
         let err = String::from_utf8_lossy(&w.stderr);
         assert!(w.status.success(), "{fourcc}: {err}");
@@ -582,19 +593,25 @@ fn driver_timestamps_are_monotone_and_follow_the_frame_pts() {
     }
 }
 
-/// A reader that starts late, a slow reader and a reader that closes mid-stream: the writer never
-/// waits for readers, its summary accounts for every frame, and what the readers get are written
-/// frames in order. The writer streams for 10 s (300 frames at 30 fps), long enough for every
-/// reader to get its buffers however slowly it starts.
+/// A reader that closes mid-stream, a slow reader and a reader that starts late, one after the
+/// other on one stream: the writer never waits for readers, its summary accounts for every
+/// frame, and what the readers get are written frames in order. The writer streams for 15 s
+/// (450 frames at 30 fps), long enough for the three readers however slowly they start.
+///
+/// One reader at a time: v4l2loopback 0.12.7 resets the flags of every buffer on any
+/// VIDIOC_REQBUFS (a reader starting, or one stopping and freeing its buffers), after which
+/// another streaming reader's next VIDIOC_DQBUF fails with EINVAL ("not mapped"; GStreamer:
+/// "failed dequeuing a mmap buffer: Invalid argument"). The writer is not affected.
 #[test]
 fn late_slow_and_closing_readers_do_not_disturb_the_writer() {
     let Some((dev, _turn)) = device("late_slow_and_closing_readers_do_not_disturb_the_writer", SLOT_READERS) else {
         return;
     };
+    gst_warm();
     let dir = tempfile::tempdir().unwrap();
     let cfg = dir.path().join("f.toml");
     std::fs::write(&cfg, FAULTS).unwrap();
-    let frames = 300usize;
+    let frames = 450usize;
     let source = format!("synth:?width=64&height=48&frames={frames}&seed=3");
     let reference_run = reference_start(&source, "GREY", dir.path(), &cfg);
     let log = dir.path().join("w.jsonl");
@@ -609,36 +626,45 @@ fn late_slow_and_closing_readers_do_not_disturb_the_writer() {
         .unwrap();
     wait_capturable(&dev, Duration::from_secs(20));
     let caps = "video/x-raw,format=GRAY8,width=64,height=48";
+    let within = Duration::from_secs(60);
+    let read = |name: &str, buffers: usize, extra: &str| {
+        let out = dir.path().join(format!("{}.raw", name.replace(' ', "-")));
+        let r = gst_reader(&dev, caps, buffers, extra, &out);
+        (gst_finish(r, &out, within, name).bytes, t.elapsed())
+    };
+    // Closing mid-stream: 5 buffers, then gst-launch exits while the writer goes on.
+    let (short, t_short) = read("closing reader", 5, "");
     // Slow: 150 ms per buffer against 33 ms frames (v4l2loopback hands a reader that fell behind
     // the newest frame; what it did not take is gone for that reader).
-    let slow_out = dir.path().join("slow.raw");
-    let slow = gst_reader(&dev, caps, 8, "identity sleep-time=150000", &slow_out);
-    // Closing mid-stream: 5 buffers, then gst-launch exits while the writer goes on.
-    let short_out = dir.path().join("short.raw");
-    let short = gst_reader(&dev, caps, 5, "", &short_out);
-    // Late: starts two seconds (~60 frames) into the stream.
-    std::thread::sleep(Duration::from_millis(2000));
-    let late_out = dir.path().join("late.raw");
-    let late = gst_reader(&dev, caps, 10, "", &late_out);
-    let within = Duration::from_secs(60);
-    let short = gst_finish(short, &short_out, within, "closing reader").bytes;
-    let late = gst_finish(late, &late_out, within, "late reader").bytes;
-    let slow = gst_finish(slow, &slow_out, within, "slow reader").bytes;
+    let (slow, t_slow) = read("slow reader", 8, "identity sleep-time=150000");
+    // Late: starts at least two seconds (~60 frames) into the stream.
+    if let Some(wait) = Duration::from_secs(2).checked_sub(t.elapsed()) {
+        std::thread::sleep(wait);
+    }
+    let t_late_start = t.elapsed();
+    let (late, t_late) = read("late reader", 10, "");
     let w = finish_within(writer, within, &format!("faultcam run into {dev}"));
     let wall = t.elapsed();
     let refs = reference(reference_run, frames, "GREY");
     let short = match_frames(&short, &refs, "closing reader");
-    let late = match_frames(&late, &refs, "late reader");
     let slow = match_frames(&slow, &refs, "slow reader");
+    let late = match_frames(&late, &refs, "late reader");
     assert!(w.status.success(), "{}", String::from_utf8_lossy(&w.stderr));
     let s = last_json(&log);
     assert_accounted(&s, frames as u64, "writer");
     assert_eq!(s["delivered"].as_u64(), Some(frames as u64), "{s}");
-    assert_eq!((short.len(), late.len(), slow.len()), (5, 10, 8));
-    assert!(late[0] >= 30, "the late reader started ~2 s (60 frames) in, got frame {}", late[0]);
+    assert_eq!((short.len(), slow.len(), late.len()), (5, 8, 10));
+    assert!(
+        t_late < wall && late[0] > slow[7] && late[0] >= 30,
+        "the late reader started {t_late_start:?} into the stream (~30 frames/s), got frame {}",
+        late[0]
+    );
     let slow_gaps = slow.windows(2).filter(|w| w[1] > w[0] + 1).count();
     assert!(slow_gaps > 0, "a reader at ~7 fps cannot see every frame of 30 fps: {slow:?}");
-    eprintln!("closing {short:?}\nlate {late:?}\nslow {slow:?}\nwriter: {frames} frames in {wall:?}");
+    eprintln!(
+        "closing {short:?} (done {t_short:?})\nslow {slow:?} (done {t_slow:?})\nlate {late:?} (from {t_late_start:?} to \
+         {t_late:?})\nwriter: {frames} frames in {wall:?}"
+    );
 }
 
 /// `modprobe -r v4l2loopback` while faultcam streams into the device. Whether the kernel lets
