@@ -317,6 +317,18 @@ fn last_json(log: &Path) -> serde_json::Value {
     serde_json::from_str(text.lines().last().unwrap()).unwrap()
 }
 
+/// Stops a `faultcam run` cleanly (SIGINT: the frames in flight are finished and the summary is
+/// written) and waits for it.
+fn stop_run(child: Child, what: &str) -> Output {
+    let k = Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
+    assert!(k.success(), "kill -INT {what}");
+    finish_within(child, Duration::from_secs(60), what)
+}
+
+/// A writer that runs until stopped: long enough for a reader that starts slowly (gst-launch
+/// takes seconds to come up under TCG), then stopped by `stop_run`.
+const ENDLESS: usize = 100_000;
+
 /// The summary must account for every input frame.
 fn assert_accounted(s: &serde_json::Value, frames: u64, ctx: &str) {
     assert_eq!(s["frames_in"].as_u64(), Some(frames), "{ctx}: {s}");
@@ -410,26 +422,22 @@ fn gst_finish(child: Child, out: &Path, within: Duration, what: &str) -> GstRead
     GstRead { bytes: std::fs::read(out).unwrap(), pts_ns, caps }
 }
 
-/// Reference frames: the same source and faults into `files:` (PGM/PPM), in the V4L2 layout of
-/// `fourcc` (GREY, Y16 little-endian, RGB3, YUYV converted as the sink does). Started next to
-/// the run under test (same command line but the sink; `--fps` paces it), read by `reference`.
-fn reference_start(source: &str, fourcc: &str, dir: &Path, cfg: &Path) -> (Child, PathBuf) {
+/// Reference frames: the first `frames` frames of the same source and faults into `files:`
+/// (PGM/PPM), in the V4L2 layout of `fourcc` (GREY, Y16 little-endian, RGB3, YUYV converted as
+/// the sink does). Not paced (`--fps` releases frames in time; it changes no byte).
+fn reference(source: &str, frames: usize, fourcc: &str, dir: &Path, cfg: &Path) -> Vec<Vec<u8>> {
     let out = dir.join(format!("ref-{}", fourcc.trim()));
-    let child =
-        faultcam(&["--source", source, "--fps", "30", "--sink", &format!("files:{}?format=pgm", out.display())])
+    let o = output_within(
+        faultcam(&["--source", source, "--frames", &frames.to_string()])
+            .arg("--sink")
+            .arg(format!("files:{}?format=pgm", out.display()))
             .arg("--faults")
             .arg(cfg)
             .arg("--log")
-            .arg(dir.join(format!("ref-{}.jsonl", fourcc.trim())))
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
-    (child, out)
-}
-
-fn reference((child, out): (Child, PathBuf), frames: usize, fourcc: &str) -> Vec<Vec<u8>> {
-    let o = finish_within(child, Duration::from_secs(120), "faultcam run into files: (reference)");
+            .arg(dir.join(format!("ref-{}.jsonl", fourcc.trim()))),
+        Duration::from_secs(300),
+        "faultcam run into files: (reference)",
+    );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let mut names: Vec<PathBuf> = std::fs::read_dir(&out).unwrap().map(|e| e.unwrap().path()).collect();
     names.sort();
@@ -481,10 +489,10 @@ fn match_frames(bytes: &[u8], refs: &[Vec<u8>], ctx: &str) -> Vec<usize> {
 /// order, pts monotone; the writer's summary accounts for every frame.
 ///
 /// The reader can only open the device once the writer has set its format (`exclusive_caps=1`),
-/// so the writer streams for 8 s (240 frames at 30 fps) and the reader takes 20 of them from
-/// wherever it joins: a reader that starts slowly (seconds under TCG) still gets its buffers
-/// before the stream ends. (With a 45-frame stream, a reader that came up after the writer had
-/// finished waited for ever: v4l2src has no timeout.)
+/// so the writer streams until the reader has taken its 20 buffers, from wherever it joined,
+/// and is then stopped (SIGINT); its summary accounts for every frame it read. (With a fixed
+/// 45-frame stream, a reader that came up after the writer had finished waited for ever:
+/// v4l2src has no timeout; with 240 frames, gst-launch sometimes came up after the end.)
 #[test]
 fn gst_v4l2src_reads_exactly_what_the_files_sink_writes() {
     let Some((dev, _turn)) = device("gst_v4l2src_reads_exactly_what_the_files_sink_writes", SLOT_GST) else {
@@ -494,13 +502,11 @@ fn gst_v4l2src_reads_exactly_what_the_files_sink_writes() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = dir.path().join("f.toml");
     std::fs::write(&cfg, FAULTS).unwrap();
-    let frames = 240usize;
     for (synth_format, fourcc, gst_format) in
         [("mono8", "GREY", "GRAY8"), ("mono16", "Y16", "GRAY16_LE"), ("rgb8", "RGB3", "RGB"), ("rgb8", "YUYV", "YUY2")]
     {
         let t = Instant::now();
-        let source = format!("synth:?width=64&height=48&frames={frames}&format={synth_format}&seed=7");
-        let reference_run = reference_start(&source, fourcc, dir.path(), &cfg);
+        let source = format!("synth:?width=64&height=48&frames={ENDLESS}&format={synth_format}&seed=7");
         let log = dir.path().join(format!("{fourcc}.jsonl"));
         let writer = faultcam(&["--source", &source, "--fps", "30", "--sink", &format!("v4l2:{dev}?format={fourcc}")])
             .arg("--faults")
@@ -517,17 +523,18 @@ fn gst_v4l2src_reads_exactly_what_the_files_sink_writes() {
         let got = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
             gst_finish(reader, &raw, Duration::from_secs(60), fourcc)
         }));
-        let w = finish_within(writer, Duration::from_secs(60), &format!("faultcam run into {dev} ({fourcc})"));
+        let w = stop_run(writer, &format!("faultcam run into {dev} ({fourcc})"));
         let got = got.unwrap_or_else(|e| {
             eprintln!("{fourcc}: the writer: {}", String::from_utf8_lossy(&w.stderr));
             std::panic::resume_unwind(e)
         });
-        let refs = reference(reference_run, frames, fourcc);
         let err = String::from_utf8_lossy(&w.stderr);
         assert!(w.status.success(), "{fourcc}: {err}");
         let s = last_json(&log);
-        assert_accounted(&s, frames as u64, fourcc);
-        assert_eq!(s["delivered"].as_u64(), Some(frames as u64), "{fourcc}: {s}");
+        let frames = s["frames_in"].as_u64().unwrap();
+        assert_accounted(&s, frames, fourcc);
+        assert_eq!(s["delivered"].as_u64(), Some(frames), "{fourcc}: {s}");
+        let refs = reference(&source, frames as usize, fourcc, dir.path(), &cfg);
         assert!(s["sink"].as_str().unwrap().contains(&format!("driver chose 64x48 {fourcc}")), "{s}");
         assert!(
             got.caps.contains(&format!("format=(string){gst_format}"))
@@ -562,7 +569,13 @@ fn driver_timestamps_are_monotone_and_follow_the_frame_pts() {
     sink.write_frame(&pattern(0, 64, 48), None).unwrap();
     let (rx, handle) = reader(format!("v4l2:{dev}?format=GREY&timeout_ms=3000"), 1000);
     let mut seen: Vec<(u64, u64)> = Vec::new();
+    // Written at their pts (as `faultcam run --fps` releases them): a frame written earlier than
+    // its pts is stamped with the time it is queued instead (never a time in the future).
+    let start = Instant::now();
     for k in 1..=10u64 {
+        if let Some(wait) = (start + Duration::from_nanos(k * 33_333_333)).checked_duration_since(Instant::now()) {
+            std::thread::sleep(wait);
+        }
         sink.write_frame(&pattern(k, 64, 48), None).unwrap();
         loop {
             let f = rx.recv_timeout(Duration::from_secs(5)).unwrap_or_else(|e| panic!("frame {k}: {e} ({seen:?})"));
@@ -595,8 +608,8 @@ fn driver_timestamps_are_monotone_and_follow_the_frame_pts() {
 
 /// A reader that closes mid-stream, a slow reader and a reader that starts late, one after the
 /// other on one stream: the writer never waits for readers, its summary accounts for every
-/// frame, and what the readers get are written frames in order. The writer streams for 15 s
-/// (450 frames at 30 fps), long enough for the three readers however slowly they start.
+/// frame, and what the readers get are written frames in order. The writer streams until the
+/// three readers are done, however slowly they start, and is then stopped (SIGINT).
 ///
 /// One reader at a time: v4l2loopback 0.12.7 resets the flags of every buffer on any
 /// VIDIOC_REQBUFS (a reader starting, or one stopping and freeing its buffers), after which
@@ -611,9 +624,7 @@ fn late_slow_and_closing_readers_do_not_disturb_the_writer() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = dir.path().join("f.toml");
     std::fs::write(&cfg, FAULTS).unwrap();
-    let frames = 450usize;
-    let source = format!("synth:?width=64&height=48&frames={frames}&seed=3");
-    let reference_run = reference_start(&source, "GREY", dir.path(), &cfg);
+    let source = format!("synth:?width=64&height=48&frames={ENDLESS}&seed=3");
     let log = dir.path().join("w.jsonl");
     let t = Instant::now();
     let writer = faultcam(&["--source", &source, "--fps", "30", "--sink", &format!("v4l2:{dev}")])
@@ -643,16 +654,17 @@ fn late_slow_and_closing_readers_do_not_disturb_the_writer() {
     }
     let t_late_start = t.elapsed();
     let (late, t_late) = read("late reader", 10, "");
-    let w = finish_within(writer, within, &format!("faultcam run into {dev}"));
+    let w = stop_run(writer, &format!("faultcam run into {dev}"));
     let wall = t.elapsed();
-    let refs = reference(reference_run, frames, "GREY");
+    assert!(w.status.success(), "{}", String::from_utf8_lossy(&w.stderr));
+    let s = last_json(&log);
+    let frames = s["frames_in"].as_u64().unwrap();
+    let refs = reference(&source, frames as usize, "GREY", dir.path(), &cfg);
     let short = match_frames(&short, &refs, "closing reader");
     let slow = match_frames(&slow, &refs, "slow reader");
     let late = match_frames(&late, &refs, "late reader");
-    assert!(w.status.success(), "{}", String::from_utf8_lossy(&w.stderr));
-    let s = last_json(&log);
-    assert_accounted(&s, frames as u64, "writer");
-    assert_eq!(s["delivered"].as_u64(), Some(frames as u64), "{s}");
+    assert_accounted(&s, frames, "writer");
+    assert_eq!(s["delivered"].as_u64(), Some(frames), "{s}");
     assert_eq!((short.len(), slow.len(), late.len()), (5, 8, 10));
     assert!(
         t_late < wall && late[0] > slow[7] && late[0] >= 30,

@@ -16,7 +16,10 @@
 //!   mapped once; each frame is written straight into a free buffer in the driver's layout and
 //!   queued (`VIDIOC_QBUF`) at once, stamped with the frame's `pts_ns` moved onto
 //!   `CLOCK_MONOTONIC` (the clock V4L2 readers assume): the first frame is stamped with the
-//!   time it is queued and later ones keep their pts spacing, unless the pts already are
+//!   time it is queued and later ones keep their pts spacing, never later than the time they
+//!   are queued (a frame written earlier than its pts is stamped with its queue time, and the
+//!   later ones keep the spacing from there; readers such as GStreamer's v4l2src distrust
+//!   timestamps in the future), unless the pts already are
 //!   monotonic-clock times (within 10 s of now, as from a live `v4l2:` camera), which pass
 //!   unchanged (a pts under 1 s is always taken as a stream origin). (A zero timestamp would be replaced by v4l2loopback with the queue time, so a
 //!   stream starting at pts 0 would read back non-monotone.) Buffers the
@@ -193,13 +196,24 @@ impl MmapOut {
         let mut b = v4l2_buffer(i as u32);
         b.bytesused = bytesused as u32;
         b.field = v4l::v4l_sys::v4l2_field_V4L2_FIELD_NONE;
-        let offset = *self.ts_offset.get_or_insert_with(|| {
-            let now = monotonic_ns();
-            // A pts under 1 s is a stream's own origin (synth and files start at 0), not a
-            // monotonic-clock time, even on a machine that booted less than 10 s ago.
-            let live = pts_ns >= 1_000_000_000 && (now - pts_ns as i128).abs() < 10_000_000_000;
-            if live { 0 } else { now - pts_ns as i128 }
-        });
+        let now = monotonic_ns();
+        let offset = match self.ts_offset {
+            // pts that are monotonic-clock times already (a live camera) pass unchanged.
+            Some(0) => 0,
+            // Never a time after the frame is queued: a reader takes a timestamp in the future
+            // for a broken clock (GStreamer's v4l2src then ignores the driver timestamps and
+            // stamps buffers itself from then on, a jump in its pts). The offset only shrinks,
+            // when a frame comes earlier than its pts say (the first frame was slow, or frames
+            // are written faster than their pts); the stamps stay monotone.
+            Some(o) => o.min(now - pts_ns as i128),
+            None => {
+                // A pts under 1 s is a stream's own origin (synth and files start at 0), not a
+                // monotonic-clock time, even on a machine that booted less than 10 s ago.
+                let live = pts_ns >= 1_000_000_000 && (now - pts_ns as i128).abs() < 10_000_000_000;
+                if live { 0 } else { now - pts_ns as i128 }
+            }
+        };
+        self.ts_offset = Some(offset);
         // Never 0 (v4l2loopback would stamp it itself) and never before the clock's origin.
         let ts = (pts_ns as i128 + offset).max(1000) as u64;
         b.timestamp.tv_sec = (ts / 1_000_000_000) as _;
