@@ -853,6 +853,7 @@ fn vivid_source_into_files_and_disconnect_mid_stream() {
             Ok(_) => {}
             Err(e) => {
                 let _ = child.kill();
+                let _ = child.wait();
                 panic!("faultcam run from {vivid} did not report its source within 60 s ({e})");
             }
         }
