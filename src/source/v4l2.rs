@@ -112,6 +112,14 @@ pub fn yuyv_row(src: &[u8], width: usize, out: PixelFormat, dst: &mut [u8]) {
     }
 }
 
+/// A frame's number from the driver's sequence number `raw` (relative to the first buffer's):
+/// the driver's own while it advances (a jump leaves a gap: frames the driver dropped), else
+/// `next`, the number after the last frame's (a driver whose sequence numbers stay put or go
+/// back).
+fn frame_seq(last_raw: Option<u64>, raw: u64, next: u64) -> u64 {
+    if last_raw.is_some_and(|l| raw <= l) { next } else { raw.max(next) }
+}
+
 /// An open, streaming capture device.
 pub struct V4l2Source {
     uri: String,
@@ -315,7 +323,7 @@ impl Source for V4l2Source {
         // a streaming-I/O writer) gets consecutive numbers: without them every frame would be
         // frame 0 (a `files:` sink then writes one file, over and over).
         let raw = meta.sequence.wrapping_sub(first) as u64;
-        let seq = if self.last_raw.is_some_and(|l| raw <= l) { self.next } else { raw.max(self.next) };
+        let seq = frame_seq(self.last_raw, raw, self.next);
         self.last_raw = Some(raw);
         let pts_ns = meta.timestamp.sec.max(0) as u64 * 1_000_000_000 + meta.timestamp.usec.max(0) as u64 * 1000;
         let need = self.bytesperline * (h as usize - 1) + w as usize * self.layout.bytes_per_pixel();
@@ -412,6 +420,23 @@ mod tests {
         assert_eq!(&rgb[..6], &[0, 0, 0, 255, 255, 255], "limited-range black and white");
         // BT.601 red (R=255,G=0,B=0) is Y=81, U=90, V=240: back to ~red within rounding.
         assert!(rgb[6] >= 250 && rgb[7] <= 3 && rgb[8] <= 3, "{:?}", &rgb[6..9]);
+    }
+
+    #[test]
+    fn frame_numbers_follow_the_driver_or_count_when_it_is_stuck() {
+        let run = |raws: &[u64]| {
+            let (mut last, mut next, mut out) = (None, 0, Vec::new());
+            for &r in raws {
+                let s = frame_seq(last, r, next);
+                last = Some(r);
+                next = next.max(s + 1);
+                out.push(s);
+            }
+            out
+        };
+        assert_eq!(run(&[0, 1, 2, 5, 6]), [0, 1, 2, 5, 6], "an advancing driver's numbers, gaps kept");
+        assert_eq!(run(&[0, 0, 0, 0]), [0, 1, 2, 3], "v4l2loopback 0.12.7 (mmap writer): all 0");
+        assert_eq!(run(&[0, 1, 2, 1, 2, 3]), [0, 1, 2, 3, 4, 5], "a sequence that goes back");
     }
 
     #[test]
