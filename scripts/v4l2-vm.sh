@@ -11,10 +11,11 @@
 #  3. boots /boot/vmlinuz-<ver> with `vng --run`: the host's root filesystem is shared read-only
 #     (writes to /tmp, /var, /home, ... go to a throw-away overlay), CMD runs as root in the
 #     current directory with the current environment, after
-#       modprobe v4l2loopback devices=3 video_nr=10,11,12 exclusive_caps=1,1,1 max_buffers=4 ...
+#       modprobe v4l2loopback devices=8 video_nr=10,...,17 exclusive_caps=1,... max_buffers=4 ...
 #       modprobe vivid n_devs=1 node_types=0x1 vid_cap_nr=20      # /dev/video20, a test camera
 #     The guest exports FAULTCAM_V4L2_DEVICE=/dev/video10, FAULTCAM_V4L2_DEVICES="/dev/video10
-#     /dev/video11 /dev/video12" and FAULTCAM_VIVID_DEVICE=/dev/video20.
+#     ... /dev/video17" (one per device test), FAULTCAM_VIVID_DEVICE=/dev/video20 and the module
+#     options (FAULTCAM_V4L2LOOPBACK_OPTS, FAULTCAM_VIVID_OPTS, for tests that reload them).
 #
 # Environment:
 #   FAULTCAM_VM_ACCEL   auto (default) | kvm | tcg. auto takes KVM when /dev/kvm is usable with
@@ -91,17 +92,26 @@ esac
 run=$(mktemp -d "$DIR/run.XXXXXX")
 trap 'rm -rf "$run"' EXIT
 env -0 | grep -zv -E '^(PWD|OLDPWD|SHLVL|_|HOSTNAME|TERM|PS1)=' >"$run/env" || true
-lb_opts="devices=3 video_nr=10,11,12 exclusive_caps=1,1,1 max_buffers=4 max_width=4096 max_height=4096"
-lb_opts="$lb_opts card_label=faultcam-out,faultcam-in,faultcam-spare ${FAULTCAM_VM_LOOPBACK_OPTS:-}"
+# Eight devices (v4l2loopback 0.12.7's maximum): each device test gets its own, so a reader a
+# failed test left open cannot hold the next test's device in one direction (exclusive_caps=1).
+lb_devs="/dev/video10 /dev/video11 /dev/video12 /dev/video13 /dev/video14 /dev/video15 /dev/video16 /dev/video17"
+lb_opts="devices=8 video_nr=10,11,12,13,14,15,16,17 exclusive_caps=1,1,1,1,1,1,1,1 max_buffers=4"
+lb_opts="$lb_opts max_width=4096 max_height=4096"
+lb_opts="$lb_opts card_label=faultcam-10,faultcam-11,faultcam-12,faultcam-13,faultcam-14,faultcam-15,faultcam-16,faultcam-17"
+lb_opts="$lb_opts ${FAULTCAM_VM_LOOPBACK_OPTS:-}"
+vivid_opts="n_devs=1 node_types=0x1 vid_cap_nr=20"
 {
   echo 'set -e'
   echo "while IFS= read -r -d '' kv; do export \"\$kv\"; done <$(printf %q "$run/env")"
   echo "modprobe v4l2loopback $lb_opts"
-  echo 'modprobe vivid n_devs=1 node_types=0x1 vid_cap_nr=20'
-  echo 'for i in $(seq 50); do [ -e /dev/video10 ] && [ -e /dev/video20 ] && break; sleep 0.1; done'
-  echo 'export FAULTCAM_V4L2_DEVICE=/dev/video10 FAULTCAM_V4L2_DEVICES="/dev/video10 /dev/video11 /dev/video12"'
+  echo "modprobe vivid $vivid_opts"
+  echo 'for i in $(seq 50); do [ -e /dev/video17 ] && [ -e /dev/video20 ] && break; sleep 0.1; done'
+  echo "export FAULTCAM_V4L2_DEVICE=/dev/video10 FAULTCAM_V4L2_DEVICES=$(printf %q "$lb_devs")"
   echo 'export FAULTCAM_VIVID_DEVICE=/dev/video20 FAULTCAM_IN_VM=1'
-  echo "export FAULTCAM_V4L2LOOPBACK_OPTS=$(printf %q "$lb_opts")"
+  echo "export FAULTCAM_V4L2LOOPBACK_OPTS=$(printf %q "$lb_opts") FAULTCAM_VIVID_OPTS=$(printf %q "$vivid_opts")"
+  # GStreamer's plugin registry lives in $HOME/.cache, an empty overlay in the guest: build it
+  # once before the tests, not inside the first reader (under TCG that takes seconds).
+  echo 'command -v gst-inspect-1.0 >/dev/null && timeout 300 gst-inspect-1.0 v4l2src >/dev/null 2>&1 || true' 
   echo "echo \"faultcam vm: kernel \$(uname -r) up \$(cut -d' ' -f1 /proc/uptime) s, modules loaded, running:\" $(printf %q "$*") >&2"
   echo "cd $(printf %q "$PWD")"
   printf 'exec'

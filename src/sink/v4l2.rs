@@ -16,7 +16,10 @@
 //!   mapped once; each frame is written straight into a free buffer in the driver's layout and
 //!   queued (`VIDIOC_QBUF`) at once, stamped with the frame's `pts_ns` moved onto
 //!   `CLOCK_MONOTONIC` (the clock V4L2 readers assume): the first frame is stamped with the
-//!   time it is queued and later ones keep their pts spacing, unless the pts already are
+//!   time it is queued and later ones keep their pts spacing, never later than the time they
+//!   are queued (a frame written earlier than its pts is stamped with its queue time, and the
+//!   later ones keep the spacing from there; readers such as GStreamer's v4l2src distrust
+//!   timestamps in the future), unless the pts already are
 //!   monotonic-clock times (within 10 s of now, as from a live `v4l2:` camera), which pass
 //!   unchanged (a pts under 1 s is always taken as a stream origin). (A zero timestamp would be replaced by v4l2loopback with the queue time, so a
 //!   stream starting at pts 0 would read back non-monotone.) Buffers the
@@ -26,6 +29,14 @@
 //!   ffmpeg's v4l2 output does) from one buffer allocated once per stream.
 //! * Either way a frame is handed to readers when `write_frame` returns: no extra frame of
 //!   queueing inside faultcam, and no allocation per frame.
+//! * v4l2loopback (0.12.7, Debian 12) quirks worked around: with `io=mmap` the buffers are
+//!   filled in turn instead of in the order output `VIDIOC_DQBUF` returns them (it returns the
+//!   buffer queued last, so every frame would go into one buffer and GStreamer's `v4l2src`
+//!   fails with "buffer N was not queued"); with `io=write` the sink also calls
+//!   `VIDIOC_STREAMON`, without which the device is left neither output nor capture after the
+//!   writer closes. The reader-side quirks (a reader's `VIDIOC_REQBUFS` restamps every buffer,
+//!   so the first buffer a late reader gets carries its start time) are in
+//!   `hil/v4l2loopback.md`.
 
 use super::{Sink, SinkError};
 use crate::frame::{Frame, FrameData, PixelFormat};
@@ -61,6 +72,8 @@ struct MmapOut {
     bufs: Vec<Mapped>,
     /// Buffers `0..fresh` have been queued at least once; the others are free to fill.
     fresh: usize,
+    /// v4l2loopback: fill the buffers in turn (see `acquire`); the next one to fill.
+    in_turn: Option<usize>,
     streaming: bool,
     /// Added to `pts_ns` to get a `CLOCK_MONOTONIC` timestamp; set on the first frame.
     ts_offset: Option<i128>,
@@ -90,7 +103,7 @@ fn v4l2_buffer(index: u32) -> v4l::v4l_sys::v4l2_buffer {
 
 impl MmapOut {
     /// Request `count` buffers and map them.
-    fn new(device: &Device, count: u32) -> std::io::Result<MmapOut> {
+    fn new(device: &Device, count: u32, in_turn: bool) -> std::io::Result<MmapOut> {
         let handle = device.handle();
         let fd = handle.fd();
         // SAFETY: all-zero is a valid v4l2_requestbuffers.
@@ -109,6 +122,7 @@ impl MmapOut {
             handle,
             bufs: Vec::with_capacity(req.count as usize),
             fresh: 0,
+            in_turn: in_turn.then_some(0),
             streaming: false,
             ts_offset: None,
         };
@@ -133,6 +147,14 @@ impl MmapOut {
     }
 
     /// A buffer the application may fill: a never-queued one, else one the driver gives back.
+    ///
+    /// v4l2loopback (0.12.7) answers an output `VIDIOC_DQBUF` with the buffer queued *last*, so a
+    /// writer that fills what it gets back writes every frame into one buffer: the one readers
+    /// were just handed (torn frames), and a reader's `VIDIOC_DQBUF` returns that same index
+    /// again and again — GStreamer's v4l2src stops with "buffer N was not queued, this indicate
+    /// a driver bug" / "Failed to allocate a buffer". For v4l2loopback the buffer is still
+    /// dequeued (the protocol), but the buffers are filled in turn, as its own `write(2)` path
+    /// does (it hands no buffer to anyone: a queued output buffer is consumed at once).
     fn acquire(&mut self, timeout_ms: i32) -> std::io::Result<usize> {
         if self.fresh < self.bufs.len() {
             self.fresh += 1;
@@ -154,6 +176,11 @@ impl MmapOut {
         if i >= self.bufs.len() {
             return Err(std::io::Error::other(format!("the driver returned buffer {i} of {}", self.bufs.len())));
         }
+        if let Some(next) = self.in_turn.as_mut() {
+            let i = *next;
+            *next = (i + 1) % self.bufs.len();
+            return Ok(i);
+        }
         Ok(i)
     }
 
@@ -169,13 +196,24 @@ impl MmapOut {
         let mut b = v4l2_buffer(i as u32);
         b.bytesused = bytesused as u32;
         b.field = v4l::v4l_sys::v4l2_field_V4L2_FIELD_NONE;
-        let offset = *self.ts_offset.get_or_insert_with(|| {
-            let now = monotonic_ns();
-            // A pts under 1 s is a stream's own origin (synth and files start at 0), not a
-            // monotonic-clock time, even on a machine that booted less than 10 s ago.
-            let live = pts_ns >= 1_000_000_000 && (now - pts_ns as i128).abs() < 10_000_000_000;
-            if live { 0 } else { now - pts_ns as i128 }
-        });
+        let now = monotonic_ns();
+        let offset = match self.ts_offset {
+            // pts that are monotonic-clock times already (a live camera) pass unchanged.
+            Some(0) => 0,
+            // Never a time after the frame is queued: a reader takes a timestamp in the future
+            // for a broken clock (GStreamer's v4l2src then ignores the driver timestamps and
+            // stamps buffers itself from then on, a jump in its pts). The offset only shrinks,
+            // when a frame comes earlier than its pts say (the first frame was slow, or frames
+            // are written faster than their pts); the stamps stay monotone.
+            Some(o) => o.min(now - pts_ns as i128),
+            None => {
+                // A pts under 1 s is a stream's own origin (synth and files start at 0), not a
+                // monotonic-clock time, even on a machine that booted less than 10 s ago.
+                let live = pts_ns >= 1_000_000_000 && (now - pts_ns as i128).abs() < 10_000_000_000;
+                if live { 0 } else { now - pts_ns as i128 }
+            }
+        };
+        self.ts_offset = Some(offset);
         // Never 0 (v4l2loopback would stamp it itself) and never before the clock's origin.
         let ts = (pts_ns as i128 + offset).max(1000) as u64;
         b.timestamp.tv_sec = (ts / 1_000_000_000) as _;
@@ -230,6 +268,8 @@ pub struct V4l2Sink {
     want: Option<[u8; 4]>,
     fps: Option<u64>,
     io: Io,
+    /// The driver is v4l2loopback (its quirks are worked around, see `MmapOut::acquire`).
+    loopback: bool,
     buffers: u32,
     timeout_ms: i32,
     shape: Option<(u32, u32, PixelFormat)>,
@@ -344,6 +384,7 @@ impl V4l2Sink {
             want,
             fps,
             io,
+            loopback: caps.driver == "v4l2 loopback",
             buffers,
             timeout_ms,
             shape: None,
@@ -413,7 +454,7 @@ impl V4l2Sink {
         self.frame_bytes = (got.size as usize).max(self.bytesperline * frame.height as usize);
         let io = match self.io {
             Io::Mmap => {
-                let m = MmapOut::new(&self.device, self.buffers).map_err(|e| {
+                let m = MmapOut::new(&self.device, self.buffers, self.loopback).map_err(|e| {
                     self.failed(format!(
                         "{}: cannot map {} output buffers: {e} (try io=write)",
                         self.path, self.buffers
@@ -431,6 +472,21 @@ impl V4l2Sink {
             }
             Io::Write => {
                 self.buf = vec![0; self.frame_bytes];
+                if self.loopback {
+                    // v4l2loopback 0.12.7 takes an opener for its writer only on
+                    // VIDIOC_STREAMON; a write(2)-only writer leaves the device, once closed,
+                    // neither an output nor a capture device until the module is reloaded.
+                    let mut typ = v4l::buffer::Type::VideoOutput as u32;
+                    // SAFETY: VIDIOC_STREAMON reads the buffer type it is given. An error is
+                    // harmless here (write(2) works without it).
+                    let _ = unsafe {
+                        v4l::v4l2::ioctl(
+                            self.device.handle().fd(),
+                            v4l::v4l2::vidioc::VIDIOC_STREAMON,
+                            &mut typ as *mut _ as *mut std::ffi::c_void,
+                        )
+                    };
+                }
                 "write".to_string()
             }
         };

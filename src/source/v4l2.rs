@@ -16,7 +16,9 @@
 //! * Rows are read with the driver's `bytesperline` (padding is dropped). `pts_ns` is the
 //!   driver timestamp; `seq` counts from the first buffer's sequence number, so frames the
 //!   driver dropped leave a gap and are reported one by one as recoverable errors (logged as
-//!   `skip` records), as are buffers flagged `ERROR` or shorter than a frame.
+//!   `skip` records), as are buffers flagged `ERROR` or shorter than a frame. A driver whose
+//!   sequence numbers do not advance (v4l2loopback 0.12.7 leaves them at 0 when the writer uses
+//!   streaming I/O) gets consecutive numbers instead (no gaps can be seen then).
 //! * No buffer within `timeout_ms` ends the stream with an error naming the device.
 
 use super::{Source, SourceError, UriOptions, split_uri};
@@ -110,6 +112,14 @@ pub fn yuyv_row(src: &[u8], width: usize, out: PixelFormat, dst: &mut [u8]) {
     }
 }
 
+/// A frame's number from the driver's sequence number `raw` (relative to the first buffer's):
+/// the driver's own while it advances (a jump leaves a gap: frames the driver dropped), else
+/// `next`, the number after the last frame's (a driver whose sequence numbers stay put or go
+/// back).
+fn frame_seq(last_raw: Option<u64>, raw: u64, next: u64) -> u64 {
+    if last_raw.is_some_and(|l| raw <= l) { next } else { raw.max(next) }
+}
+
 /// An open, streaming capture device.
 pub struct V4l2Source {
     uri: String,
@@ -124,6 +134,8 @@ pub struct V4l2Source {
     chosen: String,
     pool: FramePool,
     first_seq: Option<u32>,
+    /// The last buffer's driver sequence number, relative to the first.
+    last_raw: Option<u64>,
     next: u64,
     gaps: VecDeque<u64>,
     ready: Option<Frame>,
@@ -253,6 +265,7 @@ impl V4l2Source {
             chosen,
             pool: FramePool::new(8),
             first_seq: None,
+            last_raw: None,
             next: 0,
             gaps: VecDeque::new(),
             ready: None,
@@ -306,7 +319,12 @@ impl Source for V4l2Source {
             }
         };
         let first = *self.first_seq.get_or_insert(meta.sequence);
-        let seq = meta.sequence.wrapping_sub(first) as u64;
+        // A driver whose sequence numbers do not advance (v4l2loopback 0.12 leaves them at 0 for
+        // a streaming-I/O writer) gets consecutive numbers: without them every frame would be
+        // frame 0 (a `files:` sink then writes one file, over and over).
+        let raw = meta.sequence.wrapping_sub(first) as u64;
+        let seq = frame_seq(self.last_raw, raw, self.next);
+        self.last_raw = Some(raw);
         let pts_ns = meta.timestamp.sec.max(0) as u64 * 1_000_000_000 + meta.timestamp.usec.max(0) as u64 * 1000;
         let need = self.bytesperline * (h as usize - 1) + w as usize * self.layout.bytes_per_pixel();
         let used = if meta.bytesused == 0 { buf.len() } else { (meta.bytesused as usize).min(buf.len()) };
@@ -402,6 +420,23 @@ mod tests {
         assert_eq!(&rgb[..6], &[0, 0, 0, 255, 255, 255], "limited-range black and white");
         // BT.601 red (R=255,G=0,B=0) is Y=81, U=90, V=240: back to ~red within rounding.
         assert!(rgb[6] >= 250 && rgb[7] <= 3 && rgb[8] <= 3, "{:?}", &rgb[6..9]);
+    }
+
+    #[test]
+    fn frame_numbers_follow_the_driver_or_count_when_it_is_stuck() {
+        let run = |raws: &[u64]| {
+            let (mut last, mut next, mut out) = (None, 0, Vec::new());
+            for &r in raws {
+                let s = frame_seq(last, r, next);
+                last = Some(r);
+                next = next.max(s + 1);
+                out.push(s);
+            }
+            out
+        };
+        assert_eq!(run(&[0, 1, 2, 5, 6]), [0, 1, 2, 5, 6], "an advancing driver's numbers, gaps kept");
+        assert_eq!(run(&[0, 0, 0, 0]), [0, 1, 2, 3], "v4l2loopback 0.12.7 (mmap writer): all 0");
+        assert_eq!(run(&[0, 1, 2, 1, 2, 3]), [0, 1, 2, 3, 4, 5], "a sequence that goes back");
     }
 
     #[test]
