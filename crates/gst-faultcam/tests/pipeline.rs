@@ -407,9 +407,14 @@ fn errors_name_the_property_and_the_file() {
 /// GST_PLUGIN_PATH pointing at the build folder (a private registry, so no stale cache).
 #[test]
 fn gst_launch_and_gst_inspect_load_the_plugin() {
-    let plugin_dir = profile_dir();
-    assert!(plugin_dir.join("libgstfaultcam.so").exists(), "{}/libgstfaultcam.so missing", plugin_dir.display());
+    // The cdylib built with this test is in deps/ (cargo uplifts it to target/<profile>/ only when
+    // the plugin is built on its own): copy it into a folder of its own for GST_PLUGIN_PATH.
+    let built = profile_dir().join("deps/libgstfaultcam.so");
+    assert!(built.exists(), "{} missing", built.display());
     let dir = tempfile::tempdir().unwrap();
+    let plugin_dir = dir.path().join("plugins");
+    std::fs::create_dir_all(&plugin_dir).unwrap();
+    std::fs::copy(&built, plugin_dir.join("libgstfaultcam.so")).unwrap();
     let env = |c: &mut Command| {
         c.env("GST_PLUGIN_PATH", &plugin_dir).env("GST_REGISTRY", dir.path().join("registry.bin"));
     };
