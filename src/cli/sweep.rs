@@ -54,7 +54,7 @@ pub struct Args {
     /// Output folder: report.json, report.md, frames.jsonl, plots/ (or the shard file).
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
-    /// Run only shard K of N (1-based K: cells with index % N == K-1) and write
+    /// Run only shard K of N (0-based K, as `apply --shard`: cells with index % N == K) and write
     /// OUT/shard-K-of-N.json; join with `faultcam sweep merge`.
     #[arg(long, value_name = "K/N")]
     pub shard: Option<String>,
@@ -82,12 +82,12 @@ pub enum Merge {
     },
 }
 
-/// Parse a 1-based `K/N`.
+/// Parse a 0-based `K/N` (as `faultcam apply --shard`).
 pub fn parse_shard(s: &str) -> Result<(usize, usize), String> {
-    let err = || format!("--shard '{s}' is not accepted; expected K/N with 1 <= K <= N (1-based), e.g. 1/4");
+    let err = || format!("--shard '{s}' is not accepted; expected K/N with 0 <= K < N (0-based, as apply), e.g. 0/4");
     let (k, n) = s.split_once('/').ok_or_else(err)?;
     let (k, n): (usize, usize) = (k.trim().parse().map_err(|_| err())?, n.trim().parse().map_err(|_| err())?);
-    if n == 0 || k == 0 || k > n {
+    if n == 0 || k >= n {
         return Err(err());
     }
     Ok((k, n))
@@ -157,7 +157,7 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
     let Some(out) = args.out.clone() else { bail!("--out DIR is required (the report's folder)") };
     let shard = match &args.shard {
         Some(s) => parse_shard(s).map_err(anyhow::Error::msg)?,
-        None => (1, 1),
+        None => (0, 1),
     };
     let plan_json = serde_json::to_value(&plan)?;
     std::fs::create_dir_all(&out)?;

@@ -328,11 +328,11 @@ fn prepare_and_run(plan: &Plan, cell: Cell, dir: &Path) -> Result<(Vec<FrameResu
     Ok((frames, sut))
 }
 
-/// Run the cells whose index % n == k − 1 (1-based `shard`), `jobs` at a time; results in cell
+/// Run the cells whose index % n == k (0-based `shard`), `jobs` at a time; results in cell
 /// order, identical whatever `jobs` is.
 pub fn run_cells(plan: &Plan, shard: (usize, usize), jobs: usize, work: &Path, opts: &RunOptions) -> Vec<CellResult> {
     let (k, n) = shard;
-    let cells: Vec<Cell> = plan.cells().into_iter().filter(|c| c.index % n == k - 1).collect();
+    let cells: Vec<Cell> = plan.cells().into_iter().filter(|c| c.index % n == k).collect();
     let next = std::sync::atomic::AtomicUsize::new(0);
     let results = std::sync::Mutex::new(Vec::with_capacity(cells.len()));
     std::thread::scope(|s| {
