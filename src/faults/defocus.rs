@@ -1,5 +1,6 @@
 //! `defocus`: isotropic Gaussian blur (defocus / diffraction / soft optics), separable.
 
+use super::boxblur;
 use super::fir16;
 use super::kit::{ROWS_PER_TASK, axpy_row, band_rows, bands, mirrored_row_f32, par_bands_with, round_row};
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
@@ -74,6 +75,10 @@ pub fn mirror(i: isize, n: usize) -> usize {
     if m >= n as isize { (n2 - 1 - m) as usize } else { m as usize }
 }
 
+/// 8-bit frames up to this sigma_px use the exact FIR (`fir16`, cost linear in sigma), above it
+/// the box cascade (`boxblur`, cost independent of sigma).
+pub const FIR_MAX_SIGMA: f64 = 1.0;
+
 /// Largest kernel radius (sigma_px = 20: ceil(80) + 1).
 const MAX_R: usize = 81;
 
@@ -83,6 +88,9 @@ pub struct Defocus {
     kernel: Vec<f32>,
     // allocation: once per sigma: Q15 half kernel (centre first) for 8-bit frames
     q15: Vec<i16>,
+    // 8-bit frames with sigma_px > FIR_MAX_SIGMA: the box cascade and its scratch
+    boxes: Option<boxblur::BoxPlan>,
+    box_scratch: boxblur::Scratch,
     // allocation: when the frame size or the kernel radius grows: 8-bit frames: per band the
     // source rows it does not own, and a ring of row-pass rows, a padded row and an output row
     halo8: Vec<u8>,
@@ -266,6 +274,7 @@ impl Effect for Defocus {
             let k = discrete_gaussian_f64(sigma);
             self.q15 = fir16::q15_half_kernel(&k);
             self.kernel = k.into_iter().map(|v| v as f32).collect();
+            self.boxes = (sigma > FIR_MAX_SIGMA).then(|| boxblur::BoxPlan::for_sigma(sigma));
             self.kernel_key = Some(sigma.to_bits());
         }
         let (w, h, ch, stride) = (frame.width as usize, frame.height as usize, frame.channels(), frame.stride);
@@ -273,6 +282,10 @@ impl Effect for Defocus {
         let r = self.kernel.len() / 2;
         match &mut frame.data {
             // 8-bit: Q6 fixed point in 16-bit lanes (see `fir16`).
+            FrameData::U8(d) if self.boxes.is_some() && rl >= boxblur::LANES => {
+                let plan = self.boxes.as_ref().expect("checked");
+                boxblur::blur_u8(d, stride, w, h, ch, plan, &mut self.box_scratch);
+            }
             FrameData::U8(d) => {
                 blur_u8(d, stride, w, h, ch, &self.q15, &mut self.halo8, &mut self.work16);
             }
