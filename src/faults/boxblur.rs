@@ -95,7 +95,10 @@ impl BoxPlan {
         let wmax = *widths.iter().max().unwrap();
         assert!(widths.iter().map(|w| w - 1).sum::<usize>() % 2 == 0, "box cascade must be centred");
         // Window sum of the widest box, plus half a box for the rounding, below 2^16.
-        let scale = ((65535 - wmax / 2) / (255 * wmax)).min(128) as u16;
+        // Odd, so that the final rounding to whole DN never meets a tie (round half up would
+        // bias the mean by 0.5 / scale DN).
+        let scale = ((65535 - wmax / 2) / (255 * wmax)).min(127) as u16;
+        let scale = if scale % 2 == 0 { scale - 1 } else { scale };
         assert!(scale >= 1, "box width {wmax} too large for 16-bit lanes");
         BoxPlan { widths, scale, radius: widths.iter().map(|w| w - 1).sum::<usize>() / 2 }
     }
@@ -241,6 +244,20 @@ fn column_block<const LV: u8>(
     let mut cur = Cursor::new(plan);
     for i in 0..h + r2 {
         let y = mirror(i as isize - r, h);
+        // The rows are a page apart: prefetch the block's bytes of a row a few steps ahead (the
+        // hardware prefetchers do not follow such strides). No effect on the values.
+        #[cfg(target_arch = "x86_64")]
+        {
+            let yp = mirror(i as isize + 6 - r, h);
+            for k in 0..nst {
+                let j0 = ((s0 + k) * LANES).min(rl - LANES);
+                // SAFETY: a prefetch hint of an address inside `src` (no access is made).
+                unsafe {
+                    use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+                    _mm_prefetch::<_MM_HINT_T0>(src.as_ptr().add(yp * stride + j0) as *const i8);
+                }
+            }
+        }
         for k in 0..nst {
             let j0 = ((s0 + k) * LANES).min(rl - LANES);
             let row: &[u8; LANES] = src[y * stride + j0..y * stride + j0 + LANES].try_into().unwrap();
@@ -281,6 +298,71 @@ fn row_band<const LV: u8>(plan: &BoxPlan, w: usize, ch: usize, bt: &[Lane], ot: 
 mod simd {
     use super::{LANES, Lane};
     use std::arch::x86_64::*;
+
+    /// 8 x 8 `u16` transpose, SSE2: returns the 8 columns of the rows at `src + r * ss`.
+    #[inline(always)]
+    unsafe fn cols8(src: *const u16, ss: usize) -> [__m128i; 8] {
+        // SAFETY: the caller guarantees 8 readable rows of 8 u16.
+        unsafe {
+            let ld = |r: usize| _mm_loadu_si128(src.add(r * ss) as *const __m128i);
+            let (r0, r1, r2, r3, r4, r5, r6, r7) = (ld(0), ld(1), ld(2), ld(3), ld(4), ld(5), ld(6), ld(7));
+            let a0 = _mm_unpacklo_epi16(r0, r1);
+            let a1 = _mm_unpackhi_epi16(r0, r1);
+            let a2 = _mm_unpacklo_epi16(r2, r3);
+            let a3 = _mm_unpackhi_epi16(r2, r3);
+            let a4 = _mm_unpacklo_epi16(r4, r5);
+            let a5 = _mm_unpackhi_epi16(r4, r5);
+            let a6 = _mm_unpacklo_epi16(r6, r7);
+            let a7 = _mm_unpackhi_epi16(r6, r7);
+            let b0 = _mm_unpacklo_epi32(a0, a2);
+            let b1 = _mm_unpackhi_epi32(a0, a2);
+            let b2 = _mm_unpacklo_epi32(a1, a3);
+            let b3 = _mm_unpackhi_epi32(a1, a3);
+            let b4 = _mm_unpacklo_epi32(a4, a6);
+            let b5 = _mm_unpackhi_epi32(a4, a6);
+            let b6 = _mm_unpacklo_epi32(a5, a7);
+            let b7 = _mm_unpackhi_epi32(a5, a7);
+            [
+                _mm_unpacklo_epi64(b0, b4),
+                _mm_unpackhi_epi64(b0, b4),
+                _mm_unpacklo_epi64(b1, b5),
+                _mm_unpackhi_epi64(b1, b5),
+                _mm_unpacklo_epi64(b2, b6),
+                _mm_unpackhi_epi64(b2, b6),
+                _mm_unpacklo_epi64(b3, b7),
+                _mm_unpackhi_epi64(b3, b7),
+            ]
+        }
+    }
+
+    /// `dst[c * ds + r] = src[r * ss + c]`, r, c < 8.
+    ///
+    /// # Safety
+    /// 8 rows of 8 `u16` readable at `src + r * ss`, writable at `dst + c * ds`.
+    pub unsafe fn t8x8(src: *const u16, ss: usize, dst: *mut u16, ds: usize) {
+        // SAFETY: as documented.
+        unsafe {
+            for (c, v) in cols8(src, ss).into_iter().enumerate() {
+                _mm_storeu_si128(dst.add(c * ds) as *mut __m128i, v);
+            }
+        }
+    }
+
+    /// Like [`t8x8`], each value (<= 255) stored as a byte: `dst[c * ds + r] = src[r * ss + c]`.
+    ///
+    /// # Safety
+    /// 8 rows of 8 `u16` readable at `src + r * ss`, 8 bytes writable at `dst + c * ds`.
+    pub unsafe fn t8x8_u8(src: *const u16, ss: usize, dst: *mut u8, ds: usize) {
+        // SAFETY: as documented.
+        unsafe {
+            let c = cols8(src, ss);
+            for k in 0..4 {
+                let p = _mm_packus_epi16(c[2 * k], c[2 * k + 1]);
+                _mm_storel_epi64(dst.add(2 * k * ds) as *mut __m128i, p);
+                _mm_storel_epi64(dst.add((2 * k + 1) * ds) as *mut __m128i, _mm_srli_si128(p, 8));
+            }
+        }
+    }
 
     #[inline]
     #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2")]
@@ -339,20 +421,35 @@ mod simd {
     }
 }
 
+/// The kernel level this CPU runs: 2 = AVX-512 (F/BW/VL), 1 = AVX2, 0 = scalar (after
+/// `FAULTCAM_NO_AVX512` / `FAULTCAM_NO_SIMD`).
+pub fn cpu_level() -> u8 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if super::kit::has_avx512() {
+            return 2;
+        }
+        if super::kit::has_avx2() {
+            return 1;
+        }
+    }
+    0
+}
+
 macro_rules! dispatch {
     ($name:ident, $body:ident, ($($a:ident: $t:ty),*)) => {
-        fn $name($($a: $t),*) {
+        fn $name(lv: u8, $($a: $t),*) {
             #[cfg(target_arch = "x86_64")]
             {
                 #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2")]
                 unsafe fn v512($($a: $t),*) { $body::<2>($($a),*) }
                 #[target_feature(enable = "avx2")]
                 unsafe fn v256($($a: $t),*) { $body::<1>($($a),*) }
-                if super::kit::has_avx512() {
+                if lv >= 2 && super::kit::has_avx512() {
                     // SAFETY: AVX-512 F/BW/VL present (checked).
                     return unsafe { v512($($a),*) };
                 }
-                if super::kit::has_avx2() {
+                if lv >= 1 && super::kit::has_avx2() {
                     // SAFETY: AVX2 present (checked).
                     return unsafe { v256($($a),*) };
                 }
@@ -365,53 +462,77 @@ macro_rules! dispatch {
 dispatch!(column_block_d, column_block, (plan: &BoxPlan, src: &[u8], stride: usize, rl: usize, h: usize, s0: usize, out: &mut [Lane], state: &mut [Lane]));
 dispatch!(row_band_d, row_band, (plan: &BoxPlan, w: usize, ch: usize, bt: &[Lane], ot: &mut [Lane], state: &mut [Lane]));
 
-/// Transpose 8 x 8 `u16`: `dst[c * ds + r] = src[r * ss + c]` (r, c < 8).
-#[inline(always)]
-fn t8x8(src: &[u16], ss: usize, dst: &mut [u16], ds: usize) {
+/// `dst[j][l] = src[l][j]` for `l < src.len()` (<= LANES) and `j < LANES`.
+fn transpose_in(lv: u8, src: &[Lane], dst: &mut [Lane]) {
+    let rows = src.len();
+    let full = rows / 8 * 8;
     #[cfg(target_arch = "x86_64")]
-    {
-        if !super::kit::no_simd() {
-            use std::arch::x86_64::*;
-            assert!(src.len() >= 7 * ss + 8 && dst.len() >= 7 * ds + 8);
-            // SAFETY: SSE2 is part of x86_64; the 8 loads and stores of 8 u16 are in bounds
-            // (asserted above).
-            unsafe {
-                let p = src.as_ptr();
-                let ld = |r: usize| _mm_loadu_si128(p.add(r * ss) as *const __m128i);
-                let (r0, r1, r2, r3, r4, r5, r6, r7) = (ld(0), ld(1), ld(2), ld(3), ld(4), ld(5), ld(6), ld(7));
-                let a0 = _mm_unpacklo_epi16(r0, r1);
-                let a1 = _mm_unpackhi_epi16(r0, r1);
-                let a2 = _mm_unpacklo_epi16(r2, r3);
-                let a3 = _mm_unpackhi_epi16(r2, r3);
-                let a4 = _mm_unpacklo_epi16(r4, r5);
-                let a5 = _mm_unpackhi_epi16(r4, r5);
-                let a6 = _mm_unpacklo_epi16(r6, r7);
-                let a7 = _mm_unpackhi_epi16(r6, r7);
-                let b0 = _mm_unpacklo_epi32(a0, a2);
-                let b1 = _mm_unpackhi_epi32(a0, a2);
-                let b2 = _mm_unpacklo_epi32(a1, a3);
-                let b3 = _mm_unpackhi_epi32(a1, a3);
-                let b4 = _mm_unpacklo_epi32(a4, a6);
-                let b5 = _mm_unpackhi_epi32(a4, a6);
-                let b6 = _mm_unpacklo_epi32(a5, a7);
-                let b7 = _mm_unpackhi_epi32(a5, a7);
-                let q = dst.as_mut_ptr();
-                let st = |c: usize, v: __m128i| _mm_storeu_si128(q.add(c * ds) as *mut __m128i, v);
-                st(0, _mm_unpacklo_epi64(b0, b4));
-                st(1, _mm_unpackhi_epi64(b0, b4));
-                st(2, _mm_unpacklo_epi64(b1, b5));
-                st(3, _mm_unpackhi_epi64(b1, b5));
-                st(4, _mm_unpacklo_epi64(b2, b6));
-                st(5, _mm_unpackhi_epi64(b2, b6));
-                st(6, _mm_unpacklo_epi64(b3, b7));
-                st(7, _mm_unpackhi_epi64(b3, b7));
+    if lv > 0 {
+        for lb in (0..full).step_by(8) {
+            for jb in (0..LANES).step_by(8) {
+                let s = &src[lb..lb + 8];
+                // SAFETY: 8 rows of LANES u16 from s[..][jb..], 8 rows of LANES u16 into
+                // dst[jb..jb + 8][lb..]; both in bounds (lb + 8 <= rows, jb + 8 <= LANES).
+                unsafe {
+                    simd::t8x8(
+                        s.as_ptr().cast::<u16>().add(jb),
+                        LANES,
+                        dst.as_mut_ptr().add(jb).cast::<u16>().add(lb),
+                        LANES,
+                    )
+                };
             }
-            return;
+        }
+        for l in full..rows {
+            for j in 0..LANES {
+                dst[j][l] = src[l][j];
+            }
+        }
+        return;
+    }
+    for (l, row) in src.iter().enumerate() {
+        for j in 0..LANES {
+            dst[j][l] = row[j];
         }
     }
-    for r in 0..8 {
-        for c in 0..8 {
-            dst[c * ds + r] = src[r * ss + c];
+}
+
+/// `band[l * stride + j] = ot[j][l]` (as bytes, values <= 255) for `l < rows`, `j < ot.len()`.
+fn transpose_out(lv: u8, ot: &[Lane], band: &mut [u8], stride: usize, rows: usize) {
+    let rl = ot.len();
+    let (fr, fj) = (rows / 8 * 8, rl / 8 * 8);
+    #[cfg(target_arch = "x86_64")]
+    if lv > 0 {
+        for lb in (0..fr).step_by(8) {
+            assert!(band.len() >= (lb + 7) * stride + rl);
+            for jb in (0..fj).step_by(8) {
+                // SAFETY: reads ot[jb..jb + 8][lb..lb + 8] (in bounds), writes 8 bytes at
+                // band[(lb + r) * stride + jb..] for r < 8 (asserted above).
+                unsafe {
+                    simd::t8x8_u8(
+                        ot.as_ptr().add(jb).cast::<u16>().add(lb),
+                        LANES,
+                        band.as_mut_ptr().add(lb * stride + jb),
+                        stride,
+                    )
+                };
+            }
+            for l in lb..lb + 8 {
+                for j in fj..rl {
+                    band[l * stride + j] = ot[j][l] as u8;
+                }
+            }
+        }
+        for l in fr..rows {
+            for j in 0..rl {
+                band[l * stride + j] = ot[j][l] as u8;
+            }
+        }
+        return;
+    }
+    for l in 0..rows {
+        for j in 0..rl {
+            band[l * stride + j] = ot[j][l] as u8;
         }
     }
 }
@@ -431,6 +552,21 @@ pub struct Scratch {
 /// Separable box-cascade blur of an 8-bit frame (`ch` interleaved channels, rows of `stride`
 /// bytes) in place. Needs `w * ch >= LANES`.
 pub fn blur_u8(d: &mut [u8], stride: usize, w: usize, h: usize, ch: usize, plan: &BoxPlan, sc: &mut Scratch) {
+    blur_u8_at(cpu_level(), d, stride, w, h, ch, plan, sc)
+}
+
+/// [`blur_u8`] with the kernels of level `lv` at most (see [`cpu_level`]; tests compare them).
+#[allow(clippy::too_many_arguments)]
+pub fn blur_u8_at(
+    lv: u8,
+    d: &mut [u8],
+    stride: usize,
+    w: usize,
+    h: usize,
+    ch: usize,
+    plan: &BoxPlan,
+    sc: &mut Scratch,
+) {
     let rl = w * ch;
     assert!(rl >= LANES, "box blur needs rows of at least {LANES} samples");
     let ns = rl.div_ceil(LANES);
@@ -451,7 +587,7 @@ pub fn blur_u8(d: &mut [u8], stride: usize, w: usize, h: usize, ch: usize, plan:
             .zip(sc.state.par_chunks_mut(STRIPS_PER_BLOCK * sl))
             .enumerate()
             .for_each(|(b, (out, state))| {
-                column_block_d(plan, src, stride, rl, h, b * STRIPS_PER_BLOCK, out, state);
+                column_block_d(lv, plan, src, stride, rl, h, b * STRIPS_PER_BLOCK, out, state);
             });
     }
     // Pass 2: bands of LANES rows, in groups of as many bands as there are threads (one
@@ -479,51 +615,15 @@ pub fn blur_u8(d: &mut [u8], stride: usize, w: usize, h: usize, ch: usize, plan:
                 let rows = LANES.min(h - y0);
                 let (bt, rest) = slot.split_at_mut(rl8);
                 let (ot, state) = rest.split_at_mut(rl8);
-                // Transpose: bt[j][l] = cols[strip(j)][y0 + l][j - j0], in 8 x 8 blocks.
+                // Transpose: bt[j][l] = cols[strip(j)][y0 + l][j - j0].
                 for s in 0..ns {
                     let j0 = (s * LANES).min(rl - LANES);
-                    let strip = &cols[s * h..(s + 1) * h];
-                    for lb in (0..rows).step_by(8) {
-                        for jb in (0..LANES).step_by(8) {
-                            let j = j0 + jb;
-                            if lb + 8 <= rows {
-                                let src = strip[y0 + lb..y0 + lb + 8].as_flattened();
-                                t8x8(&src[jb..], LANES, &mut bt[j..j + 8].as_flattened_mut()[lb..], LANES);
-                            } else {
-                                for l in lb..rows {
-                                    for jj in 0..8 {
-                                        bt[j + jj][l] = strip[y0 + l][jb + jj];
-                                    }
-                                }
-                            }
-                        }
-                    }
+                    let strip = &cols[s * h + y0..s * h + y0 + rows];
+                    transpose_in(lv, strip, &mut bt[j0..j0 + LANES]);
                 }
-                row_band_d(plan, w, ch, &bt[..rl], &mut ot[..rl], state);
+                row_band_d(lv, plan, w, ch, &bt[..rl], &mut ot[..rl], state);
                 // Transpose back and store bytes.
-                let mut tmp = [0u16; 64];
-                for lb in (0..rows).step_by(8) {
-                    for jb in (0..rl).step_by(8) {
-                        let nj = 8.min(rl - jb);
-                        if lb + 8 <= rows && nj == 8 {
-                            t8x8(&ot[jb..jb + 8].as_flattened()[lb..], LANES, &mut tmp, 8);
-                            for l in 0..8 {
-                                let row: &mut [u8; 8] =
-                                    (&mut band[(lb + l) * stride + jb..(lb + l) * stride + jb + 8]).try_into().unwrap();
-                                let t: &[u16; 8] = tmp[l * 8..l * 8 + 8].try_into().unwrap();
-                                for q in 0..8 {
-                                    row[q] = t[q] as u8;
-                                }
-                            }
-                        } else {
-                            for l in lb..rows.min(lb + 8) {
-                                for jj in 0..nj {
-                                    band[l * stride + jb + jj] = ot[jb + jj][l] as u8;
-                                }
-                            }
-                        }
-                    }
-                }
+                transpose_out(lv, &ot[..rl], band, stride, rows);
             });
         b0 += n;
     }
@@ -545,13 +645,27 @@ mod tests {
     }
 
     #[test]
-    fn transpose_blocks() {
-        let src: Vec<u16> = (0..8 * 11).map(|v| v as u16).collect();
-        let mut dst = vec![0u16; 8 * 9];
-        t8x8(&src, 11, &mut dst, 9);
-        for r in 0..8 {
-            for c in 0..8 {
-                assert_eq!(dst[c * 9 + r], src[r * 11 + c]);
+    fn transposes_move_every_value() {
+        for rows in [1usize, 7, 8, 13, 64] {
+            let src: Vec<Lane> = (0..rows).map(|l| std::array::from_fn(|j| (l * 64 + j) as u16)).collect();
+            let mut dst = vec![[0u16; LANES]; LANES];
+            transpose_in(cpu_level(), &src, &mut dst);
+            for l in 0..rows {
+                for j in 0..LANES {
+                    assert_eq!(dst[j][l], src[l][j]);
+                }
+            }
+            for rl in [64usize, 70, 203] {
+                let ot: Vec<Lane> = (0..rl).map(|j| std::array::from_fn(|l| ((j * 7 + l * 3) % 256) as u16)).collect();
+                let stride = rl + 3;
+                let mut band = vec![9u8; stride * rows];
+                transpose_out(cpu_level(), &ot, &mut band, stride, rows);
+                for l in 0..rows {
+                    for j in 0..rl {
+                        assert_eq!(band[l * stride + j] as u16, ot[j][l]);
+                    }
+                    assert_eq!(band[l * stride + rl..l * stride + stride], [9, 9, 9]);
+                }
             }
         }
     }
@@ -600,7 +714,9 @@ mod reference_tests {
             }
             let ch = f.channels();
             let src: Vec<f64> = f.packed_samples_f32().iter().map(|&v| v as f64).collect();
-            for widths in [[2, 2, 3, 3], [5, 5, 5, 5], [1, 3, 3, 3], [34, 34, 34, 34], [9, 13, 13, 13]] {
+            for widths in
+                [[2, 2, 3, 3], [5, 5, 5, 5], [1, 3, 3, 3], [34, 34, 34, 34], [9, 13, 13, 13], [20, 20, 23, 25]]
+            {
                 let plan = BoxPlan::new(widths);
                 let want = exact(&src, w, h, ch, &cascade_kernel(&widths));
                 let mut g = f.clone();
@@ -618,5 +734,28 @@ mod reference_tests {
             }
         }
         let _ = Frame::new(1, 1, PixelFormat::Mono8);
+    }
+
+    #[test]
+    fn scalar_avx2_and_avx512_levels_give_the_same_bytes() {
+        for (w, h, format) in
+            [(203usize, 131usize, PixelFormat::Rgb8), (333, 70, PixelFormat::Mono8), (64, 9, PixelFormat::Mono8)]
+        {
+            let f = crate::faults::kit::bench_scene(w as u32, h as u32, format, 3).unwrap();
+            for sigma in [2.1, 3.0, 8.0, 20.0] {
+                let plan = BoxPlan::for_sigma(sigma);
+                let run = |lv: u8| {
+                    let mut g = f.clone();
+                    let stride = g.stride;
+                    let FrameData::U8(d) = &mut g.data else { unreachable!() };
+                    blur_u8_at(lv, d, stride, w, h, format.channels(), &plan, &mut Scratch::default());
+                    g
+                };
+                let scalar = run(0);
+                assert_ne!(scalar, f, "{format} sigma {sigma}: blurred");
+                assert_eq!(run(1), scalar, "{format} sigma {sigma}: AVX2 vs scalar");
+                assert_eq!(run(2), scalar, "{format} sigma {sigma}: AVX-512 vs scalar");
+            }
+        }
     }
 }
