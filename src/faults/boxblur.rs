@@ -98,7 +98,7 @@ impl BoxPlan {
         // Odd, so that the final rounding to whole DN never meets a tie (round half up would
         // bias the mean by 0.5 / scale DN).
         let scale = ((65535 - wmax / 2) / (255 * wmax)).min(127) as u16;
-        let scale = if scale % 2 == 0 { scale - 1 } else { scale };
+        let scale = if scale.is_multiple_of(2) { scale - 1 } else { scale };
         assert!(scale >= 1, "box width {wmax} too large for 16-bit lanes");
         BoxPlan { widths, scale, radius: widths.iter().map(|w| w - 1).sum::<usize>() / 2 }
     }
