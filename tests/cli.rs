@@ -468,3 +468,59 @@ fn scalar_avx2_and_avx512_kernels_give_the_same_bytes() {
     assert_eq!(fast, avx2, "{fast_k} vs {avx2_k}");
     assert_eq!(fast, scalar, "{fast_k} vs {scalar_k}");
 }
+
+/// The blurs at strengths that take the sigma-independent paths (defocus box cascade) and the
+/// FIR paths: the same bytes with the fastest kernels, `FAULTCAM_NO_AVX512` and `FAULTCAM_NO_SIMD`.
+#[test]
+fn blur_kernels_give_the_same_bytes_on_every_path() {
+    let cases: &[&[&str]] = &[
+        &["--effect", "defocus", "--set", "defocus.sigma_px=4"],
+        &["--effect", "defocus", "--set", "defocus.sigma_px=20"],
+        &["--effect", "defocus", "--set", "defocus.sigma_px=0.7"],
+        &["--effect", "defocus", "--set", "defocus.sigma_px=8"],
+        &["--effect", "motion_blur", "--set", "motion_blur.length_px=30", "--set", "motion_blur.angle_deg=30"],
+        &["--effect", "motion_blur", "--set", "motion_blur.length_px=100", "--set", "motion_blur.angle_deg=137"],
+        &["--effect", "motion_blur", "--set", "motion_blur.length_px=0.7", "--set", "motion_blur.angle_deg=0"],
+    ];
+    for case in cases {
+        let run = |env: Option<&str>| -> Vec<String> {
+            let mut cmd = faultcam();
+            cmd.env_remove("FAULTCAM_NO_AVX512").env_remove("FAULTCAM_NO_SIMD");
+            if let Some(var) = env {
+                cmd.env(var, "1");
+            }
+            let out = cmd
+                .arg("bench")
+                .args(*case)
+                .args([
+                    "--size",
+                    "333x203",
+                    "--format",
+                    "mono8,rgb8",
+                    "--frames",
+                    "1",
+                    "--warmup",
+                    "0",
+                    "--scene",
+                    "stress",
+                ])
+                .assert()
+                .success()
+                .get_output()
+                .stdout
+                .clone();
+            String::from_utf8(out)
+                .unwrap()
+                .lines()
+                .filter_map(|l| {
+                    let d = l.split_whitespace().last()?;
+                    (d.len() == 16 && d.bytes().all(|b| b.is_ascii_hexdigit())).then(|| d.to_string())
+                })
+                .collect()
+        };
+        let fast = run(None);
+        assert_eq!(fast.len(), 2, "{case:?}: {fast:?}");
+        assert_eq!(fast, run(Some("FAULTCAM_NO_AVX512")), "{case:?}");
+        assert_eq!(fast, run(Some("FAULTCAM_NO_SIMD")), "{case:?}");
+    }
+}

@@ -16,6 +16,7 @@ pub mod registry;
 pub mod util;
 
 // Optics
+pub mod boxblur;
 pub mod channel_shift;
 pub mod defocus;
 pub mod lens_flare;
