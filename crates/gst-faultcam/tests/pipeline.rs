@@ -472,3 +472,76 @@ fn timeline_by_pts_runs_on_stream_time() {
         .collect();
     assert_eq!(active, [3, 4]);
 }
+
+/// The `trigger` property: a rig on a real pseudo-terminal pair sends `1 PING`, and once that is
+/// acknowledged (frames flow) `2 START flash`, while a live source streams; the element acknowledges it and the triggered event holds from one frame to
+/// the end of the stream (frames before it untouched).
+#[test]
+fn serial_trigger_property_starts_an_event_mid_stream() {
+    use std::io::{Read, Write};
+    let (mut rig, dut) = serialport::TTYPort::pair().expect("pseudo-terminal pair");
+    let dut_path = serialport::SerialPort::name(&dut).expect("pty name");
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("campaign.toml");
+    std::fs::write(
+        &cfg,
+        r#"
+seed = 3
+
+[[effects]]
+name = "gain_offset"          # driven by the event only
+offset_dn = 40
+
+[[events]]
+name = "lift"
+effect = "gain_offset"
+trigger = "flash"
+duration_s = 100.0
+
+[triggers]
+armed = true
+"#,
+    )
+    .unwrap();
+    // The rig waits for the stream (PING is acknowledged once frames flow), then fires.
+    let rig_thread = std::thread::spawn(move || {
+        serialport::SerialPort::set_timeout(&mut rig, std::time::Duration::from_millis(100)).unwrap();
+        let mut reply = Vec::new();
+        let read_line = |reply: &mut Vec<u8>, rig: &mut serialport::TTYPort| {
+            let t0 = std::time::Instant::now();
+            let lines = reply.iter().filter(|&&b| b == b'\n').count();
+            while t0.elapsed() < std::time::Duration::from_secs(20)
+                && reply.iter().filter(|&&b| b == b'\n').count() == lines
+            {
+                let mut buf = [0u8; 256];
+                if let Ok(n) = rig.read(&mut buf) {
+                    reply.extend_from_slice(&buf[..n]);
+                }
+            }
+        };
+        rig.write_all(b"1 PING\n").unwrap();
+        read_line(&mut reply, &mut rig);
+        rig.write_all(b"2 START flash\n").unwrap();
+        read_line(&mut reply, &mut rig);
+        String::from_utf8_lossy(&reply).into_owned()
+    });
+    let out = run(&format!(
+        "videotestsrc pattern=black is-live=true num-buffers=90 ! video/x-raw,format=GRAY8,width=96,height=64,framerate=30/1 ! faultcam config={} trigger={} ! appsink name=out",
+        cfg.display(),
+        dut_path
+    ))
+    .unwrap();
+    let reply = rig_thread.join().unwrap();
+    drop(dut);
+    assert!(reply.matches("ACK").count() == 2 && !reply.contains("NAK"), "rig got: {reply:?}");
+    assert_eq!(out.messages.len(), 90);
+    let on: Vec<bool> =
+        out.messages.iter().map(|m| m.get::<&str>("effects").unwrap().contains("gain_offset")).collect();
+    let first = on.iter().position(|&b| b).expect("the trigger never took effect");
+    assert!(first > 0, "the event was on before the trigger was sent");
+    assert!(on[first..].iter().all(|&b| b), "the event must hold to the end: {on:?}");
+    let mean = |f: &[u8]| f.iter().map(|&v| v as f64).sum::<f64>() / f.len() as f64;
+    // videotestsrc's black in GRAY8 is 16 (video range); lifted by 40 DN while the event runs.
+    assert!((mean(&out.frames[first - 1]) - 16.0).abs() < 1.0);
+    assert!((mean(&out.frames[first]) - 56.0).abs() < 1.0);
+}
