@@ -674,7 +674,7 @@ mod tests {
 }
 
 #[cfg(test)]
-mod reference_tests {
+pub(crate) mod reference_tests {
     use super::*;
     use crate::frame::{Frame, FrameData, PixelFormat};
 

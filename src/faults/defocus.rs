@@ -336,33 +336,12 @@ mod tests {
         assert_eq!(discrete_gaussian(0.0), vec![1.0]);
     }
 
-    /// The exact model in f64: separable convolution with the discrete Gaussian, mirrored borders.
+    /// The exact model in f64: separable convolution with the discrete Gaussian, mirrored borders
+    /// (the same f64 reference as the box cascade's, with the Gaussian kernel).
     fn exact_blur(f: &Frame, sigma: f64) -> Vec<f64> {
         let (w, h, ch) = (f.width as usize, f.height as usize, f.channels());
-        let k = discrete_gaussian_f64(sigma);
-        let r = (k.len() / 2) as isize;
-        let src = f.packed_samples_f32();
-        let mut rows = vec![0.0f64; w * h * ch];
-        for y in 0..h {
-            for x in 0..w {
-                for c in 0..ch {
-                    rows[(y * w + x) * ch + c] = (-r..=r)
-                        .map(|j| k[(j + r) as usize] * src[(y * w + mirror(x as isize + j, w)) * ch + c] as f64)
-                        .sum();
-                }
-            }
-        }
-        let mut out = vec![0.0f64; w * h * ch];
-        for y in 0..h {
-            for x in 0..w {
-                for c in 0..ch {
-                    out[(y * w + x) * ch + c] = (-r..=r)
-                        .map(|j| k[(j + r) as usize] * rows[(mirror(y as isize + j, h) * w + x) * ch + c])
-                        .sum();
-                }
-            }
-        }
-        out
+        let src: Vec<f64> = f.packed_samples_f32().into_iter().map(f64::from).collect();
+        crate::faults::boxblur::reference_tests::exact(&src, w, h, ch, &discrete_gaussian_f64(sigma))
     }
 
     /// Largest |error| (DN) and mean error of the 8-bit blur against the exact Gaussian, on a scene
