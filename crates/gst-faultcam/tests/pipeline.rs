@@ -49,6 +49,24 @@ struct Run {
     messages: Vec<gst::Structure>,
 }
 
+impl Run {
+    /// Keep a sample's samples packed (row padding removed) and its PTS.
+    fn push(&mut self, sample: &gst::Sample) {
+        let info = gst_video::VideoInfo::from_caps(sample.caps().unwrap()).unwrap();
+        let buf = sample.buffer().unwrap();
+        let vf = gst_video::VideoFrameRef::from_buffer_ref_readable(buf, &info).unwrap();
+        let row = info.width() as usize * info.format_info().pixel_stride()[0] as usize;
+        let stride = vf.plane_stride()[0] as usize;
+        let data = vf.plane_data(0).unwrap();
+        let mut packed = Vec::new();
+        for y in 0..info.height() as usize {
+            packed.extend_from_slice(&data[y * stride..y * stride + row]);
+        }
+        self.frames.push(packed);
+        self.pts.push(buf.pts().map(|p| p.nseconds()));
+    }
+}
+
 /// Run `desc` (which ends in `appsink name=out`) to EOS.
 fn run(desc: &str) -> Result<Run, String> {
     init();
@@ -68,19 +86,7 @@ fn run(desc: &str) -> Result<Run, String> {
     let mut error = None;
     loop {
         if let Some(sample) = sink.try_pull_sample(gst::ClockTime::from_mseconds(50)) {
-            let caps = sample.caps().unwrap();
-            let info = gst_video::VideoInfo::from_caps(caps).unwrap();
-            let buf = sample.buffer().unwrap();
-            let vf = gst_video::VideoFrameRef::from_buffer_ref_readable(buf, &info).unwrap();
-            let row = info.width() as usize * info.format_info().pixel_stride()[0] as usize;
-            let stride = vf.plane_stride()[0] as usize;
-            let data = vf.plane_data(0).unwrap();
-            let mut packed = Vec::new();
-            for y in 0..info.height() as usize {
-                packed.extend_from_slice(&data[y * stride..y * stride + row]);
-            }
-            out.frames.push(packed);
-            out.pts.push(buf.pts().map(|p| p.nseconds()));
+            out.push(&sample);
         }
         let mut eos = false;
         while let Some(msg) = bus.pop() {
@@ -104,19 +110,7 @@ fn run(desc: &str) -> Result<Run, String> {
     }
     // Samples still queued in the appsink after EOS.
     while let Some(sample) = sink.try_pull_sample(gst::ClockTime::ZERO) {
-        let caps = sample.caps().unwrap();
-        let info = gst_video::VideoInfo::from_caps(caps).unwrap();
-        let buf = sample.buffer().unwrap();
-        let vf = gst_video::VideoFrameRef::from_buffer_ref_readable(buf, &info).unwrap();
-        let row = info.width() as usize * info.format_info().pixel_stride()[0] as usize;
-        let stride = vf.plane_stride()[0] as usize;
-        let data = vf.plane_data(0).unwrap();
-        let mut packed = Vec::new();
-        for y in 0..info.height() as usize {
-            packed.extend_from_slice(&data[y * stride..y * stride + row]);
-        }
-        out.frames.push(packed);
-        out.pts.push(buf.pts().map(|p| p.nseconds()));
+        out.push(&sample);
     }
     pipeline.set_state(gst::State::Null).unwrap();
     match error {
