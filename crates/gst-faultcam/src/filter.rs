@@ -18,8 +18,10 @@
 //!    [`MESSAGE_NAME`] is posted on the bus with what was applied (`post-messages`).
 
 use faultcam::control::{Controller, LogEvent};
+use faultcam::frame::FrameError;
 use faultcam::gtlog::{FrameRecord, FrameStatus, GroundTruthLog};
 use faultcam::masks::{MaskOptions, MaskRecorder, mask_stem};
+use faultcam::pipeline::pool::{copy_rows_into, copy_rows_out};
 use faultcam::schedule::{TriggerOptions, controllers_from_config};
 use faultcam::{Chain, FaultConfig, Frame, FrameData, FrameReport, Outcome, PixelFormat};
 use gst::glib;
@@ -71,67 +73,37 @@ const FORMATS: [gst_video::VideoFormat; 4] = [
     gst_video::VideoFormat::Bgr,
 ];
 
-/// Copy a mapped plane (rows `stride` bytes apart) into the packed frame.
-fn copy_in(src: &[u8], stride: usize, bgr: bool, frame: &mut Frame) {
-    let row = frame.row_len();
-    let h = frame.height as usize;
-    match &mut frame.data {
-        FrameData::U8(d) => {
-            for (y, out) in d.chunks_exact_mut(row).take(h).enumerate() {
-                let inp = &src[y * stride..y * stride + row];
-                if bgr {
-                    for (o, i) in out.chunks_exact_mut(3).zip(inp.chunks_exact(3)) {
-                        o[0] = i[2];
-                        o[1] = i[1];
-                        o[2] = i[0];
-                    }
-                } else {
-                    out.copy_from_slice(inp);
-                }
-            }
-        }
-        FrameData::U16(d) => {
-            for (y, out) in d.chunks_exact_mut(row).take(h).enumerate() {
-                let inp = &src[y * stride..y * stride + 2 * row];
-                for (o, i) in out.iter_mut().zip(inp.chunks_exact(2)) {
-                    *o = u16::from_le_bytes([i[0], i[1]]);
-                }
-            }
-        }
+/// Swap the first and third byte of every RGB pixel of a row (RGB <-> BGR).
+fn swap_rb(row: &mut [u8]) {
+    for p in row.chunks_exact_mut(3) {
+        p.swap(0, 2);
     }
 }
 
-/// Copy the frame's samples back into the mapped plane (padding bytes untouched).
-fn copy_out(frame: &Frame, dst: &mut [u8], stride: usize, bgr: bool) {
-    let row = frame.row_len();
-    let fs = frame.stride;
-    let h = frame.height as usize;
-    match &frame.data {
-        FrameData::U8(d) => {
-            for y in 0..h {
-                let inp = &d[y * fs..y * fs + row];
-                let out = &mut dst[y * stride..y * stride + row];
-                if bgr {
-                    for (o, i) in out.chunks_exact_mut(3).zip(inp.chunks_exact(3)) {
-                        o[0] = i[2];
-                        o[1] = i[1];
-                        o[2] = i[0];
-                    }
-                } else {
-                    out.copy_from_slice(inp);
-                }
-            }
-        }
-        FrameData::U16(d) => {
-            for y in 0..h {
-                let inp = &d[y * fs..y * fs + row];
-                let out = &mut dst[y * stride..y * stride + 2 * row];
-                for (o, i) in out.chunks_exact_mut(2).zip(inp) {
-                    o.copy_from_slice(&i.to_le_bytes());
-                }
-            }
+/// Copy a mapped plane (rows `stride` bytes apart) into the packed frame (the pipeline's
+/// `copy_rows_into`), BGR turned into RGB.
+fn copy_in(src: &[u8], stride: usize, bgr: bool, frame: &mut Frame) -> Result<(), FrameError> {
+    copy_rows_into(frame, src, stride)?;
+    if bgr {
+        let (row, fs, h) = (frame.row_len(), frame.stride, frame.height as usize);
+        if let FrameData::U8(d) = &mut frame.data {
+            d.chunks_exact_mut(fs).take(h).for_each(|r| swap_rb(&mut r[..row]));
         }
     }
+    Ok(())
+}
+
+/// Copy the frame's samples back into the mapped plane (the pipeline's `copy_rows_out`; padding
+/// bytes untouched), RGB turned back into BGR.
+fn copy_out(frame: &Frame, dst: &mut [u8], stride: usize, bgr: bool) -> Result<(), FrameError> {
+    copy_rows_out(frame, dst, stride)?;
+    if bgr {
+        let row = frame.row_len();
+        for y in 0..frame.height as usize {
+            swap_rb(&mut dst[y * stride..y * stride + row]);
+        }
+    }
+    Ok(())
 }
 
 mod imp {
@@ -466,7 +438,7 @@ mod imp {
                 })?;
                 let stride = vf.plane_stride()[0] as usize;
                 let data = vf.plane_data(0).map_err(|_| gst::FlowError::Error)?;
-                copy_in(data, stride, st.bgr, frame);
+                copy_in(data, stride, st.bgr, frame).map_err(|_| gst::FlowError::Error)?;
             }
             frame.seq = seq;
             frame.pts_ns = t_ns;
@@ -509,7 +481,7 @@ mod imp {
                     })?;
                     let stride = vf.plane_stride()[0] as usize;
                     let data = vf.plane_data_mut(0).map_err(|_| gst::FlowError::Error)?;
-                    copy_out(frame, data, stride, st.bgr);
+                    copy_out(frame, data, stride, st.bgr).map_err(|_| gst::FlowError::Error)?;
                 }
                 if error.is_none()
                     && let Some((dir, rec)) = st.masks.as_mut()
