@@ -26,6 +26,8 @@ use std::time::Instant;
 pub struct CostCell {
     /// Exponentially weighted mean of the last ~8 calls, ns.
     ewma_ns: AtomicU64,
+    /// The last call, ns.
+    last_ns: AtomicU64,
     total_ns: AtomicU64,
     max_ns: AtomicU64,
     calls: AtomicU64,
@@ -36,6 +38,7 @@ impl CostCell {
         let calls = self.calls.fetch_add(1, Ordering::Relaxed);
         self.total_ns.fetch_add(ns, Ordering::Relaxed);
         self.max_ns.fetch_max(ns, Ordering::Relaxed);
+        self.last_ns.store(ns, Ordering::Relaxed);
         let old = self.ewma_ns.load(Ordering::Relaxed);
         let new = if calls == 0 { ns } else { old - old / 8 + ns / 8 };
         self.ewma_ns.store(new, Ordering::Relaxed);
@@ -43,6 +46,10 @@ impl CostCell {
     /// Recent mean cost in ns.
     pub fn recent_ns(&self) -> u64 {
         self.ewma_ns.load(Ordering::Relaxed)
+    }
+    /// Cost of the last call in ns.
+    pub fn last_ns(&self) -> u64 {
+        self.last_ns.load(Ordering::Relaxed)
     }
     pub fn calls(&self) -> u64 {
         self.calls.load(Ordering::Relaxed)
@@ -159,9 +166,22 @@ impl Degrader {
         self.tracked.iter().find(|t| t.index == index).map(|t| t.cell.recent_ns()).unwrap_or(0)
     }
 
-    /// Recent cost estimate of the whole enabled chain (ns).
+    /// Recent cost estimate of the whole enabled chain (ns): per effect the smaller of its
+    /// recent mean and its last call, so one slow frame (a warm-up, a busy moment) does not
+    /// make the next frames look too expensive to run.
     pub fn chain_estimate_ns(&self, chain: &Chain) -> u64 {
-        chain.entries().iter().filter(|e| e.enabled).map(|e| self.cost_of(e.index)).sum()
+        chain
+            .entries()
+            .iter()
+            .filter(|e| e.enabled)
+            .map(|e| {
+                self.tracked
+                    .iter()
+                    .find(|t| t.index == e.index)
+                    .map(|t| t.cell.recent_ns().min(t.cell.last_ns()))
+                    .unwrap_or(0)
+            })
+            .sum()
     }
 
     /// Feed one frame's outcome: `missed` = a frame processed at level >= the current level

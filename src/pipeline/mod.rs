@@ -581,7 +581,15 @@ struct FaultStage<'a> {
     last_t: u64,
     /// Per-pixel fault masks (`PipelineOptions::masks`).
     masks: Option<MaskRecorder>,
+    /// Frames dropped in a row before the chain on the cost estimate (`drop` policy).
+    estimate_drops: u32,
 }
+
+/// With the `drop` policy, after this many frames in a row dropped before the chain on the
+/// chain's cost estimate, the next frame runs anyway: the estimate is only refreshed by frames
+/// that run, so without this probe one slow frame (a warm-up, a busy moment) would make every
+/// later frame look too expensive and the stream would drop everything for good.
+const PROBE_AFTER_ESTIMATE_DROPS: u32 = 15;
 
 impl FaultStage<'_> {
     fn handle_done(&mut self, d: Done) {
@@ -655,13 +663,24 @@ impl FaultStage<'_> {
         if let Some(b) = budget {
             match self.opts.overrun {
                 OverrunPolicy::Drop => {
-                    if age + self.degrader.chain_estimate_ns(&self.chain) > b {
+                    let reason = if age > b {
+                        Some("overrun: older than the budget before the chain")
+                    } else if self.estimate_drops < PROBE_AFTER_ESTIMATE_DROPS
+                        && age + self.degrader.chain_estimate_ns(&self.chain) > b
+                    {
+                        self.estimate_drops += 1;
+                        Some("overrun: age + recent chain cost exceed the budget before the chain")
+                    } else {
+                        None
+                    };
+                    if let Some(reason) = reason {
                         slot.state = SlotState::DroppedOverrun;
-                        slot.reason = Some("overrun: age + recent chain cost exceed the budget before the chain");
+                        slot.reason = Some(reason);
                         slot.ready_ns = now;
                         self.send(Msg::Frame(slot));
                         return;
                     }
+                    self.estimate_drops = 0;
                 }
                 OverrunPolicy::Degrade => missed |= age > b,
                 OverrunPolicy::Pass => {}
@@ -1162,6 +1181,7 @@ pub fn run(
         error: None,
         last_t: 0,
         masks: opts.masks.as_ref().map(|m| MaskRecorder::new(m.opts)),
+        estimate_drops: 0,
     };
 
     let sink_end = std::thread::scope(|s| {
