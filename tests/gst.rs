@@ -225,3 +225,46 @@ fn sink_rejects_a_size_change_and_reports_pipeline_errors() {
     let err = err.or_else(|| sink.finish().err().map(|e| e.to_string())).expect("an error");
     assert!(err.contains("element"), "{err}");
 }
+
+#[test]
+fn a_pipeline_error_mid_stream_keeps_the_frames_made_before_it() {
+    // 30 PNG files, the 21st with a corrupted image chunk: pngdec fails there and the error
+    // stops the pipeline. The 20 frames decoded before it (some still queued in the appsink
+    // when the error arrives) are all delivered, in order, then the error names an element.
+    let dir = tempfile::tempdir().unwrap();
+    let status = Command::new("gst-launch-1.0")
+        .args(["-q", "videotestsrc", "num-buffers=30", "pattern=ball", "!"])
+        .args(["video/x-raw,format=GRAY8,width=96,height=64", "!", "pngenc", "!", "multifilesink"])
+        .arg(format!("location={}/f%04d.png", dir.path().display()))
+        .status()
+        .expect("gst-launch-1.0 runs");
+    assert!(status.success());
+    let bad = dir.path().join("f0020.png");
+    let mut png = std::fs::read(&bad).unwrap();
+    let idat = png.windows(4).position(|w| w == b"IDAT").expect("an IDAT chunk");
+    let end = (idat + 200).min(png.len() - 12);
+    for b in &mut png[idat + 8..end] {
+        *b ^= 0x5a;
+    }
+    std::fs::write(&bad, png).unwrap();
+    let mut src = GstSource::open(&format!(
+        "gst:multifilesrc location={}/f%04d.png index=0 stop-index=29 caps=image/png ! pngdec ! videoconvert ! \
+         appsink sync=false",
+        dir.path().display()
+    ))
+    .unwrap();
+    let mut seqs = Vec::new();
+    let err = loop {
+        match src.next_frame() {
+            Ok(Some(f)) => {
+                seqs.push(f.seq);
+                src.recycle(f);
+            }
+            Ok(None) => panic!("the stream ended without the error after {} frames", seqs.len()),
+            Err(e) => break e.to_string(),
+        }
+    };
+    assert_eq!(seqs, (0..20).collect::<Vec<u64>>(), "every frame before the corrupt file, in order");
+    assert!(err.contains("element"), "{err}");
+    assert!(src.next_frame().unwrap().is_none(), "after the error the stream has ended");
+}

@@ -21,6 +21,7 @@
 //! * No frame within `timeout_ms`, or the device's control-lost signal (camera unplugged,
 //!   network down), ends the stream with an error naming the camera.
 
+use super::frame_ids::{FrameIds, Placement};
 use super::{Source, SourceError, UriOptions, split_uri};
 use crate::frame::{Frame, PixelFormat};
 use crate::pipeline::pool::{FramePool, copy_rows_into};
@@ -37,6 +38,10 @@ const IFACE_GIGE: &str = "GigEVision";
 const IFACE_USB: &str = "USB3Vision";
 
 /// A streaming GenICam camera.
+/// Longest run of lost frames counted as a gap; a longer jump of the frame counter is a wrap
+/// or a reset (see [`FrameIds`]).
+const MAX_GAP: u64 = 1024;
+
 pub struct AravisSource {
     uri: String,
     camera: Camera,
@@ -51,10 +56,10 @@ pub struct AravisSource {
     shift: u32,
     settings: String,
     pool: FramePool,
-    first_id: Option<u64>,
-    next_id: u64,
-    /// Frame ids the camera skipped, reported one per `next_frame` call before `ready`.
-    gaps: VecDeque<u64>,
+    /// Stream numbers from the camera's frame ids (gaps, wraps, resets).
+    ids: FrameIds,
+    /// Lost frames and counter jumps, reported one per `next_frame` call before `ready`.
+    pending: VecDeque<SourceError>,
     ready: Option<Frame>,
     acquiring: bool,
 }
@@ -200,9 +205,8 @@ impl AravisSource {
             shift,
             settings,
             pool: FramePool::new(8),
-            first_id: None,
-            next_id: 0,
-            gaps: VecDeque::new(),
+            ids: FrameIds::new(MAX_GAP),
+            pending: VecDeque::with_capacity(MAX_GAP as usize + 1),
             ready: None,
             acquiring: true,
         })
@@ -251,11 +255,8 @@ impl Source for AravisSource {
     }
 
     fn next_frame(&mut self) -> Result<Option<Frame>, SourceError> {
-        if let Some(id) = self.gaps.pop_front() {
-            return Err(SourceError::BadInput {
-                item: format!("{}: frame id {id}", self.uri),
-                reason: "lost by the camera or the transport (gap in frame ids)".into(),
-            });
+        if let Some(e) = self.pending.pop_front() {
+            return Err(e);
         }
         if let Some(f) = self.ready.take() {
             return Ok(Some(f));
@@ -276,28 +277,50 @@ impl Source for AravisSource {
         let status = buf.status();
         let result = if status == BufferStatus::Success { Some(self.convert(&buf)) } else { None };
         self.stream.push_buffer(buf);
-        let first = *self.first_id.get_or_insert(id);
-        let seq = id.wrapping_sub(first);
-        // Frames the camera skipped since the last one we saw.
-        if seq > self.next_id {
-            for missing in self.next_id..seq {
-                self.gaps.push_back(first.wrapping_add(missing));
-            }
+        let incomplete = || SourceError::BadInput {
+            item: format!("{}: frame id {id}", self.uri),
+            reason: format!("incomplete buffer from the camera: {status:?}"),
+        };
+        // An incomplete buffer's id numbers the stream only if it continues the sequence (a
+        // failed buffer may carry id 0).
+        if result.is_none() && self.ids.step(id).is_none() {
+            return Err(incomplete());
         }
-        self.next_id = self.next_id.max(seq + 1);
+        let seq = match self.ids.place(id) {
+            Placement::Next { seq, skipped } => {
+                for lost in seq - skipped..seq {
+                    self.pending.push_back(SourceError::BadInput {
+                        item: format!("{}: frame {lost} (before camera frame id {id})", self.uri),
+                        reason: "lost by the camera or the transport (gap in frame ids)".into(),
+                    });
+                }
+                seq
+            }
+            Placement::Jump { seq, from, to } => {
+                self.pending.push_back(SourceError::BadInput {
+                    item: format!("{}: frame id {to}", self.uri),
+                    reason: format!(
+                        "the camera's frame counter jumped from {from} to {to} (wrapped or reset); numbering \
+                         goes on, frames lost in the jump (if any) cannot be counted"
+                    ),
+                });
+                seq
+            }
+        };
         match result {
-            None => Err(SourceError::BadInput {
-                item: format!("{}: frame id {id}", self.uri),
-                reason: format!("incomplete buffer from the camera: {status:?}"),
-            }),
+            None => {
+                self.pending.push_back(incomplete());
+                Err(self.pending.pop_front().expect("just pushed"))
+            }
             Some(Err(e)) => Err(e),
             Some(Ok(mut frame)) => {
                 frame.seq = seq;
-                if self.gaps.is_empty() {
-                    Ok(Some(frame))
-                } else {
-                    self.ready = Some(frame);
-                    self.next_frame()
+                match self.pending.pop_front() {
+                    None => Ok(Some(frame)),
+                    Some(e) => {
+                        self.ready = Some(frame);
+                        Err(e)
+                    }
                 }
             }
         }

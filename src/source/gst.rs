@@ -44,6 +44,9 @@ pub struct GstSource {
     pool: FramePool,
     seq: u64,
     eos: bool,
+    /// A bus error seen while frames the pipeline made before it still wait in the appsink:
+    /// those are delivered first, then the error ends the stream.
+    pending_error: Option<String>,
 }
 
 /// Text of the first error message on the bus, naming the element that posted it.
@@ -125,6 +128,7 @@ impl GstSource {
             pool: FramePool::new(8),
             seq: 0,
             eos: false,
+            pending_error: None,
         };
         if src.pipeline.set_state(gst::State::Playing).is_err() {
             let why = bus_error(&src.bus, Some(gst::ClockTime::from_seconds(1)))
@@ -219,8 +223,16 @@ impl Source for GstSource {
             return Ok(None);
         }
         loop {
-            if let Some(why) = bus_error(&self.bus, None) {
+            if self.pending_error.is_none() {
+                self.pending_error = bus_error(&self.bus, None);
+            }
+            if self.pending_error.is_some() {
+                // Frames that reached the appsink before the error are not lost with it.
+                if let Some(sample) = self.appsink.try_pull_sample(gst::ClockTime::ZERO) {
+                    return self.frame_from_sample(&sample).map(Some);
+                }
                 self.eos = true;
+                let why = self.pending_error.take().unwrap_or_default();
                 return Err(self.fatal(why));
             }
             match self.appsink.try_pull_sample(gst::ClockTime::from_nseconds(PULL_POLL.as_nanos() as u64)) {

@@ -4,6 +4,7 @@
 #[cfg(feature = "aravis")]
 pub mod aravis;
 pub mod files;
+pub mod frame_ids;
 #[cfg(feature = "gst")]
 pub mod gst;
 pub mod synth;
