@@ -13,11 +13,9 @@
 //!   standard input closes (faultcam closes it at the end of the stream).
 
 use serde_json::Value;
-use std::collections::{BTreeMap, BTreeSet};
-use std::io::{Read, Write};
+use std::collections::BTreeMap;
 use std::process::ExitCode;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::Ordering;
 
 /// Frame records of the log: (sweep name, seq, pose).
 fn read_log(path: &str) -> Result<Vec<(String, u64, Value)>, String> {
@@ -52,51 +50,21 @@ fn batch(log: &str, out_file: &str) -> Result<(), String> {
 }
 
 fn live(log: &str, dir: &str, report: Option<&str>) -> Result<(), String> {
+    use faultcam::sweep::live::sut::{FolderWatch, Reporter, stdin_closed};
     let by_name: BTreeMap<String, (u64, Value)> = read_log(log)?.into_iter().map(|(f, s, p)| (f, (s, p))).collect();
-    let udp = match report.filter(|r| *r != "-") {
-        Some(r) => {
-            let addr = r.strip_prefix("udp:").unwrap_or(r);
-            let s = std::net::UdpSocket::bind("127.0.0.1:0").map_err(|e| format!("udp: {e}"))?;
-            s.connect(addr).map_err(|e| format!("udp {addr}: {e}"))?;
-            Some(s)
-        }
-        None => None,
-    };
-    // End of stream: stdin closes.
-    let done = Arc::new(AtomicBool::new(false));
-    let d = done.clone();
-    std::thread::spawn(move || {
-        let mut sink = Vec::new();
-        let _ = std::io::stdin().read_to_end(&mut sink);
-        d.store(true, Ordering::Relaxed);
-    });
-    let mut seen = BTreeSet::new();
-    let mut stdout = std::io::stdout();
+    let mut out = Reporter::open(report.unwrap_or("-"))?;
+    let done = stdin_closed();
+    let mut watch = FolderWatch::new(dir);
     loop {
         let last = done.load(Ordering::Relaxed);
-        let mut new: Vec<String> = match std::fs::read_dir(dir) {
-            Ok(rd) => rd
-                .filter_map(|e| e.ok()?.file_name().into_string().ok())
-                .filter(|n| !n.ends_with(".tmp") && !seen.contains(n))
-                .collect(),
-            Err(_) => Vec::new(),
-        };
-        new.sort();
-        for name in new {
+        for path in watch.poll() {
             // The sweep names frames with .png; a sink may write another image format.
-            let stem = std::path::Path::new(&name).file_stem().and_then(|s| s.to_str()).unwrap_or(&name);
+            let Some(stem) = path.file_stem().and_then(|s| s.to_str()) else { continue };
             if let Some((seq, pose)) = by_name.get(&format!("{stem}.png")) {
-                let line = serde_json::json!({"seq": seq, "q": pose["q"], "t": pose["t"]}).to_string();
-                match &udp {
-                    Some(s) => {
-                        s.send(line.as_bytes()).map_err(|e| format!("udp send: {e}"))?;
-                    }
-                    None => {
-                        writeln!(stdout, "{line}").and_then(|_| stdout.flush()).map_err(|e| format!("stdout: {e}"))?
-                    }
-                }
+                let (q, t) = serde_json::from_value(serde_json::json!([pose["q"], pose["t"]]))
+                    .map_err(|e| format!("{log}: pose of seq {seq}: {e}"))?;
+                out.send(*seq, Some((q, t)))?;
             }
-            seen.insert(name);
         }
         if last {
             return Ok(());

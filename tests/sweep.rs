@@ -260,6 +260,27 @@ fn reference_sut_is_near_exact_on_clean_frames() {
             || l["median_score"].as_f64().unwrap() > b["p95_score"].as_f64().unwrap(),
         "{l}"
     );
+    // Live, over UDP, on the first frame only (it is the slow part of this file): the same
+    // estimate of frame 0 in every cell as the batch run.
+    let live = dir.path().join("live");
+    let sut = format!("'{}' --live {{in_dir}} {{report}} {{camera}}", example("ref_sut").display());
+    let mut c = Command::new(FAULTCAM);
+    c.args(["sweep", "--live", "--sut-report", "udp:127.0.0.1:0", "--startup-s", "30"])
+        .args(["--source", "synth:?width=160&height=120&frames=1&spin_dps=300", "--sut", &sut])
+        .args(["--effects", "defocus", "--levels", "1", "--frame-timeout-s", "30", "--out"])
+        .arg(&live);
+    run_ok(&mut c);
+    let first = |d: &Path| -> Vec<String> {
+        std::fs::read_to_string(d.join("frames.jsonl"))
+            .unwrap()
+            .lines()
+            .filter(|l| l.contains("frame_000000.png"))
+            .map(str::to_string)
+            .collect()
+    };
+    let (b, l) = (first(dir.path()), first(&live));
+    assert_eq!(b.len(), 2);
+    assert_eq!(l, b, "live and batch estimates of frame 0 differ");
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -417,6 +438,16 @@ fn silent_live_sut_fails_every_frame() {
         let frames: Vec<&Value> = inc.iter().filter(|i| i["frame"].is_string()).collect();
         assert_eq!(frames.len(), 6, "{inc:?}");
     }
+    // Answers `{"seq":N}` (no pose found) for each frame as it appears: every frame fails, at
+    // once (no time-out), and that is not an incident.
+    let sut = "i=0; while [ $i -lt 3 ]; do if [ -e {in_dir}/frame_00000$i.png ]; then \
+               echo \"{\\\"seq\\\":$i}\"; i=$((i+1)); else sleep 0.01; fi; done";
+    let t0 = std::time::Instant::now();
+    let (r, _) = live_sweep(&dir.path().join("nopose"), sut, &["--effects", "defocus", "--levels", "1"]);
+    assert!(t0.elapsed().as_secs_f64() < 10.0, "did not wait for a time-out (5 s, 15 s for the first frame)");
+    assert_eq!((r["baseline"]["failure_rate"].as_f64(), r["baseline"]["posed"].as_u64()), (Some(1.0), Some(0)));
+    assert_eq!(r["effects"][0]["levels"][0]["failure_rate"], 1.0);
+    assert_eq!(r["summary"]["incidents"], 0, "{}", r["incidents"]);
 }
 
 #[test]

@@ -8,7 +8,8 @@
 //!
 //! (one JSON line per frame, the [`crate::pose`] convention; `seq` is the frame's `seq` in the
 //! ground-truth log: `frame_NNNNNN` in a `files:` sink's names, the buffer's `offset` through a
-//! `gst:` sink when no frame is dropped) over:
+//! `gst:` sink when no frame is dropped; `{"seq":N}` says "no pose in frame N": it fails at once
+//! instead of at its time-out) over:
 //! - `stdout`: the SUT's standard output;
 //! - `udp:HOST:PORT`: datagrams to a socket faultcam binds (loopback; port 0 = any free port,
 //!   the SUT gets the address as `{report}`), one or more lines per datagram;
@@ -23,6 +24,9 @@
 //! an unknown seq (not a frame shown in this cell) or a second report for a frame, a report
 //! after the frame's time-out, a SUT that ended (crash, exit) before the frame. Frames without
 //! a report fail; the sweep goes on.
+//!
+//! [`sut`] has the SUT side for Rust SUTs (the examples `truth_sut` and `ref_sut` use it):
+//! watching a `files:` sink folder, the seq of a frame file, reporting over stdout or UDP.
 
 use super::{FrameResult, FrameStatus, SutOutcome, shell_quote};
 use crate::pose::{Pose, check_pose};
@@ -123,13 +127,15 @@ pub fn check_sink(uri: &str) -> Result<(), String> {
     }
 }
 
-/// Parse one report line: `Ok(None)` for blank lines and `#` comments.
-pub fn parse_report_line(line: &str) -> Result<Option<(u64, Pose)>, String> {
+/// Parse one report line: `Ok(None)` for blank lines and `#` comments; `(seq, None)` for
+/// `{"seq":N}` (the SUT found no pose in frame N: it fails without waiting for the time-out).
+pub fn parse_report_line(line: &str) -> Result<Option<(u64, Option<Pose>)>, String> {
     #[derive(Deserialize)]
+    #[serde(deny_unknown_fields)]
     struct L {
         seq: u64,
-        q: [f64; 4],
-        t: [f64; 3],
+        q: Option<[f64; 4]>,
+        t: Option<[f64; 3]>,
     }
     let line = line.trim().trim_start_matches('\u{feff}');
     if line.is_empty() || line.starts_with('#') {
@@ -137,7 +143,11 @@ pub fn parse_report_line(line: &str) -> Result<Option<(u64, Pose)>, String> {
     }
     let l: L = serde_json::from_str(line)
         .map_err(|e| format!("not a report {{\"seq\":N,\"q\":[w,x,y,z],\"t\":[x,y,z]}}: {e}"))?;
-    Ok(Some((l.seq, check_pose(&l.q, &l.t)?)))
+    match (l.q, l.t) {
+        (Some(q), Some(t)) => Ok(Some((l.seq, Some(check_pose(&q, &t)?)))),
+        (None, None) => Ok(Some((l.seq, None))),
+        _ => Err("a report needs both q and t (or neither: no pose)".into()),
+    }
 }
 
 /// What the report reader hands over.
@@ -308,7 +318,8 @@ struct Session<'a> {
     /// No more reports can come (stdout closed, or the SUT crashed).
     gone: bool,
     frames: &'a mut Vec<FrameResult>,
-    poses: Vec<Option<Pose>>,
+    /// Per frame: answered (with a pose or none).
+    poses: Vec<Option<Option<Pose>>>,
     /// Frame index by seq, for frames shown to the SUT.
     shown: std::collections::HashMap<u64, usize>,
     sut: SutOutcome,
@@ -609,7 +620,91 @@ pub(super) fn run(
         },
         _ => "ok".into(),
     };
-    Ok((s.poses, s.sut))
+    Ok((s.poses.into_iter().map(Option::flatten).collect(), s.sut))
+}
+
+/// The SUT side of the live protocol, for SUTs written in Rust.
+pub mod sut {
+    use std::collections::BTreeSet;
+    use std::io::Write;
+    use std::path::PathBuf;
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicBool, Ordering};
+
+    /// New files in a `files:` sink folder (or a `multifilesink` folder), in name order;
+    /// `.tmp` files (being written) are skipped.
+    pub struct FolderWatch {
+        dir: PathBuf,
+        seen: BTreeSet<String>,
+    }
+
+    impl FolderWatch {
+        pub fn new(dir: impl Into<PathBuf>) -> FolderWatch {
+            FolderWatch { dir: dir.into(), seen: BTreeSet::new() }
+        }
+        /// Paths of the files that appeared since the last call (none while the folder is missing).
+        pub fn poll(&mut self) -> Vec<PathBuf> {
+            let Ok(rd) = std::fs::read_dir(&self.dir) else { return Vec::new() };
+            let mut new: Vec<String> = rd
+                .filter_map(|e| e.ok()?.file_name().into_string().ok())
+                .filter(|n| !n.ends_with(".tmp") && !self.seen.contains(n))
+                .collect();
+            new.sort();
+            self.seen.extend(new.iter().cloned());
+            new.into_iter().map(|n| self.dir.join(n)).collect()
+        }
+    }
+
+    /// The seq of a sink file named `frame_NNNNNN.EXT` (a source without item names).
+    pub fn seq_of_name(name: &str) -> Option<u64> {
+        let stem = name.rsplit('/').next()?.split('.').next()?;
+        stem.strip_prefix("frame_")?.parse().ok()
+    }
+
+    /// A flag set when standard input closes (faultcam closes it at the end of the stream).
+    pub fn stdin_closed() -> Arc<AtomicBool> {
+        let done = Arc::new(AtomicBool::new(false));
+        let d = done.clone();
+        std::thread::spawn(move || {
+            let _ = std::io::copy(&mut std::io::stdin(), &mut std::io::sink());
+            d.store(true, Ordering::Relaxed);
+        });
+        done
+    }
+
+    /// Where reports go: stdout (`-`) or UDP (`udp:HOST:PORT` or `HOST:PORT`, what faultcam
+    /// passes as `{report}`). For a serial line, redirect stdout to the device.
+    pub enum Reporter {
+        Stdout(std::io::Stdout),
+        Udp(std::net::UdpSocket),
+    }
+
+    impl Reporter {
+        pub fn open(spec: &str) -> Result<Reporter, String> {
+            if spec == "-" || spec == "stdout" {
+                return Ok(Reporter::Stdout(std::io::stdout()));
+            }
+            let addr = spec.strip_prefix("udp:").unwrap_or(spec);
+            let s = std::net::UdpSocket::bind("127.0.0.1:0").map_err(|e| format!("udp: {e}"))?;
+            s.connect(addr).map_err(|e| format!("udp {addr}: {e}"))?;
+            Ok(Reporter::Udp(s))
+        }
+        /// Report frame `seq`'s pose (`None`: no pose found).
+        pub fn send(&mut self, seq: u64, pose: Option<([f64; 4], [f64; 3])>) -> Result<(), String> {
+            let line = match pose {
+                Some((q, t)) => serde_json::json!({"seq": seq, "q": q, "t": t}),
+                None => serde_json::json!({ "seq": seq }),
+            }
+            .to_string();
+            match self {
+                Reporter::Stdout(o) => {
+                    let mut o = o.lock();
+                    writeln!(o, "{line}").and_then(|_| o.flush()).map_err(|e| format!("stdout: {e}"))
+                }
+                Reporter::Udp(s) => s.send(line.as_bytes()).map(|_| ()).map_err(|e| format!("udp send: {e}")),
+            }
+        }
+    }
 }
 
 #[cfg(test)]
@@ -648,10 +743,16 @@ mod tests {
     #[test]
     fn report_lines() {
         let (seq, p) = parse_report_line(r#"{"seq":7,"q":[2,0,0,0],"t":[0,0,10]}"#).unwrap().unwrap();
+        let p = p.unwrap();
         assert_eq!((seq, p.q, p.t), (7, [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 10.0]));
+        assert_eq!(parse_report_line(r#"{"seq":3}"#).unwrap(), Some((3, None)));
+        assert!(parse_report_line(r#"{"seq":3,"t":[0,0,1]}"#).unwrap_err().contains("both q and t"));
+        assert!(parse_report_line(r#"{"seq":3,"file":"a.png"}"#).is_err());
         assert_eq!(parse_report_line("  # note").unwrap(), None);
         assert!(parse_report_line(r#"{"seq":-1,"q":[1,0,0,0],"t":[0,0,1]}"#).is_err());
         assert!(parse_report_line(r#"{"seq":1,"q":[0,0,0,0],"t":[0,0,1]}"#).unwrap_err().contains("zero norm"));
         assert!(parse_report_line("frame_000000.png,1,0,0,0,0,0,1").unwrap_err().contains("seq"));
+        assert_eq!(sut::seq_of_name("/x/frame_000012.png"), Some(12));
+        assert_eq!(sut::seq_of_name("img_3.png"), None);
     }
 }
