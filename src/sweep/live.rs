@@ -23,7 +23,8 @@
 //! **incident** is recorded for: no report within the time-out, a garbage line, a report for
 //! an unknown seq (not a frame shown in this cell) or a second report for a frame, a report
 //! after the frame's time-out, a SUT that ended (crash, exit) before the frame. Frames without
-//! a report fail; the sweep goes on.
+//! a report fail; the sweep goes on. Over UDP or a serial line a SUT command that exits with
+//! status 0 mid-stream is taken for a launcher (the SUT runs elsewhere): reports may still come.
 //!
 //! [`sut`] has the SUT side for Rust SUTs (the examples `truth_sut` and `ref_sut` use it):
 //! watching a `files:` sink folder, the seq of a frame file, reporting over stdout or UDP.
