@@ -4,6 +4,11 @@
 //! name), estimates the spacecraft's pose in each and writes one JSON line per image it could
 //! estimate: `{"file":"frame_000000.png","q":[w,x,y,z],"t":[x,y,z]}` (faultcam's pose
 //! convention: q scalar first, rotation body → camera; camera x right, y down, z forward; m).
+//!
+//! Live: `ref_sut --live IN_DIR REPORT [CAMERA_JSON]` — watches IN_DIR (a `files:` sink) and
+//! reports each new `frame_NNNNNN` image as `{"seq":N,"q":..,"t":..}` (`{"seq":N}` when it
+//! finds no pose) to REPORT (`-` stdout, or `udp:HOST:PORT` / `HOST:PORT`) until its standard
+//! input closes: `faultcam sweep --live --sut 'ref_sut --live {in_dir} - {camera}'`.
 //! CAMERA_JSON (`{"fx","fy","cx","cy"}`, what `faultcam sweep` passes as `{camera}`) gives the
 //! focal length; without it the synth default (30° horizontal field of view) is assumed.
 //!
@@ -224,18 +229,59 @@ fn estimate(path: &Path, fov_deg: f64) -> Option<Pose> {
     Some(pose_of(&x))
 }
 
+/// The camera's fx from a `{camera}` JSON file (empty path or unreadable: none).
+fn camera_fx(path: Option<&String>) -> Option<f64> {
+    let p = path.filter(|s| !s.is_empty())?;
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(p).ok()?).ok()?;
+    v.get("fx")?.as_f64()
+}
+
+/// Estimate one image: field of view from fx and the image width (synth default without fx).
+fn estimate_file(p: &Path, fx: Option<f64>) -> Option<Pose> {
+    let w = image::image_dimensions(p).ok()?.0 as f64;
+    let fov = fx.map(|f| 2.0 * (w / (2.0 * f)).atan().to_degrees()).unwrap_or(30.0);
+    estimate(p, fov)
+}
+
+/// Live mode: one report per new frame file, until stdin closes.
+fn live(in_dir: &str, report: &str, fx: Option<f64>) -> Result<(), String> {
+    use faultcam::sweep::live::sut::{FolderWatch, Reporter, seq_of_name, stdin_closed};
+    let mut out = Reporter::open(report)?;
+    let done = stdin_closed();
+    let mut watch = FolderWatch::new(in_dir);
+    loop {
+        let last = done.load(std::sync::atomic::Ordering::Relaxed);
+        for p in watch.poll() {
+            let Some(seq) = p.file_name().and_then(|n| n.to_str()).and_then(seq_of_name) else { continue };
+            let pose =
+                estimate_file(&p, fx).map(|pose| (quat_from_matrix(&pose.rotation()), [0.0, 0.0, pose.distance_m]));
+            out.send(seq, pose)?;
+        }
+        if last {
+            return Ok(());
+        }
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+}
+
 fn main() -> std::process::ExitCode {
     let args: Vec<String> = std::env::args().collect();
+    if args.get(1).map(String::as_str) == Some("--live") && (4..=5).contains(&args.len()) {
+        return match live(&args[2], &args[3], camera_fx(args.get(4))) {
+            Ok(()) => std::process::ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("ref_sut: {e}");
+                std::process::ExitCode::from(2)
+            }
+        };
+    }
     if args.len() < 3 {
-        eprintln!("usage: ref_sut IN_DIR OUT_FILE [CAMERA_JSON]");
+        eprintln!("usage: ref_sut IN_DIR OUT_FILE [CAMERA_JSON] | ref_sut --live IN_DIR REPORT [CAMERA_JSON]");
         return std::process::ExitCode::from(2);
     }
     let (in_dir, out_file) = (PathBuf::from(&args[1]), PathBuf::from(&args[2]));
     // Field of view from the camera's fx and the image width (fixed per folder).
-    let fx = args.get(3).filter(|s| !s.is_empty()).and_then(|p| {
-        let v: serde_json::Value = serde_json::from_slice(&std::fs::read(p).ok()?).ok()?;
-        v.get("fx")?.as_f64()
-    });
+    let fx = camera_fx(args.get(3));
     let mut files: Vec<PathBuf> = match std::fs::read_dir(&in_dir) {
         Ok(rd) => rd.filter_map(|e| e.ok().map(|e| e.path())).collect(),
         Err(e) => {
@@ -249,14 +295,7 @@ fn main() -> std::process::ExitCode {
             .is_some_and(|e| ["png", "jpg", "jpeg", "pgm", "ppm", "tif", "tiff"].contains(&e))
     });
     files.sort();
-    let poses: Vec<Option<Pose>> = files
-        .par_iter()
-        .map(|p| {
-            let w = image::image_dimensions(p).ok()?.0 as f64;
-            let fov = fx.map(|f| 2.0 * (w / (2.0 * f)).atan().to_degrees()).unwrap_or(30.0);
-            estimate(p, fov)
-        })
-        .collect();
+    let poses: Vec<Option<Pose>> = files.par_iter().map(|p| estimate_file(p, fx)).collect();
     let mut out = String::new();
     for (p, pose) in files.iter().zip(&poses) {
         let Some(pose) = pose else { continue };

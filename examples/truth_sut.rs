@@ -1,26 +1,28 @@
 //! A test SUT for `faultcam sweep` that answers with the truth: it reads a ground-truth log
-//! (`faultcam run --log`, whose frame records carry `pose`) and writes each frame's pose as the
-//! sweep expects it, named as the sweep names frames (`frame_NNNNNN.png`, or the input's stem
-//! with `.png`). A sweep of this SUT must score 0 everywhere: it checks the join, not a stack.
+//! (`faultcam run --log`, whose frame records carry `pose`) and gives each frame's pose as the
+//! sweep expects it. A sweep of this SUT must score 0 everywhere: it checks the join, not a
+//! stack.
 //!
-//! Usage: `truth_sut LOG OUT_FILE`.
+//! Usage:
+//! - batch: `truth_sut LOG OUT_FILE`: one line `{"file":..,"q":..,"t":..}` per frame, named
+//!   as the sweep names frames (`frame_NNNNNN.png`, or the input's stem with `.png`);
+//! - live: `truth_sut --live LOG DIR [REPORT]`: watches DIR (a `files:` sink, or a GStreamer
+//!   `multifilesink location=DIR/frame_%06d.png`) for new image files and reports
+//!   `{"seq":N,"q":..,"t":..}` for each, N the seq its name has in the log, to REPORT:
+//!   `udp:HOST:PORT` (one datagram per report) or `-`/absent (stdout). It exits when its
+//!   standard input closes (faultcam closes it at the end of the stream).
 
-fn main() -> std::process::ExitCode {
-    let args: Vec<String> = std::env::args().collect();
-    if args.len() != 3 {
-        eprintln!("usage: truth_sut LOG OUT_FILE");
-        return std::process::ExitCode::from(2);
-    }
-    let text = match std::fs::read_to_string(&args[1]) {
-        Ok(t) => t,
-        Err(e) => {
-            eprintln!("truth_sut: {}: {e}", args[1]);
-            return std::process::ExitCode::from(2);
-        }
-    };
-    let mut out = String::new();
+use serde_json::Value;
+use std::collections::BTreeMap;
+use std::process::ExitCode;
+use std::sync::atomic::Ordering;
+
+/// Frame records of the log: (sweep name, seq, pose).
+fn read_log(path: &str) -> Result<Vec<(String, u64, Value)>, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{path}: {e}"))?;
+    let mut out = Vec::new();
     for line in text.lines() {
-        let Ok(v) = serde_json::from_str::<serde_json::Value>(line) else { continue };
+        let Ok(v) = serde_json::from_str::<Value>(line) else { continue };
         if v.get("record").and_then(|r| r.as_str()) != Some("frame") {
             continue;
         }
@@ -33,12 +35,59 @@ fn main() -> std::process::ExitCode {
             }
             None => format!("frame_{seq:06}.png"),
         };
+        out.push((file, seq, pose.clone()));
+    }
+    Ok(out)
+}
+
+fn batch(log: &str, out_file: &str) -> Result<(), String> {
+    let mut out = String::new();
+    for (file, _, pose) in read_log(log)? {
         out += &serde_json::json!({"file": file, "q": pose["q"], "t": pose["t"]}).to_string();
         out.push('\n');
     }
-    if let Err(e) = std::fs::write(&args[2], out) {
-        eprintln!("truth_sut: {}: {e}", args[2]);
-        return std::process::ExitCode::from(2);
+    std::fs::write(out_file, out).map_err(|e| format!("{out_file}: {e}"))
+}
+
+fn live(log: &str, dir: &str, report: Option<&str>) -> Result<(), String> {
+    use faultcam::sweep::live::sut::{FolderWatch, Reporter, stdin_closed};
+    let by_name: BTreeMap<String, (u64, Value)> = read_log(log)?.into_iter().map(|(f, s, p)| (f, (s, p))).collect();
+    let mut out = Reporter::open(report.unwrap_or("-"))?;
+    let done = stdin_closed();
+    let mut watch = FolderWatch::new(dir);
+    loop {
+        let last = done.load(Ordering::Relaxed);
+        for path in watch.poll() {
+            // The sweep names frames with .png; a sink may write another image format.
+            let Some(stem) = path.file_stem().and_then(|s| s.to_str()) else { continue };
+            if let Some((seq, pose)) = by_name.get(&format!("{stem}.png")) {
+                let (q, t) = serde_json::from_value(serde_json::json!([pose["q"], pose["t"]]))
+                    .map_err(|e| format!("{log}: pose of seq {seq}: {e}"))?;
+                out.send(*seq, Some((q, t)))?;
+            }
+        }
+        if last {
+            return Ok(());
+        }
+        std::thread::sleep(std::time::Duration::from_millis(2));
     }
-    std::process::ExitCode::SUCCESS
+}
+
+fn main() -> ExitCode {
+    let args: Vec<String> = std::env::args().collect();
+    let r = match args.get(1).map(String::as_str) {
+        Some("--live") if (4..=5).contains(&args.len()) => live(&args[2], &args[3], args.get(4).map(String::as_str)),
+        Some(_) if args.len() == 3 => batch(&args[1], &args[2]),
+        _ => {
+            eprintln!("usage: truth_sut LOG OUT_FILE | truth_sut --live LOG DIR [udp:HOST:PORT|-]");
+            return ExitCode::from(2);
+        }
+    };
+    match r {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("truth_sut: {e}");
+            ExitCode::from(2)
+        }
+    }
 }

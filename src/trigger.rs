@@ -682,7 +682,9 @@ impl SerialTriggers {
     }
 }
 
-fn open_port(path: &str, baud: u32, poll: Duration) -> Result<Box<dyn SerialPort>, TriggerError> {
+/// Open a serial device at `baud` with read time-out `poll` (also used by the sweep's live
+/// SUT reports).
+pub fn open_port(path: &str, baud: u32, poll: Duration) -> Result<Box<dyn SerialPort>, TriggerError> {
     serialport::new(path, baud).timeout(poll).open().map_err(|source| TriggerError::Open {
         port: path.to_string(),
         baud,

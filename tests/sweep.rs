@@ -2,6 +2,9 @@
 //! a SUT that answers with the truth scores 0, one that answers nothing fails every frame, one
 //! that crashes, hangs or prints garbage is recorded and the sweep goes on, shards merge into
 //! the unsharded report byte for byte, and the reference SUT is near exact on clean frames.
+//! Live mode: the truth SUT reading the frames as they are streamed and reporting over UDP,
+//! stdout or a pty serial line scores 0 and gives the batch report; silent, garbage, crashing,
+//! hanging and duplicating SUTs are per-frame incidents.
 
 #[path = "support/files.rs"]
 mod files;
@@ -257,4 +260,239 @@ fn reference_sut_is_near_exact_on_clean_frames() {
             || l["median_score"].as_f64().unwrap() > b["p95_score"].as_f64().unwrap(),
         "{l}"
     );
+    // Live, over UDP, on the first frame only (it is the slow part of this file): the same
+    // estimate of frame 0 in every cell as the batch run.
+    let live = dir.path().join("live");
+    let sut = format!("'{}' --live {{in_dir}} {{report}} {{camera}}", example("ref_sut").display());
+    let mut c = Command::new(FAULTCAM);
+    c.args(["sweep", "--live", "--sut-report", "udp:127.0.0.1:0", "--startup-s", "30"])
+        .args(["--source", "synth:?width=160&height=120&frames=1&spin_dps=300", "--sut", &sut])
+        .args(["--effects", "defocus", "--levels", "1", "--frame-timeout-s", "30", "--out"])
+        .arg(&live);
+    run_ok(&mut c);
+    let first = |d: &Path| -> Vec<String> {
+        std::fs::read_to_string(d.join("frames.jsonl"))
+            .unwrap()
+            .lines()
+            .filter(|l| l.contains("frame_000000.png"))
+            .map(str::to_string)
+            .collect()
+    };
+    let (b, l) = (first(dir.path()), first(&live));
+    assert_eq!(b.len(), 2);
+    assert_eq!(l, b, "live and batch estimates of frame 0 differ");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Live mode
+
+const LIVE_ARGS: [&str; 6] = ["--effects", "defocus", "--levels", "2", "--seeds", "1"];
+
+/// The truth SUT in live mode: logs the same source (the truth), then watches the sink folder
+/// and reports `{"seq":N,...}` per new frame to REPORT (`{report}` for UDP, `-` for stdout).
+fn live_truth_sut(dir: &Path, watch: &str, report: &str) -> String {
+    format!(
+        "'{FAULTCAM}' run --source '{SYNTH}' --sink null: --faults '{}' --log {{cell_dir}}/gt.jsonl \
+         </dev/null >/dev/null 2>&1 && exec '{}' --live {{cell_dir}}/gt.jsonl {watch} {report}",
+        empty_faults(dir).display(),
+        example("truth_sut").display()
+    )
+}
+
+fn live_sweep(out: &Path, sut: &str, extra: &[&str]) -> (Value, String) {
+    let mut c = Command::new(FAULTCAM);
+    c.args(["sweep", "--live", "--source", SYNTH, "--sut", sut, "--out"]).arg(out).args(extra);
+    let err = run_ok(&mut c);
+    (serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap(), err)
+}
+
+/// Scores 0 everywhere, no incident, and the same table and frames as the batch truth sweep.
+fn assert_same_as_batch(dir: &Path, live: &Value, live_out: &Path) {
+    let batch_out = dir.join("batch");
+    let batch = sweep(&batch_out, &truth_sut(dir), &LIVE_ARGS);
+    assert_eq!(live["summary"]["incidents"], 0, "{}", live["incidents"]);
+    assert_eq!(live["baseline"]["failure_rate"], 0.0);
+    assert_eq!(live["baseline"]["frames"], 3);
+    for l in live["effects"][0]["levels"].as_array().unwrap() {
+        assert_eq!((l["frames"].as_u64(), l["posed"].as_u64()), (Some(3), Some(3)), "{l}");
+        assert!(l["p95_score"].as_f64().unwrap() < 1e-12, "{l}");
+    }
+    for k in ["baseline", "effects", "pairs", "summary", "incidents"] {
+        assert_eq!(live[k], batch[k], "{k}: live and batch differ");
+    }
+    assert!(live["plan"]["live"].is_object() && batch["plan"].get("live").is_none());
+    let read = |d: &Path| std::fs::read_to_string(d.join("frames.jsonl")).unwrap();
+    assert_eq!(read(live_out), read(&batch_out), "frames.jsonl: live == batch");
+}
+
+#[test]
+fn live_truth_sut_over_udp_scores_zero_as_in_batch() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("live");
+    let sut = live_truth_sut(dir.path(), "{in_dir}", "{report}");
+    let mut a = LIVE_ARGS.to_vec();
+    a.extend(["--sut-report", "udp:127.0.0.1:0", "--startup-s", "20"]);
+    let (r, _) = live_sweep(&out, &sut, &a);
+    assert_eq!(r["plan"]["live"]["report"], "udp:127.0.0.1:0");
+    assert_same_as_batch(dir.path(), &r, &out);
+    assert!(std::fs::read_to_string(out.join("report.md")).unwrap().contains("poses reported over `udp:127.0.0.1:0`"));
+}
+
+#[test]
+fn live_truth_sut_over_stdout_scores_zero_as_in_batch() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("live");
+    let sut = live_truth_sut(dir.path(), "{in_dir}", "-");
+    let mut a = LIVE_ARGS.to_vec();
+    // Cells in parallel: each has its own folder and stdout.
+    a.extend(["--startup-s", "20", "--jobs", "2"]);
+    let (r, _) = live_sweep(&out, &sut, &a);
+    assert_eq!(r["plan"]["live"]["report"], "stdout");
+    assert_eq!(r["plan"]["live"]["sink"], "files:{in_dir}");
+    assert_same_as_batch(dir.path(), &r, &out);
+}
+
+#[test]
+fn live_truth_sut_over_a_pty_serial_line_scores_zero() {
+    use std::os::fd::AsRawFd;
+    let dir = tempfile::tempdir().unwrap();
+    let (master, slave) = serialport::TTYPort::pair().unwrap();
+    // faultcam opens the pty's device by path (as a serial port); the SUT writes its reports
+    // into the other end, the master, inherited as an open file descriptor.
+    let fd = master.as_raw_fd();
+    // SAFETY: clearing FD_CLOEXEC on a descriptor this test owns, so children inherit it.
+    assert_eq!(unsafe { libc::fcntl(fd, libc::F_SETFD, 0) }, 0);
+    let tty = serialport::SerialPort::name(&slave).unwrap();
+    let sut = format!("{} >&{fd}", live_truth_sut(dir.path(), "{in_dir}", "-"));
+    let out = dir.path().join("live");
+    let mut a = LIVE_ARGS.to_vec();
+    let report = format!("serial:{tty}?baud=115200");
+    a.extend(["--sut-report", &report, "--startup-s", "20"]);
+    let (r, _) = live_sweep(&out, &sut, &a);
+    drop((master, slave));
+    assert_same_as_batch(dir.path(), &r, &out);
+}
+
+#[cfg(feature = "gst")]
+#[test]
+fn live_gst_sink_streams_to_the_sut() {
+    // A GStreamer pipeline as the sink: appsrc → PNG → one file per buffer, named by the
+    // buffer's index (= the frame's seq: nothing is dropped).
+    let dir = tempfile::tempdir().unwrap();
+    let sink = "gst:appsrc ! pngenc ! multifilesink location={cell_dir}/frame_%06d.png";
+    let sut = live_truth_sut(dir.path(), "{cell_dir}", "-");
+    let mut a = LIVE_ARGS.to_vec();
+    a.extend(["--sink", sink, "--startup-s", "20"]);
+    let (r, _) = live_sweep(&dir.path().join("live"), &sut, &a);
+    assert_eq!(r["summary"]["incidents"], 0, "{}", r["incidents"]);
+    assert_eq!(r["summary"]["frames_scored"], 9);
+    assert!(r["effects"][0]["levels"].as_array().unwrap().iter().all(|l| l["posed"] == 3 && l["failure_rate"] == 0.0));
+}
+
+#[test]
+fn live_sinks_and_reports_are_checked() {
+    let dir = tempfile::tempdir().unwrap();
+    // A v4l2loopback device is accepted as a sink (not opened by a dry run).
+    let mut c = Command::new(FAULTCAM);
+    c.args(["sweep", "--live", "--sut", "cat", "--sink", "v4l2:/dev/video42?format=GREY", "--dry-run"]);
+    c.args(["--sut-report", "udp:127.0.0.1:5600", "--effects", "defocus", "--levels", "1"]);
+    let out = c.output().unwrap();
+    let so = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success() && so.contains("v4l2:/dev/video42?format=GREY"), "{so}");
+    for (args, want) in [
+        (&["--live", "--sut-report", "tcp:1"][..], "udp:HOST:PORT"),
+        (&["--live", "--sink", "null:"][..], "files:, gst:, v4l2:"),
+        (&["--sink", "files:x"][..], "--live"),
+        (&["--live", "--frame-timeout-s", "0"][..], "(0, 3600]"),
+        (&["--live", "--sut-report", "udp:127.0.0.1:5600", "--jobs", "2"][..], "--jobs 1"),
+    ] {
+        let mut c = Command::new(FAULTCAM);
+        c.args(["sweep", "--sut", "cat {in_dir}", "--effects", "defocus", "--levels", "1", "--out"])
+            .arg(dir.path())
+            .args(args);
+        let out = c.output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(want), "{args:?}: {err}");
+    }
+}
+
+#[test]
+fn silent_live_sut_fails_every_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = ["--effects", "defocus", "--levels", "1", "--frame-timeout-s", "0.2", "--startup-s", "0"];
+    // Exits at once (stdout closes): every frame fails without waiting.
+    let (r, _) = live_sweep(&dir.path().join("exits"), "true", &args);
+    // Alive but never answers (over UDP): every frame times out.
+    let mut a = args.to_vec();
+    a.extend(["--sut-report", "udp:127.0.0.1:0"]);
+    let (r2, _) = live_sweep(&dir.path().join("mute"), "sleep 30", &a);
+    for (r, why) in [(&r, "no report: the SUT ended"), (&r2, "no report within 0.2 s")] {
+        assert_eq!(r["baseline"]["failure_rate"], 1.0, "{r}");
+        let c = &r["effects"][0];
+        assert_eq!(c["levels"][0]["failure_rate"], 1.0);
+        assert_eq!(c["levels"][0]["posed"], 0);
+        assert_eq!(c["breaking_point"]["level"], 1);
+        let inc = r["incidents"].as_array().unwrap();
+        assert!(inc.iter().any(|i| i["what"].as_str().unwrap().contains(why)), "{inc:?}");
+        // Every frame of both cells is an incident of its own.
+        let frames: Vec<&Value> = inc.iter().filter(|i| i["frame"].is_string()).collect();
+        assert_eq!(frames.len(), 6, "{inc:?}");
+    }
+    // Answers `{"seq":N}` (no pose found) for each frame as it appears: every frame fails, at
+    // once (no time-out), and that is not an incident.
+    let sut = "i=0; while [ $i -lt 3 ]; do if [ -e {in_dir}/frame_00000$i.png ]; then \
+               echo \"{\\\"seq\\\":$i}\"; i=$((i+1)); else sleep 0.01; fi; done";
+    let t0 = std::time::Instant::now();
+    let (r, _) = live_sweep(&dir.path().join("nopose"), sut, &["--effects", "defocus", "--levels", "1"]);
+    assert!(t0.elapsed().as_secs_f64() < 10.0, "did not wait for a time-out (5 s, 15 s for the first frame)");
+    assert_eq!((r["baseline"]["failure_rate"].as_f64(), r["baseline"]["posed"].as_u64()), (Some(1.0), Some(0)));
+    assert_eq!(r["effects"][0]["levels"][0]["failure_rate"], 1.0);
+    assert_eq!(r["summary"]["incidents"], 0, "{}", r["incidents"]);
+}
+
+#[test]
+fn live_garbage_crash_hang_and_bad_seqs_are_incidents_and_the_sweep_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let truth = live_truth_sut(dir.path(), "{in_dir}", "-");
+    // Cell 1 prints garbage first, cell 2 crashes after its first report, cell 3 hangs after
+    // its first report, cell 4 reports an unknown seq and every pose twice; cell 0 answers.
+    let sut = format!(
+        "case {{cell_dir}} in *cell-00001) echo nonsense; {truth};; \
+         *cell-00002) ({truth}) | head -n 1; kill -SEGV $$;; \
+         *cell-00003) ({truth}) | head -n 1; sleep 30;; \
+         *cell-00004) echo '{{\"seq\":99,\"q\":[1,0,0,0],\"t\":[0,0,1]}}'; \
+            ({truth}) | while read -r l; do echo \"$l\"; echo \"$l\"; done;; \
+         *) {truth};; esac"
+    );
+    let t0 = std::time::Instant::now();
+    let args = ["--effects", "defocus", "--levels", "4", "--frame-timeout-s", "0.5", "--startup-s", "20"];
+    let (r, _) = live_sweep(&dir.path().join("o"), &sut, &args);
+    assert!(t0.elapsed().as_secs() < 30, "the hanging SUT was stopped");
+    let inc = r["incidents"].as_array().unwrap();
+    let of = |cell: u64, frame: Option<&str>| -> Vec<String> {
+        inc.iter()
+            .filter(|i| i["cell"] == cell && i["frame"].as_str() == frame)
+            .map(|i| i["what"].as_str().unwrap().to_string())
+            .collect()
+    };
+    assert!(of(0, None).is_empty() && inc.iter().all(|i| i["cell"] != 0), "{inc:?}");
+    let g = of(1, Some("frame_000000.png"));
+    assert!(g.len() == 1 && g[0].starts_with("garbage report line: not a report"), "{inc:?}");
+    assert_eq!(of(2, None), ["sut killed by signal 11 mid-stream"], "{inc:?}");
+    assert!(of(2, Some("frame_000001.png"))[0].contains("no report: the SUT ended (killed by signal 11)"), "{inc:?}");
+    assert!(of(2, Some("frame_000002.png"))[0].contains("not shown: the SUT ended"), "{inc:?}");
+    for f in ["frame_000001.png", "frame_000002.png"] {
+        assert_eq!(of(3, Some(f)), ["no report within 0.5 s"], "{inc:?}");
+    }
+    assert!(of(3, None).is_empty(), "a SUT stopped at the end is not a crash: {inc:?}");
+    assert!(of(4, Some("frame_000000.png"))[0].contains("unknown seq 99"), "{inc:?}");
+    for f in ["frame_000000.png", "frame_000001.png"] {
+        assert!(of(4, Some(f)).iter().any(|w| w.contains("second report for seq")), "{f}: {inc:?}");
+    }
+    let lv: Vec<f64> =
+        r["effects"][0]["levels"].as_array().unwrap().iter().map(|l| l["failure_rate"].as_f64().unwrap()).collect();
+    assert_eq!(lv, [0.0, 2.0 / 3.0, 2.0 / 3.0, 0.0]);
+    assert_eq!(r["baseline"]["failure_rate"], 0.0);
+    let md = std::fs::read_to_string(dir.path().join("o/report.md")).unwrap();
+    assert!(md.contains("| 3 | defocus@3 | 1 | frame_000001.png | no report within 0.5 s |"), "{md}");
 }

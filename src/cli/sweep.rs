@@ -13,7 +13,8 @@ pub struct Args {
     #[command(subcommand)]
     pub merge: Option<Merge>,
     /// Sweep config (TOML): source, poses, sut, timeout_s, levels, seeds, tolerance, threshold,
-    /// effects, campaign, pairs, [[effect]] grids. Options given here override it.
+    /// effects, campaign, pairs, [[effect]] grids; live: mode = "live", sink, sut_report,
+    /// frame_timeout_s, startup_s. Options given here override it.
     #[arg(long, value_name = "FILE")]
     pub config: Option<PathBuf>,
     /// Batch SUT: a shell command with {in_dir} (images), {out_file} (one pose per image, JSON
@@ -21,6 +22,25 @@ pub struct Args {
     /// SUT's stdout is read) and {camera} (JSON intrinsics fx, fy, cx, cy).
     #[arg(long, value_name = "CMD")]
     pub sut: Option<String>,
+    /// Live mode: stream each cell's frames into --sink while the SUT runs; it reports one
+    /// JSON line {"seq":N,"q":[w,x,y,z],"t":[x,y,z]} per frame over --sut-report. The SUT
+    /// command gets {in_dir}, {camera}, {cell_dir} and {report} (the report address/device).
+    #[arg(long)]
+    pub live: bool,
+    /// Live: sink the SUT reads, files:DIR (default files:{in_dir}, written frame by frame),
+    /// gst:appsrc ! ... or v4l2:/dev/videoN; {in_dir} and {cell_dir} are replaced per cell.
+    #[arg(long, value_name = "URI")]
+    pub sink: Option<String>,
+    /// Live: where poses come back: stdout (default), udp:HOST:PORT (faultcam binds; port 0 =
+    /// any free port, passed as {report}) or serial:DEVICE[?baud=N].
+    #[arg(long, value_name = "SPEC")]
+    pub sut_report: Option<String>,
+    /// Live: time-out of one frame's report, seconds (default 5).
+    #[arg(long, value_name = "S")]
+    pub frame_timeout_s: Option<f64>,
+    /// Live: extra time for the first frame's report (SUT start-up), seconds (default 10).
+    #[arg(long, value_name = "S")]
+    pub startup_s: Option<f64>,
     /// Frame source (default: a small synth: scene); files:DIR needs --poses.
     #[arg(long, value_name = "URI")]
     pub source: Option<String>,
@@ -48,7 +68,7 @@ pub struct Args {
     /// Breaking point: the lowest level whose failure rate is at least this (default 0.5).
     #[arg(long)]
     pub threshold: Option<f64>,
-    /// Time-out of one SUT run (one cell), seconds (default 600).
+    /// Time-out of one SUT run (one cell, live or batch), seconds (default 600).
     #[arg(long, value_name = "S")]
     pub timeout_s: Option<f64>,
     /// Output folder: report.json, report.md, frames.jsonl, plots/ (or the shard file).
@@ -130,6 +150,11 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         campaign: path_str(&args.campaign),
         grids: Vec::new(),
         pairs,
+        live: args.live.then_some(true),
+        sink: args.sink.clone(),
+        sut_report: args.sut_report.clone(),
+        frame_timeout_s: args.frame_timeout_s,
+        startup_s: args.startup_s,
     };
     let mut settings = file.overlay(cli);
     if args.effects.is_some() || args.campaign.is_some() {
@@ -147,6 +172,27 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         }
     } else if plan.source.contains("loop=") {
         bail!("source {}: a looping source never ends; drop loop= for a sweep", plan.source);
+    }
+    if let Some(l) = &plan.live
+        && args.jobs > 1
+    {
+        // Cells in parallel need a report channel and a sink of their own.
+        let own_sink = l.sink.starts_with("files:") && (l.sink.contains("{in_dir}") || l.sink.contains("{cell_dir}"));
+        let own_report = match faultcam::sweep::live::ReportSpec::parse(&l.report) {
+            Ok(faultcam::sweep::live::ReportSpec::Stdout) => true,
+            Ok(faultcam::sweep::live::ReportSpec::Udp(a)) => a.port() == 0,
+            _ => false,
+        };
+        if !(own_sink && own_report) {
+            bail!(
+                "--jobs {} with a live sweep needs a sink and a report channel per cell (a files: sink under \
+                 {{in_dir}} or {{cell_dir}}, and stdout or udp:HOST:0); sink '{}' and sut_report '{}' are \
+                 shared: use --jobs 1",
+                args.jobs,
+                l.sink,
+                l.report
+            );
+        }
     }
     let cells = plan.cells();
     if args.dry_run {

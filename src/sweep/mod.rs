@@ -18,6 +18,7 @@
 //! has no pose or its score is above `tolerance`. Frames a fault dropped, or without truth, are
 //! not scored. See [`report`] for the statistics, the breaking point and the summary index.
 
+pub mod live;
 pub mod plan;
 pub mod plot;
 pub mod report;
@@ -56,10 +57,14 @@ pub struct FrameResult {
     pub e_q: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub score: Option<f64>,
+    /// Live mode: what went wrong with this frame's report (time-out, garbage, unknown or
+    /// duplicate seq, late report, SUT ended), `; `-joined.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub incident: Option<String>,
 }
 
 /// How the SUT run of a cell went (no paths or times: the same sweep gives the same record).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct SutOutcome {
     /// `ok`, `exit status N`, `killed by signal N`, `timeout after S s`, `could not start: ..`.
     pub status: String,
@@ -71,13 +76,28 @@ pub struct SutOutcome {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub first_garbage: Option<String>,
     /// Poses for files that are not in the cell, and second poses for the same file (ignored).
+    /// (Live: reports for an unknown seq.)
     pub unknown_files: usize,
     pub duplicates: usize,
+    /// Live: reports that came after their frame's time-out (ignored).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub late: usize,
+    /// A live run: garbage, unknown, duplicate and late reports are incidents of their frames
+    /// ([`FrameResult::incident`]), the cell's own incident is only the SUT's status.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub live: bool,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 impl SutOutcome {
-    /// True when something went wrong (reported as an incident).
+    /// True when something went wrong with the cell's SUT run (reported as an incident).
     pub fn incident(&self) -> bool {
+        if self.live {
+            return self.status != "ok";
+        }
         self.status != "ok" || self.no_output || self.garbage_lines > 0 || self.unknown_files > 0 || self.duplicates > 0
     }
 }
@@ -253,20 +273,66 @@ pub fn run_cell(plan: &Plan, cell: Cell, work: &Path, opts: &RunOptions) -> Cell
     res
 }
 
-fn prepare_and_run(plan: &Plan, cell: Cell, dir: &Path) -> Result<(Vec<FrameResult>, SutOutcome), String> {
-    let in_dir = dir.join("in");
-    let _ = std::fs::remove_dir_all(dir);
-    std::fs::create_dir_all(&in_dir).map_err(|e| format!("cannot create {}: {e}", in_dir.display()))?;
+/// The cell's fault chain, seeded by the cell's seed.
+fn build_chain(plan: &Plan, cell: Cell) -> Result<crate::Chain, String> {
     let mut chain = crate::Chain::new(cell.seed);
     for p in plan.chain_params(cell.kind)? {
         chain.push(p.info().name, p).map_err(|e| e.to_string())?;
     }
+    Ok(chain)
+}
+
+/// Write `camera.json` (the SUT's `{camera}`) into the cell folder when the intrinsics are known.
+fn write_camera(dir: &Path, camera: Option<crate::pose::Intrinsics>) -> Result<Option<PathBuf>, String> {
+    match camera {
+        Some(k) => {
+            let p = dir.join("camera.json");
+            std::fs::write(&p, serde_json::to_vec(&k).unwrap_or_default())
+                .map_err(|e| format!("cannot write {}: {e}", p.display()))?;
+            Ok(Some(p))
+        }
+        None => Ok(None),
+    }
+}
+
+fn prepare_and_run(plan: &Plan, cell: Cell, dir: &Path) -> Result<(Vec<FrameResult>, SutOutcome), String> {
+    let in_dir = dir.join("in");
+    let _ = std::fs::remove_dir_all(dir);
+    std::fs::create_dir_all(&in_dir).map_err(|e| format!("cannot create {}: {e}", in_dir.display()))?;
+    let mut frames: Vec<FrameResult> = Vec::new();
+    let mut truths: Vec<Truth> = Vec::new();
+    let (poses, sut) = match &plan.live {
+        Some(live) => live::run(plan, live, cell, dir, &mut frames, &mut truths)?,
+        None => run_batch(plan, cell, dir, &mut frames, &mut truths)?,
+    };
+    for ((f, truth), est) in frames.iter_mut().zip(&truths).zip(&poses) {
+        if f.status != FrameStatus::NoPose {
+            continue;
+        }
+        let (Some(est), Some(t)) = (est, truth.pose) else { continue };
+        let (e_t, e_q) = (translation_error(&est.t, &t.t), rotation_error(&est.q, &t.q));
+        f.status = FrameStatus::Posed;
+        f.e_t = Some(e_t);
+        f.e_q = Some(e_q);
+        f.score = Some(e_t + e_q);
+    }
+    Ok((frames, sut))
+}
+
+/// Batch: write every frame into `in/`, run the SUT once, read its poses (by frame index).
+fn run_batch(
+    plan: &Plan,
+    cell: Cell,
+    dir: &Path,
+    frames: &mut Vec<FrameResult>,
+    truths: &mut Vec<Truth>,
+) -> Result<(Vec<Option<crate::pose::Pose>>, SutOutcome), String> {
+    let in_dir = dir.join("in");
+    let mut chain = build_chain(plan, cell)?;
     let mut src = crate::source::open(&plan.source).map_err(|e| e.to_string())?;
     let mut report = crate::FrameReport::default();
     let mut scratch = Vec::new();
     let wopts = WriteOptions::default();
-    let mut frames: Vec<FrameResult> = Vec::new();
-    let mut truths: Vec<Truth> = Vec::new();
     let mut camera = None;
     loop {
         let mut f = match src.next_frame() {
@@ -286,46 +352,21 @@ fn prepare_and_run(plan: &Plan, cell: Cell, dir: &Path) -> Result<(Vec<FrameResu
             if truth.pose.is_some() { FrameStatus::NoPose } else { FrameStatus::NoTruth }
         };
         src.recycle(f);
-        frames.push(FrameResult { file: name, status, e_t: None, e_q: None, score: None });
+        frames.push(FrameResult { file: name, status, e_t: None, e_q: None, score: None, incident: None });
         truths.push(truth);
     }
-    let cam_path = match camera {
-        Some(k) => {
-            let p = dir.join("camera.json");
-            std::fs::write(&p, serde_json::to_vec(&k).unwrap_or_default())
-                .map_err(|e| format!("cannot write {}: {e}", p.display()))?;
-            Some(p)
-        }
-        None => None,
-    };
+    let cam_path = write_camera(dir, camera)?;
     let run = run_sut(&plan.sut, dir, &in_dir, cam_path.as_deref(), Duration::from_secs_f64(plan.timeout_s));
-    let mut sut = SutOutcome {
-        status: run.status,
-        no_output: run.output.is_none(),
-        garbage_lines: 0,
-        first_garbage: None,
-        unknown_files: 0,
-        duplicates: 0,
-    };
+    let mut sut = SutOutcome { status: run.status, no_output: run.output.is_none(), ..SutOutcome::default() };
     let known: BTreeMap<String, usize> = frames
         .iter()
         .enumerate()
         .filter(|(_, f)| f.status != FrameStatus::Dropped)
         .map(|(i, f)| (f.file.clone(), i))
         .collect();
-    let poses = parse_output(run.output.as_deref().unwrap_or(&[]), &known, &mut sut);
-    for (f, truth) in frames.iter_mut().zip(&truths) {
-        if f.status != FrameStatus::NoPose {
-            continue;
-        }
-        let (Some(est), Some(t)) = (poses.get(&f.file), truth.pose) else { continue };
-        let (e_t, e_q) = (translation_error(&est.t, &t.t), rotation_error(&est.q, &t.q));
-        f.status = FrameStatus::Posed;
-        f.e_t = Some(e_t);
-        f.e_q = Some(e_q);
-        f.score = Some(e_t + e_q);
-    }
-    Ok((frames, sut))
+    let by_file = parse_output(run.output.as_deref().unwrap_or(&[]), &known, &mut sut);
+    let poses = frames.iter().map(|f| by_file.get(&f.file).copied()).collect();
+    Ok((poses, sut))
 }
 
 /// Run the cells whose index % n == k (0-based `shard`), `jobs` at a time; results in cell

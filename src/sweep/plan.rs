@@ -111,7 +111,8 @@ impl EffectGrid {
 pub struct Plan {
     /// Source URI (a `files:` source's poses file is folded in as `poses=`).
     pub source: String,
-    /// SUT command with `{in_dir}`, `{out_file}` and `{camera}` placeholders.
+    /// SUT command with `{in_dir}`, `{out_file}` (batch), `{camera}`, `{cell_dir}` and
+    /// `{report}` (live) placeholders.
     pub sut: String,
     pub timeout_s: f64,
     pub seeds: Vec<u64>,
@@ -122,6 +123,9 @@ pub struct Plan {
     pub effects: Vec<EffectGrid>,
     /// Pairs of effects (indices into `effects`), both at the same level.
     pub pairs: Vec<(usize, usize)>,
+    /// Live mode (frames streamed into a sink, poses reported per frame); none: batch.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub live: Option<super::live::LivePlan>,
 }
 
 /// What a cell runs.
@@ -221,6 +225,14 @@ pub struct Settings {
     /// Explicit grids: name, param, values, fixed params (TOML table).
     pub grids: Vec<GridSpec>,
     pub pairs: Vec<(String, String)>,
+    /// Live mode (`mode = "live"`, `--live`).
+    pub live: Option<bool>,
+    /// Live: sink URI (default `files:{in_dir}`).
+    pub sink: Option<String>,
+    /// Live: `stdout`, `udp:HOST:PORT`, `serial:DEVICE[?baud=N]` (default stdout).
+    pub sut_report: Option<String>,
+    pub frame_timeout_s: Option<f64>,
+    pub startup_s: Option<f64>,
 }
 
 fn err(origin: &str, key: &str, msg: impl std::fmt::Display) -> String {
@@ -251,14 +263,31 @@ impl Settings {
                 "source" => s.source = Some(v.as_str().ok_or_else(|| bad("expected a URI string"))?.to_string()),
                 "poses" => s.poses = Some(rel(v.as_str().ok_or_else(|| bad("expected a file path"))?)),
                 "sut" => s.sut = Some(v.as_str().ok_or_else(|| bad("expected a command string"))?.to_string()),
+                "mode" => {
+                    s.live = Some(match v.as_str() {
+                        Some("live") => true,
+                        Some("batch") => false,
+                        _ => return Err(bad("expected \"batch\" or \"live\"")),
+                    })
+                }
+                "sink" => s.sink = Some(v.as_str().ok_or_else(|| bad("expected a sink URI string"))?.to_string()),
+                "sut_report" => {
+                    s.sut_report = Some(
+                        v.as_str()
+                            .ok_or_else(|| bad("expected stdout, udp:HOST:PORT or serial:DEVICE[?baud=N]"))?
+                            .to_string(),
+                    )
+                }
                 "campaign" => s.campaign = Some(rel(v.as_str().ok_or_else(|| bad("expected a file path"))?)),
-                "timeout_s" | "tolerance" | "threshold" => {
+                "timeout_s" | "tolerance" | "threshold" | "frame_timeout_s" | "startup_s" => {
                     let x = v
                         .as_float()
                         .or_else(|| v.as_integer().map(|i| i as f64))
                         .ok_or_else(|| bad("expected a number"))?;
                     match k.as_str() {
                         "timeout_s" => s.timeout_s = Some(x),
+                        "frame_timeout_s" => s.frame_timeout_s = Some(x),
+                        "startup_s" => s.startup_s = Some(x),
                         "tolerance" => s.tolerance = Some(x),
                         _ => s.threshold = Some(x),
                     }
@@ -325,7 +354,8 @@ impl Settings {
                 other => {
                     return Err(format!(
                         "{origin}: unknown key '{other}'; accepted: source, poses, sut, timeout_s, levels, seeds, \
-                         tolerance, threshold, effects, campaign, pairs, [[effect]]"
+                         tolerance, threshold, effects, campaign, pairs, [[effect]], mode, sink, sut_report, \
+                         frame_timeout_s, startup_s"
                     ));
                 }
             }
@@ -339,6 +369,7 @@ impl Settings {
             ($($f:ident),*) => { $( if o.$f.is_some() { self.$f = o.$f; } )* };
         }
         take!(source, poses, sut, timeout_s, levels, seeds, tolerance, threshold, effects, campaign);
+        take!(live, sink, sut_report, frame_timeout_s, startup_s);
         if !o.grids.is_empty() {
             self.grids = o.grids;
         }
@@ -363,8 +394,15 @@ impl Settings {
             source.push_str(&format!("poses={p}"));
         }
         let sut = self.sut.clone().ok_or("no SUT: give --sut 'CMD {in_dir} {out_file}' or `sut` in the config")?;
-        if !sut.contains("{in_dir}") {
+        let live = self.resolve_live()?;
+        if live.is_none() && !sut.contains("{in_dir}") {
             return Err(format!("sut '{sut}' has no {{in_dir}} placeholder (the folder of images to estimate)"));
+        }
+        if live.is_some() && sut.contains("{out_file}") {
+            return Err(format!(
+                "sut '{sut}': {{out_file}} is for batch mode; a live SUT reports each pose with its seq \
+                 over sut_report (stdout, udp:HOST:PORT or serial:DEVICE)"
+            ));
         }
         let timeout_s = self.timeout_s.unwrap_or(600.0);
         if !(timeout_s > 0.0 && timeout_s <= 86400.0) {
@@ -455,7 +493,38 @@ impl Settings {
             }
             pairs.push((ia, ib));
         }
-        Ok(Plan { source, sut, timeout_s, seeds, tolerance, threshold, effects, pairs })
+        Ok(Plan { source, sut, timeout_s, seeds, tolerance, threshold, effects, pairs, live })
+    }
+
+    /// The live settings (none in batch mode; live-only settings without live mode are an
+    /// error).
+    fn resolve_live(&self) -> Result<Option<super::live::LivePlan>, String> {
+        use super::live::*;
+        if self.live != Some(true) {
+            let given = [
+                ("sink", self.sink.is_some()),
+                ("sut_report", self.sut_report.is_some()),
+                ("frame_timeout_s", self.frame_timeout_s.is_some()),
+                ("startup_s", self.startup_s.is_some()),
+            ];
+            if let Some((k, _)) = given.iter().find(|g| g.1) {
+                return Err(format!("{k} is a live-mode setting; give --live or mode = \"live\""));
+            }
+            return Ok(None);
+        }
+        let sink = self.sink.clone().unwrap_or_else(|| DEFAULT_SINK.to_string());
+        check_sink(&sink)?;
+        let report = self.sut_report.clone().unwrap_or_else(|| "stdout".to_string());
+        ReportSpec::parse(&report)?;
+        let frame_timeout_s = self.frame_timeout_s.unwrap_or(DEFAULT_FRAME_TIMEOUT_S);
+        if !(frame_timeout_s > 0.0 && frame_timeout_s <= 3600.0) {
+            return Err(format!("frame_timeout_s = {frame_timeout_s} is out of range; accepted (0, 3600] s"));
+        }
+        let startup_s = self.startup_s.unwrap_or(DEFAULT_STARTUP_S);
+        if !(0.0..=3600.0).contains(&startup_s) {
+            return Err(format!("startup_s = {startup_s} is out of range; accepted [0, 3600] s"));
+        }
+        Ok(Some(LivePlan { sink, report, frame_timeout_s, startup_s }))
     }
 }
 

@@ -162,6 +162,9 @@ pub struct Incident {
     pub cell: usize,
     pub label: String,
     pub seed: u64,
+    /// Live mode: the frame (file name) whose report went wrong; none for the cell's own.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub frame: Option<String>,
     pub what: String,
 }
 
@@ -268,8 +271,17 @@ pub fn build(plan_json: &serde_json::Value, cells: &[CellResult]) -> Result<Repo
             }
             _ => None,
         };
+        let mut add = |frame: Option<&str>, what: String| {
+            let frame = frame.map(str::to_string);
+            incidents.push(Incident { cell: c.cell.index, label: c.label.clone(), seed: c.cell.seed, frame, what });
+        };
         if let Some(what) = what {
-            incidents.push(Incident { cell: c.cell.index, label: c.label.clone(), seed: c.cell.seed, what });
+            add(None, what);
+        }
+        for f in &c.frames {
+            if let Some(what) = &f.incident {
+                add(Some(&f.file), what.clone());
+            }
         }
     }
     let summary = Summary {
@@ -295,7 +307,7 @@ fn f(v: Option<f64>) -> String {
     }
 }
 
-fn g(v: f64) -> String {
+pub(crate) fn g(v: f64) -> String {
     let s = format!("{v:.4}");
     let s = s.trim_end_matches('0').trim_end_matches('.');
     if s.is_empty() || s == "-0" { "0".into() } else { s.to_string() }
@@ -315,6 +327,17 @@ pub fn markdown(r: &Report) -> String {
             g(p.tolerance),
             g(p.threshold)
         );
+        if let Some(l) = r.plan.get("live") {
+            let t = |k: &str| l.get(k).and_then(|v| v.as_str()).unwrap_or("").to_string();
+            let n = |k: &str| l.get(k).and_then(|v| v.as_f64()).map(g).unwrap_or_default();
+            s += &format!(
+                "Live: frames streamed into `{}`, poses reported over `{}`, {} s per frame (+ {} s start-up).\n\n",
+                t("sink"),
+                t("report"),
+                n("frame_timeout_s"),
+                n("startup_s")
+            );
+        }
     }
     let b = &r.baseline;
     s += &format!(
@@ -379,9 +402,16 @@ pub fn markdown(r: &Report) -> String {
         s += "\n";
     }
     if !r.incidents.is_empty() {
-        s += "## Incidents\n\n| cell | fault | seed | what |\n|---|---|---|---|\n";
+        s += "## Incidents\n\n| cell | fault | seed | frame | what |\n|---|---|---|---|---|\n";
         for i in &r.incidents {
-            s += &format!("| {} | {} | {} | {} |\n", i.cell, i.label, i.seed, i.what.replace('|', "\\|"));
+            s += &format!(
+                "| {} | {} | {} | {} | {} |\n",
+                i.cell,
+                i.label,
+                i.seed,
+                i.frame.as_deref().unwrap_or("–"),
+                i.what.replace('|', "\\|")
+            );
         }
     }
     s
