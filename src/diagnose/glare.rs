@@ -16,7 +16,7 @@
 //! against `f`.
 //!
 //! Fit: the PSF shape (core radius, Moffat index) is the one of [`SHAPES`] whose pooled
-//! regression explains the real floors best (largest R²); the fraction is fitted by moment
+//! regression explains the real sky levels best (largest R²); the fraction is fitted by moment
 //! matching: the sims are pushed through the library's `veiling_glare` until their slope
 //! equals the real one.
 
@@ -67,10 +67,11 @@ const BRIGHT_Q: f64 = 0.995;
 const SCENE_SHARE: f64 = 0.15;
 
 /// Lit-scene mask of a frame as an integral image (`(w+1) x (h+1)` counts of scene pixels), the
-/// frame's background level and the threshold (DN). A pixel is scene when it is above `bg + max(2 flat_dn, SCENE_SHARE (bright
-/// - bg))`, `bg` and `bright` the frame's [`BG_Q`] and [`BRIGHT_Q`] quantiles: lit surfaces stand
-/// far above the sky, while the glare next to them is a few percent of their level (up to a
-/// quarter for the largest fraction the effect allows, which then only widens the mask).
+/// frame's background level and the threshold (DN). A pixel is scene when it is above
+/// `bg + max(2 flat_dn, SCENE_SHARE (bright − bg))`, `bg` and `bright` the frame's [`BG_Q`] and
+/// [`BRIGHT_Q`] quantiles: lit surfaces stand far above the sky, while the glare next to them is
+/// a few percent of their level (up to a quarter for the largest fraction the effect allows,
+/// which then only widens the mask).
 fn scene_mask(p: &Plane, flat_dn: f64) -> (Vec<u32>, f64, f64) {
     let (w, h) = (p.w, p.h);
     let mut v: Vec<f64> = p.data.iter().map(|&x| x as f64).collect();
@@ -259,9 +260,11 @@ pub fn unpaired(
     /// Per image, the flat cells as `cells_of` returns them.
     type CellsPerImage = Vec<Vec<(f64, f64)>>;
     let mut sig = Signature::new("veiling_glare");
-    sig.where_ = "flat background cells of the real images, against the glare their own scenes predict".into();
+    sig.where_ =
+        "flat sky cells of the real images (away from the lit scene), against the glare their own scenes predict"
+            .into();
     let flat_dn = (6.0 * noise_sd).max(8.0);
-    // Shape: the one that explains the real floors best.
+    // Shape: the one that explains the real sky levels best.
     let mut best: Option<(f64, (f64, f64), CellsPerImage)> = None;
     for &shape in SHAPES {
         let rc = cells_of(real, shape, flat_dn);
@@ -274,14 +277,14 @@ pub fn unpaired(
     }
     let none = |sig: Signature| Ok(GlareResult { sig, params: None, method: String::new() });
     let Some((r2, shape, rc)) = best else {
-        sig.evidence = "too few flat background cells in the real images to regress their level on the scene".into();
+        sig.evidence = "too few flat sky cells in the real images to regress their level on the scene".into();
         return none(sig);
     };
     let sc = cells_of(sim, shape, flat_dn);
     let Some((fr, cr, _, _)) = regress(&refs(&rc)) else { return none(sig) };
     let sfit = regress(&refs(&sc));
     let Some((gap, se)) = slope_gap(&rc, &sc, seed) else {
-        sig.evidence = "too few images with background cells for a bootstrap".into();
+        sig.evidence = "too few images with sky cells for a bootstrap".into();
         return none(sig);
     };
     sig.z = if se > 0.0 { gap / se } else { 0.0 };
@@ -294,7 +297,7 @@ pub fn unpaired(
     let (core_share, slope) = shape;
     let (fs, cs) = sfit.map(|s| (s.0, s.1)).unwrap_or((0.0, f64::NAN));
     sig.evidence = format!(
-        "background floor = c + f x (scene * PSF) over {} real and {} sim cells: real f = {:.4} (c = {:.1} DN, R² = {:.2}), \
+        "sky level = c + f x (lit scene * PSF) over {} real and {} sim sky cells: real f = {:.4} (c = {:.1} DN, R² = {:.2}), \
          sim f = {:.4} (c = {:.1} DN); gap {:.4} ± {:.4} (z = {:.1}); the floor follows the scene's flux and the distance to \
          bright sources (a uniform offset or dark current would give f = 0 and only raise c); PSF shape of best R²: \
          core {:.0} % of the long side, Moffat index {}",
@@ -343,13 +346,13 @@ pub fn unpaired(
     Ok(GlareResult {
         params: make(fraction),
         sig,
-        method: "regression of background floors on the scene convolved with the PSF (shape of best R²), fraction by \
+        method: "regression of sky levels on the lit scene convolved with the PSF (shape of best R²), fraction by \
                  moment matching through the library veiling_glare"
             .into(),
     })
 }
 
-/// Paired initial values: the residual floor (real − sim) of the background cells regressed on
+/// Paired initial values: the residual level (real − sim) of the sky cells regressed on
 /// the glare the sim's scene predicts, for every shape of [`SHAPES`]; the shape of best R².
 /// Returns (fraction, core_px, slope, R²) when the slope is positive.
 pub fn paired_init(pairs: &[super::img::Pair]) -> Option<(f64, f64, f64, f64)> {
