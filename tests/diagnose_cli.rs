@@ -152,8 +152,9 @@ fn diagnose_errors_name_the_folder() {
 }
 
 /// A rendered black sky (0 DN in every dark pixel) carries no information on its level or noise:
-/// unpaired against frames whose sky sits at 12 DN with noise, the dark level is the real's
-/// 12 DN (not a censored fit that runs to -253 DN and a 255 DN "dark current"). The real frames
+/// unpaired against frames whose sky sits at 12 DN with noise, the sim's dark level reads 0 DN
+/// (not a censored fit that runs to -100 or -253 DN, which made a 255 DN "dark current" on the
+/// blooming validation) and the dark level found is the real's 12 DN. The real frames
 /// are the synthetic ones plus a level and Gaussian noise drawn here (xorshift, Box-Muller), not
 /// through the library.
 #[test]
@@ -205,4 +206,21 @@ fn diagnose_unpaired_reads_a_black_sim_sky_as_zero() {
         .unwrap_or_else(|| panic!("no dark_current finding: {}", rep["findings"]));
     let mean = dark["params"]["mean_dn"].as_f64().expect("mean_dn");
     assert!((mean - 12.0).abs() <= 1.5, "dark level {mean} DN, expected about 12: {dark}");
+    // The sim's own level, as the dark test reports it ("... DN, sim X DN (gap ..."): 0 DN, not
+    // a censored fit run far below it.
+    let ev = rep["tests"]
+        .as_array()
+        .expect("tests")
+        .iter()
+        .find(|t| t["effect"] == "dark_current")
+        .and_then(|t| t["evidence"].as_str())
+        .expect("dark_current test")
+        .to_string();
+    let sim_level: f64 = ev
+        .split("sim ")
+        .nth(1)
+        .and_then(|r| r.split(" DN").next())
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no sim level in {ev:?}"));
+    assert!(sim_level.abs() <= 0.5, "sim dark level {sim_level} DN for a black sky: {ev}");
 }
