@@ -150,3 +150,77 @@ fn diagnose_errors_name_the_folder() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("paired by file name"), "{err}");
 }
+
+/// A rendered black sky (0 DN in every dark pixel) carries no information on its level or noise:
+/// unpaired against frames whose sky sits at 12 DN with noise, the sim's dark level reads 0 DN
+/// (not a censored fit that runs to -100 or -253 DN, which made a 255 DN "dark current" on the
+/// blooming validation) and the dark level found is the real's 12 DN. The real frames
+/// are the synthetic ones plus a level and Gaussian noise drawn here (xorshift, Box-Muller), not
+/// through the library.
+#[test]
+fn diagnose_unpaired_reads_a_black_sim_sky_as_zero() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (sim, real, out) = (tmp.path().join("sim"), tmp.path().join("real"), tmp.path().join("out"));
+    let write_set = |dir: &Path, yaw: f64, lift: Option<(f64, f64)>| {
+        let mut src =
+            SynthSource::open(&format!("synth:?width=160&height=120&frames=4&spin_dps=20&earth=false&yaw={yaw}"))
+                .expect("synth source");
+        let mut sink = FilesSink::open(&format!("files:{}", dir.display())).expect("files sink");
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut uniform = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let mut i = 0;
+        while let Some(mut f) = src.next_frame().expect("frame") {
+            if let Some((level, sd)) = lift {
+                for v in f.as_u8_mut().expect("8-bit frame") {
+                    let g = (-2.0 * uniform().ln()).sqrt() * (std::f64::consts::TAU * uniform()).cos();
+                    *v = (*v as f64 + level + sd * g).round().clamp(0.0, 255.0) as u8;
+                }
+            }
+            sink.write_frame(&f, Some(&format!("img_{i:03}.png"))).expect("write");
+            i += 1;
+        }
+    };
+    write_set(&sim, 0.0, None);
+    write_set(&real, 140.0, Some((12.0, 2.0)));
+    faultcam()
+        .args(["diagnose", "--unpaired", "--sim"])
+        .arg(&sim)
+        .arg("--real")
+        .arg(&real)
+        .arg("--out")
+        .arg(&out)
+        .assert()
+        .success();
+    let rep: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report.json")).expect("json");
+    let dark = rep["findings"]
+        .as_array()
+        .expect("findings")
+        .iter()
+        .find(|f| f["effect"] == "dark_current")
+        .unwrap_or_else(|| panic!("no dark_current finding: {}", rep["findings"]));
+    let mean = dark["params"]["mean_dn"].as_f64().expect("mean_dn");
+    assert!((mean - 12.0).abs() <= 1.5, "dark level {mean} DN, expected about 12: {dark}");
+    // The sim's own level, as the dark test reports it ("... DN, sim X DN (gap ..."): 0 DN, not
+    // a censored fit run far below it.
+    let ev = rep["tests"]
+        .as_array()
+        .expect("tests")
+        .iter()
+        .find(|t| t["effect"] == "dark_current")
+        .and_then(|t| t["evidence"].as_str())
+        .expect("dark_current test")
+        .to_string();
+    let sim_level: f64 = ev
+        .split("sim ")
+        .nth(1)
+        .and_then(|r| r.split(" DN").next())
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no sim level in {ev:?}"));
+    assert!(sim_level.abs() <= 0.5, "sim dark level {sim_level} DN for a black sky: {ev}");
+}

@@ -1,17 +1,22 @@
 //! Veiling glare (`veiling_glare`) in diagnose: telling it from a uniform level (black-level
 //! offset, or dark current when no dark frames are given) by its signature, and fitting it.
 //!
-//! Signature: glare is the scene convolved with a wide PSF, so the *background floor* of an
-//! image (the 20th percentile of every flat, unsaturated cell of the coarse grid of
-//! [`crate::faults::veiling_glare::grid`]) rises where the glare that the image's own scene
-//! predicts is high: next to bright sources, and more in images with more total flux. A
-//! uniform level lifts every floor alike. Per set, the floors are regressed on the predicted
-//! glare `G = P * I` (unit fraction; `I` the image's luma, clipped as recorded):
-//! `floor = c + f G`. Glare is `f` > 0 (real above sim); the intercept `c` is the uniform part.
-//! Standard errors bootstrap the images, so the scatter between scenes counts against `f`.
+//! Signature: glare is the scene convolved with a wide PSF, so the level of the *sky* of an
+//! image rises where the glare that the image's own lit scene predicts is high: next to bright
+//! sources, and more in images with more total flux. A uniform level lifts every sky cell alike.
+//! Sky cells (on the coarse grid of [`crate::faults::veiling_glare::grid`]) are the flat,
+//! unsaturated cells with no lit-scene pixel within one cell side: a pixel is lit scene when it
+//! stands above the frame's background by a share of its dynamic range (see `scene_mask`), so
+//! the target, the Earth and their blurred edges — scene albedo, which in earlier versions
+//! passed as "background" and dominated the regression — are left out. The sources of the
+//! predicted glare are the lit-scene pixels less the background (a uniform level is no source).
+//! Per set, the sky levels (trimmed means) are regressed on the predicted glare `G = P * I`
+//! (unit fraction): `level = c + f G`. Glare is `f` > 0 (real above sim); the intercept `c` is
+//! the uniform part. Standard errors bootstrap the images, so the scatter between scenes counts
+//! against `f`.
 //!
 //! Fit: the PSF shape (core radius, Moffat index) is the one of [`SHAPES`] whose pooled
-//! regression explains the real floors best (largest R²); the fraction is fitted by moment
+//! regression explains the real sky levels best (largest R²); the fraction is fitted by moment
 //! matching: the sims are pushed through the library's `veiling_glare` until their slope
 //! equals the real one.
 
@@ -22,28 +27,103 @@ use crate::faults::{Params, default_params};
 use crate::frame::Frame;
 use crate::rng::Rng;
 
-/// PSF shapes tried: (core radius as a share of the frame's long side, Moffat index).
-pub const SHAPES: &[(f64, f64)] = &[(0.01, 1.2), (0.01, 1.5), (0.04, 1.5), (0.04, 2.5), (0.12, 1.5), (0.12, 2.5)];
-/// Percentile of a cell taken as its background floor.
-const FLOOR_Q: f64 = 0.2;
+/// PSF shapes tried: (core radius as a share of the frame's long side, Moffat index). Indices
+/// below 1.5 are left out: outside the core the sky only sees the tail `f r0^(2β-2) r^(-2β)`,
+/// and a flatter tail with a smaller core explains it as well (the regression cannot tell them
+/// apart) while putting most of the scattered flux outside any frame.
+pub const SHAPES: &[(f64, f64)] = &[
+    (0.01, 1.5),
+    (0.02, 1.5),
+    (0.035, 1.5),
+    (0.055, 1.5),
+    (0.08, 1.5),
+    (0.12, 1.5),
+    (0.18, 1.5),
+    (0.01, 2.0),
+    (0.02, 2.0),
+    (0.035, 2.0),
+    (0.055, 2.0),
+    (0.08, 2.0),
+    (0.12, 2.0),
+    (0.18, 2.0),
+    (0.035, 2.5),
+    (0.055, 2.5),
+    (0.08, 2.5),
+    (0.12, 2.5),
+    (0.18, 2.5),
+];
+/// Share of a sky cell's samples trimmed at each end before its level is averaged (a star or
+/// a hot pixel does not move the level; the mean of the rest is not quantised to whole DN).
+const TRIM: f64 = 0.2;
 /// Saturation level (8-bit DN): cells reaching it are sources, not background.
 const SAT: f32 = 250.0;
 /// Bootstrap replicates over images.
 const BOOT: usize = 60;
+/// Quantile of a frame taken as its background (sky) level, and as its bright level.
+const BG_Q: f64 = 0.05;
+const BRIGHT_Q: f64 = 0.995;
+/// Share of the way from the background to the bright level above which a pixel belongs to
+/// the lit scene (target, Earth), not the sky.
+const SCENE_SHARE: f64 = 0.15;
+
+/// Lit-scene mask of a frame as an integral image (`(w+1) x (h+1)` counts of scene pixels), the
+/// frame's background level and the threshold (DN). A pixel is scene when it is above
+/// `bg + max(2 flat_dn, SCENE_SHARE (bright − bg))`, `bg` and `bright` the frame's [`BG_Q`] and
+/// [`BRIGHT_Q`] quantiles: lit surfaces stand far above the sky, while the glare next to them is
+/// a few percent of their level (up to a quarter for the largest fraction the effect allows,
+/// which then only widens the mask).
+fn scene_mask(p: &Plane, flat_dn: f64) -> (Vec<u32>, f64, f64) {
+    let (w, h) = (p.w, p.h);
+    let mut v: Vec<f64> = p.data.iter().map(|&x| x as f64).collect();
+    let bg = stats::quantile_mut(&mut v, BG_Q);
+    let bright = stats::quantile_mut(&mut v, BRIGHT_Q);
+    let thr = bg + (2.0 * flat_dn).max(SCENE_SHARE * (bright - bg));
+    let mut ii = vec![0u32; (w + 1) * (h + 1)];
+    for y in 0..h {
+        let mut row = 0u32;
+        for x in 0..w {
+            row += (p.data[y * w + x] as f64 > thr) as u32;
+            ii[(y + 1) * (w + 1) + x + 1] = ii[y * (w + 1) + x + 1] + row;
+        }
+    }
+    (ii, bg, thr)
+}
+
+/// Scene pixels in the box `[x0, x1) x [y0, y1)` (clamped to the frame) of an integral image.
+fn count_in(ii: &[u32], w: usize, h: usize, x0: isize, y0: isize, x1: isize, y1: isize) -> u32 {
+    let cl = |v: isize, m: usize| v.clamp(0, m as isize) as usize;
+    let (x0, x1, y0, y1) = (cl(x0, w), cl(x1, w), cl(y0, h), cl(y1, h));
+    let s = w + 1;
+    ii[y1 * s + x1] + ii[y0 * s + x0] - ii[y0 * s + x1] - ii[y1 * s + x0]
+}
+
+/// Mean of the samples between the [`TRIM`] and `1 - TRIM` order statistics (reorders `v`).
+fn trimmed_mean(v: &mut [f64]) -> f64 {
+    v.sort_unstable_by(f64::total_cmp);
+    let k = (TRIM * v.len() as f64).floor() as usize;
+    let mid = &v[k..v.len() - k];
+    mid.iter().sum::<f64>() / mid.len() as f64
+}
 
 /// Background cells of one image: (predicted glare at unit fraction, floor), both in DN.
 pub fn background_cells(p: &Plane, core_share: f64, slope: f64, flat_dn: f64) -> Vec<(f64, f64)> {
     cells_against(p, p, core_share, slope, flat_dn)
 }
 
-/// Cells that are whole, unsaturated and flat in the scene `p`: (glare that `p` predicts at
-/// unit fraction, floor of `floor_of` in the cell).
+/// Sky cells of the scene `p`: whole cells with no lit-scene pixel (see [`scene_mask`]) within
+/// one cell side of them — the lit target, the Earth and their blurred edges are scene albedo,
+/// not glare — no saturated pixel, and flat (10–90 % spread within `flat_dn`). Returns per sky
+/// cell (glare that the lit scene of `p` — its pixels above the threshold, less the background —
+/// predicts there at unit fraction, trimmed mean of `floor_of` in the
+/// cell), both in DN.
 pub fn cells_against(p: &Plane, floor_of: &Plane, core_share: f64, slope: f64, flat_dn: f64) -> Vec<(f64, f64)> {
     let (w, h) = (p.w, p.h);
     let (b, gw, gh) = grid(w, h);
     let core = (core_share * w.max(h) as f64).max(1.0);
     let k = kernel(b, gw, gh, core, slope);
     let kw = 2 * gw - 1;
+    let (mask, bg, thr) = scene_mask(p, flat_dn);
+    let m = b as isize;
     let mut sums = vec![0f64; gw * gh];
     let mut floor = vec![f64::NAN; gw * gh];
     let mut vals = Vec::with_capacity(b * b);
@@ -55,10 +135,14 @@ pub fn cells_against(p: &Plane, floor_of: &Plane, core_share: f64, slope: f64, f
                     vals.push(p.data[y * w + x] as f64);
                 }
             }
-            sums[cy * gw + cx] = vals.iter().sum();
-            // Whole cells only, without saturated pixels, flat (spread within `flat_dn`).
-            if vals.len() == b * b && vals.iter().all(|&v| v < SAT as f64) {
-                let mut lo = stats::quantile_mut(&mut vals, FLOOR_Q);
+            // The glare sources: the lit scene above the background. The sky itself is left out,
+            // so a uniform level (offset, dark current) predicts no glare, and a sky cell's own
+            // noise and glare do not enter its own prediction.
+            sums[cy * gw + cx] = vals.iter().filter(|&&v| v > thr).map(|&v| v - bg).sum();
+            let (x0, y0) = ((cx * b) as isize, (cy * b) as isize);
+            let sky = count_in(&mask, w, h, x0 - m, y0 - m, x0 + 2 * m, y0 + 2 * m) == 0;
+            // Whole sky cells only, without saturated pixels, flat (spread within `flat_dn`).
+            if sky && vals.len() == b * b && vals.iter().all(|&v| v < SAT as f64) {
                 let hi = stats::quantile_mut(&mut vals, 0.9);
                 if hi - stats::quantile_mut(&mut vals, 0.1) <= flat_dn {
                     if !std::ptr::eq(p, floor_of) {
@@ -66,9 +150,8 @@ pub fn cells_against(p: &Plane, floor_of: &Plane, core_share: f64, slope: f64, f
                         for y in cy * b..(cy + 1) * b {
                             vals.extend(floor_of.data[y * w + cx * b..y * w + (cx + 1) * b].iter().map(|&v| v as f64));
                         }
-                        lo = stats::quantile_mut(&mut vals, FLOOR_Q);
                     }
-                    floor[cy * gw + cx] = lo;
+                    floor[cy * gw + cx] = trimmed_mean(&mut vals);
                 }
             }
         }
@@ -177,9 +260,11 @@ pub fn unpaired(
     /// Per image, the flat cells as `cells_of` returns them.
     type CellsPerImage = Vec<Vec<(f64, f64)>>;
     let mut sig = Signature::new("veiling_glare");
-    sig.where_ = "flat background cells of the real images, against the glare their own scenes predict".into();
+    sig.where_ =
+        "flat sky cells of the real images (away from the lit scene), against the glare their own scenes predict"
+            .into();
     let flat_dn = (6.0 * noise_sd).max(8.0);
-    // Shape: the one that explains the real floors best.
+    // Shape: the one that explains the real sky levels best.
     let mut best: Option<(f64, (f64, f64), CellsPerImage)> = None;
     for &shape in SHAPES {
         let rc = cells_of(real, shape, flat_dn);
@@ -192,23 +277,27 @@ pub fn unpaired(
     }
     let none = |sig: Signature| Ok(GlareResult { sig, params: None, method: String::new() });
     let Some((r2, shape, rc)) = best else {
-        sig.evidence = "too few flat background cells in the real images to regress their level on the scene".into();
+        sig.evidence = "too few flat sky cells in the real images to regress their level on the scene".into();
         return none(sig);
     };
     let sc = cells_of(sim, shape, flat_dn);
-    let Some((fr, cr, _, gr)) = regress(&refs(&rc)) else { return none(sig) };
+    let Some((fr, cr, _, _)) = regress(&refs(&rc)) else { return none(sig) };
     let sfit = regress(&refs(&sc));
     let Some((gap, se)) = slope_gap(&rc, &sc, seed) else {
-        sig.evidence = "too few images with background cells for a bootstrap".into();
+        sig.evidence = "too few images with sky cells for a bootstrap".into();
         return none(sig);
     };
     sig.z = if se > 0.0 { gap / se } else { 0.0 };
-    sig.size = gap * gr;
-    sig.size_unit = "DN mean glare on the background (fraction gap x mean predicted)";
+    // Size: the glare on the sky next to the sources (95th percentile of the predicted glare
+    // over the real sky cells); the mean over the sky is diluted by the far, dark cells.
+    let mut gs: Vec<f64> = rc.iter().flatten().map(|c| c.0).collect();
+    let g95 = stats::quantile_mut(&mut gs, 0.95);
+    sig.size = gap * g95;
+    sig.size_unit = "DN glare on the sky next to the sources (fraction gap x 95th percentile of the predicted glare)";
     let (core_share, slope) = shape;
     let (fs, cs) = sfit.map(|s| (s.0, s.1)).unwrap_or((0.0, f64::NAN));
     sig.evidence = format!(
-        "background floor = c + f x (scene * PSF) over {} real and {} sim cells: real f = {:.4} (c = {:.1} DN, R² = {:.2}), \
+        "sky level = c + f x (lit scene * PSF) over {} real and {} sim sky cells: real f = {:.4} (c = {:.1} DN, R² = {:.2}), \
          sim f = {:.4} (c = {:.1} DN); gap {:.4} ± {:.4} (z = {:.1}); the floor follows the scene's flux and the distance to \
          bright sources (a uniform offset or dark current would give f = 0 and only raise c); PSF shape of best R²: \
          core {:.0} % of the long side, Moffat index {}",
@@ -257,13 +346,13 @@ pub fn unpaired(
     Ok(GlareResult {
         params: make(fraction),
         sig,
-        method: "regression of background floors on the scene convolved with the PSF (shape of best R²), fraction by \
+        method: "regression of sky levels on the lit scene convolved with the PSF (shape of best R²), fraction by \
                  moment matching through the library veiling_glare"
             .into(),
     })
 }
 
-/// Paired initial values: the residual floor (real − sim) of the background cells regressed on
+/// Paired initial values: the residual level (real − sim) of the sky cells regressed on
 /// the glare the sim's scene predicts, for every shape of [`SHAPES`]; the shape of best R².
 /// Returns (fraction, core_px, slope, R²) when the slope is positive.
 pub fn paired_init(pairs: &[super::img::Pair]) -> Option<(f64, f64, f64, f64)> {

@@ -25,7 +25,7 @@
 pub mod edges;
 pub mod fit;
 pub mod fixed;
-/// Veiling glare: signature (background floor against the scene convolved with the PSF) and fit.
+/// Veiling glare: signature (sky level against the lit scene convolved with the PSF) and fit.
 pub mod glare;
 pub mod img;
 pub mod jpeg;

@@ -187,18 +187,25 @@ fn measure(planes: &[Plane], noise_sd: f64) -> ImStats {
     let dark_px: Vec<usize> = (0..w * h).filter(|&i| (wide.data[i] as f64) <= sel && dist[i] > 8.0).collect();
     let dark_thr = sel + 2.0 * noise_sd + 1.0;
     if p20 < 40.0 && dark_px.len() >= 200 {
-        // Per channel (the noise of one sample, like the high-pass bins), then averaged.
-        let fits: Vec<(f64, f64)> = planes
+        // Per channel (the noise of one sample, like the high-pass bins), then averaged. A
+        // region clipped at 0 DN almost everywhere (a rendered black sky) identifies neither
+        // level nor noise — the censored likelihood keeps growing as the level falls — so its
+        // level is taken as 0 DN (the largest the data allow) and its noise as unknown.
+        let fits: Vec<(f64, Option<f64>)> = planes
             .iter()
             .filter_map(|p| {
+                let lit = dark_px.iter().filter(|&&i| p.data[i] > 0.0).count();
+                if (lit as f64) < 0.01 * dark_px.len() as f64 {
+                    return Some((0.0, None));
+                }
                 let obs: Vec<(f32, f32)> = dark_px.iter().map(|&i| (0.0, p.data[i])).collect();
-                super::noise::censored_offset_fit(&obs, 1.0).map(|(mu, sigma, _, _)| (mu, sigma * sigma))
+                super::noise::censored_offset_fit(&obs, 1.0).map(|(mu, sigma, _, _)| (mu, Some(sigma * sigma)))
             })
             .collect();
         if !fits.is_empty() {
             let n = fits.len() as f64;
             st.dark = Some(fits.iter().map(|f| f.0).sum::<f64>() / n);
-            st.dark_var = Some(fits.iter().map(|f| f.1).sum::<f64>() / n);
+            st.dark_var = fits.iter().map(|f| f.1).sum::<Option<f64>>().map(|v| v / n);
         }
     }
     // ---- smear: background level of each column / row against its saturated pixels: the
@@ -780,6 +787,12 @@ pub fn run(
             tests.push(s);
         }
         noise_model = Some(nm);
+    } else {
+        let mut gn = Signature::new("gaussian_noise");
+        gn.evidence = "noise floor at zero signal not measurable in one of the sets (no noise level bins, e.g. a \
+                       rendered black sky clipped at 0 DN in every dark pixel): camera noise not compared"
+            .into();
+        tests.push(gn);
     }
     let noise_cfg = |found: &[UFinding]| -> Vec<Params> {
         found.iter().filter(|f| matches!(f.sig.effect, "gaussian_noise" | "shot_noise")).map(|f| f.params).collect()
@@ -839,9 +852,36 @@ pub fn run(
         def.evidence = "too few strong isolated edges in one of the sets".into();
     }
     tests.push(def);
+    // ---- veiling glare (before blooming and the dark level: glare lifts the sky next to bright
+    // sources and the dark regions too) ----
+    let mut g_halo = g0.clone();
+    let mut glare_p: Option<Params> = None;
+    let mut dark_gap = gap_of(&g0, "dark");
+    let mut after_glare = "";
+    {
+        let base = noise_cfg(&found);
+        let mut apply = |p: Params| {
+            let mut ps = base.clone();
+            ps.push(p);
+            apply_all(&FaultConfig::from_effects(opts.seed, ps), &sim_frames)
+        };
+        let gl = super::glare::unpaired(&real_frames, &sim_frames, z_thr, noise_sd, opts.seed, &mut apply)?;
+        if let Some(p) = gl.params {
+            // The dark level and the halo left once the sims carry the fitted glare: only
+            // what is left is uniform, or blooming.
+            let st = measure_frames(&apply(p)?, noise_sd);
+            let g = gaps_with_se(&real_st, &st, opts.seed ^ 2);
+            dark_gap = gap_of(&g, "dark");
+            after_glare = " after the fitted veiling glare";
+            g_halo = g;
+            glare_p = Some(p);
+            found.push(UFinding { sig: gl.sig.clone(), params: p, stat: "", method: gl.method });
+        }
+        tests.push(gl.sig);
+    }
     // ---- halo and saturation → blooming ----
     let mut bl = Signature::new("blooming");
-    match (gap_of(&g0, "halo"), gap_of(&g0, "sat_frac")) {
+    match (gap_of(&g_halo, "halo"), gap_of(&g_halo, "sat_frac")) {
         (Some(gh), Some(gs)) => {
             bl.z = gh.z();
             bl.size = gh.value;
@@ -851,6 +891,9 @@ pub fn run(
                 "mean level 1-4 px from saturated regions above the level at 28-44 px: real exceeds sim by {:.2} ± {:.2} DN (z = {:.1}); saturated fraction real {:.4} vs sim {:.4}",
                 gh.value, gh.se, bl.z, rset.sat_frac, sset.sat_frac
             );
+            if glare_p.is_some() {
+                bl.evidence.push_str(" (sims through the fitted veiling glare)");
+            }
             bl.detected = bl.z > z_thr && gh.value > 1.0;
             if bl.detected {
                 // Fit exposure gain and spread so the sims' halo and saturated fraction match.
@@ -858,7 +901,7 @@ pub fn run(
                 let target_s = rset.sat_frac;
                 let se_h = gh.se.max(0.5);
                 let se_s = gs.se.max(1e-4);
-                let base = noise_cfg(&found);
+                let base: Vec<Params> = noise_cfg(&found).into_iter().chain(glare_p).collect();
                 let eval2 = |g: f64, sp: f64| -> f64 {
                     let mut ps = base.clone();
                     if let Some(p) =
@@ -908,26 +951,6 @@ pub fn run(
         _ => bl.evidence = "no saturated regions in one of the sets: blooming cannot be compared".into(),
     }
     tests.push(bl);
-    // ---- veiling glare (before the dark level: glare lifts the dark regions too) ----
-    let mut dark_gap = gap_of(&g0, "dark");
-    let mut after_glare = "";
-    {
-        let base = noise_cfg(&found);
-        let mut apply = |p: Params| {
-            let mut ps = base.clone();
-            ps.push(p);
-            apply_all(&FaultConfig::from_effects(opts.seed, ps), &sim_frames)
-        };
-        let gl = super::glare::unpaired(&real_frames, &sim_frames, z_thr, noise_sd, opts.seed, &mut apply)?;
-        if let Some(p) = gl.params {
-            // The dark level left once the sims carry the fitted glare: only that is uniform.
-            let st = measure_frames(&apply(p)?, noise_sd);
-            dark_gap = gap_of(&gaps_with_se(&real_st, &st, opts.seed ^ 2), "dark");
-            after_glare = " after the fitted veiling glare";
-            found.push(UFinding { sig: gl.sig.clone(), params: p, stat: "", method: gl.method });
-        }
-        tests.push(gl.sig);
-    }
     // ---- dark level ----
     let mut dk = Signature::new("dark_current");
     if let Some(gd) = dark_gap {
