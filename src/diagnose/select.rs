@@ -25,7 +25,7 @@
 
 use super::img::{FS, Pair, Plane, planes_of};
 use super::noise::NoiseModel;
-use super::{DiagnoseError, stats};
+use super::{DiagnoseError, stats, tone};
 use crate::faults::{self, Effect, EffectCtx, ParamKind, Params, Scale, Stage, registry};
 use crate::frame::{Frame, FrameData, PixelFormat};
 use rayon::prelude::*;
@@ -877,6 +877,170 @@ pub struct Selection {
     pub notes: Vec<String>,
     /// Best significance of each candidate over all rounds.
     pub best_z: Vec<f64>,
+    /// The level-response check of the tone effects ([`tone_check`]), when it ran.
+    pub tone: Option<ToneOutcome>,
+}
+
+/// Effects that shape the level response (see [`super::tone`]).
+pub const TONE_EFFECTS: [&str; 3] = ["dark_current", "gain_offset", "gamma"];
+
+/// How much better (BIC) another reading of the level response must be to replace the tone
+/// effects the selection chose ("very strong" evidence on Kass and Raftery's scale): the
+/// forward-model selection sees every pixel, the level response only the shape.
+pub const TONE_REPLACE_BIC: f64 = 10.0;
+
+/// BIC difference below which two readings of the level response are listed as near-equal.
+pub const TONE_ALTERNATIVE_BIC: f64 = 2.0;
+
+/// Outcome of the level-response check.
+#[derive(Debug, Clone)]
+pub struct ToneOutcome {
+    /// The tone effects of the final model.
+    pub effects: Vec<&'static str>,
+    /// Evidence line for their findings.
+    pub evidence: String,
+    /// Readings with other effects that explain the level response about as well: (effects,
+    /// description, BIC difference).
+    pub alternatives: Vec<(Vec<&'static str>, String, f64)>,
+}
+
+fn tone_params(name: &'static str, r: &tone::Reading) -> Option<Params> {
+    let reg = registry::find(name)?;
+    let mut p = Params::defaults(reg.info);
+    let mut set = |n: &str, v: f64| {
+        if let Some((_, spec)) = p.info().param(n) {
+            let _ = p.set(n, v.clamp(spec.min, spec.max));
+        }
+    };
+    match name {
+        "dark_current" => {
+            set("mean_dn", r.d);
+            set("hot_pixel_rate", 0.0);
+        }
+        "gain_offset" => {
+            set("gain", r.g);
+            set("offset_dn", r.o);
+        }
+        _ => set("gamma", r.gamma),
+    }
+    Some(p)
+}
+
+/// Whether a reading can be expressed by the library's effects above their floors.
+fn tone_reading_valid(r: &tone::Reading) -> bool {
+    r.shape.effects().iter().all(|&e| match e {
+        "dark_current" => r.d >= 0.5,
+        "gamma" => (r.gamma - 1.0).abs() >= 0.01,
+        _ => true,
+    })
+}
+
+/// Level-response check of the tone effects the selection chose (`dark_current`, `gain_offset`,
+/// `gamma`): the real level against the level of the model without them, read as each physical
+/// shape ([`super::tone::readings`]). When another reading is better by more than
+/// [`TONE_REPLACE_BIC`] (e.g. a tone curve that fixes 0 and full scale, which the library's pure
+/// power law fits worse than a straight line over the mid-tones), its effects replace the
+/// chosen ones with the reading's parameters (a tone curve's `gamma` is the least-squares power
+/// law of the fitted curve), the other effects are refitted and every effect's drop-one evidence
+/// recomputed. Readings within [`TONE_ALTERNATIVE_BIC`] of the final one are kept as
+/// alternatives.
+pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), DiagnoseError> {
+    let chosen: Vec<&'static str> =
+        sel.steps.iter().filter(|s| !s.fixed && TONE_EFFECTS.contains(&s.name)).map(|s| s.name).collect();
+    if chosen.is_empty() {
+        return Ok(());
+    }
+    let mut base: Vec<Step> =
+        sel.steps.iter().filter(|s| !TONE_EFFECTS.contains(&s.name)).map(Step::boxed_clone).collect();
+    let planes = ctx.model_planes(&mut base)?;
+    let mut acc = tone::LevelAcc::default();
+    let mut n_values = 0usize;
+    for (k, mp) in planes.iter().enumerate() {
+        let p = ctx.loss.pairs[k];
+        for (c, plane) in mp.iter().enumerate() {
+            let r = &p.real[c].data;
+            for (i, &m) in plane.data.iter().enumerate() {
+                if ctx.loss.skip[k][i] || !ctx.loss.interior[k][i] {
+                    continue;
+                }
+                acc.push(m as f64, r[i] as f64);
+                n_values += 1;
+            }
+        }
+    }
+    let pts = tone::level_response(&acc, ctx.loss.noise());
+    let rs = tone::readings(&pts, n_values);
+    let Some(cur) = tone::reading_of(&rs, &chosen).cloned() else {
+        return Ok(());
+    };
+    let same = |a: &[&str], b: &[&str]| a.len() == b.len() && a.iter().all(|x| b.contains(x));
+    let best = rs.iter().find(|r| tone_reading_valid(r) || same(r.shape.effects(), &chosen)).cloned();
+    let mut final_reading = cur.clone();
+    let mut evidence = format!(
+        "level response (real against the model without {}, {} bins of {} values): the chosen effects read it as {}",
+        chosen.join(" and "),
+        pts.len(),
+        n_values,
+        cur.describe()
+    );
+    if let Some(b) = best
+        && !same(b.shape.effects(), &chosen)
+        && cur.bic - b.bic > TONE_REPLACE_BIC
+    {
+        let mut steps: Vec<Step> =
+            sel.steps.iter().filter(|s| s.fixed || !TONE_EFFECTS.contains(&s.name)).map(Step::boxed_clone).collect();
+        for &e in b.shape.effects() {
+            let Some(params) = tone_params(e, &b) else { return Ok(()) };
+            insert_sorted(
+                &mut steps,
+                Step::new(&Candidate { name: e, label: e.to_string(), params, fit: Vec::new() })?,
+            );
+        }
+        if !coords_of(&steps, None).is_empty() {
+            refine(ctx, &mut steps)?;
+        }
+        let current = ctx.eval(&mut steps)?;
+        let planes = ctx.physical_planes(&steps)?;
+        let jobs: Vec<(usize, Vec<Step>)> = (0..steps.len()).map(|j| (j, clone_steps(&steps))).collect();
+        let evs: Vec<Evidence> = jobs
+            .into_par_iter()
+            .map(|(j, mut st)| drop_one(ctx, &mut st, j, current, &planes, z_thr))
+            .collect::<Result<_, _>>()?;
+        sel.notes.push(format!(
+            "level response: {} replaced by {} (BIC better by {:.1}; the shape, not the library's fit of it, decides: {})",
+            chosen.join(" + "),
+            b.shape.effects().join(" + "),
+            cur.bic - b.bic,
+            b.describe()
+        ));
+        evidence = format!(
+            "level response (real against the model without the tone effects, {} bins of {} values) read as {}; {} (the forward-model choice) reads it as {}, BIC worse by {:.1}",
+            pts.len(),
+            n_values,
+            b.describe(),
+            chosen.join(" + "),
+            cur.describe(),
+            cur.bic - b.bic
+        );
+        sel.steps = steps;
+        sel.evidence = evs;
+        sel.loss_final = current;
+        final_reading = b;
+    }
+    let effects: Vec<&'static str> = final_reading.shape.effects().to_vec();
+    let mut alternatives: Vec<(Vec<&'static str>, String, f64)> = Vec::new();
+    for r in &rs {
+        let gap = r.bic - final_reading.bic;
+        if gap < TONE_ALTERNATIVE_BIC
+            && !same(r.shape.effects(), &effects)
+            && tone_reading_valid(r)
+            && !alternatives.iter().any(|a| same(&a.0, r.shape.effects()))
+        {
+            alternatives.push((r.shape.effects().to_vec(), r.describe(), gap.max(0.0)));
+        }
+    }
+    sel.tone = Some(ToneOutcome { effects, evidence, alternatives });
+    Ok(())
 }
 
 fn insert_sorted(steps: &mut Vec<Step>, s: Step) -> usize {
@@ -1259,7 +1423,7 @@ pub fn select(
             None => break,
         }
     }
-    Ok(Selection { steps, evidence: evidence_final, tests, loss_null, loss_final: current, notes, best_z })
+    Ok(Selection { steps, evidence: evidence_final, tests, loss_null, loss_final: current, notes, best_z, tone: None })
 }
 
 #[cfg(test)]
