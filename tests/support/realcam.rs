@@ -1509,7 +1509,7 @@ pub fn corpus() -> Vec<Case> {
             true,
             6.0,
             1.5,
-            vec![DarkCurrent { mean_dn: 3.0, hot_rate: 0.0 }, ToneCurve { q: 0.9, a: 0.02, encode: true }],
+            vec![DarkCurrent { mean_dn: 2.5, hot_rate: 0.0 }, ToneCurve { q: 0.92, a: 0.015, encode: true }],
         ),
         case(
             "dark_gamma_lab_mono",
@@ -1518,7 +1518,7 @@ pub fn corpus() -> Vec<Case> {
             false,
             6.0,
             1.5,
-            vec![DarkCurrent { mean_dn: 3.0, hot_rate: 0.0 }, Gamma { gamma: 0.9 }],
+            vec![DarkCurrent { mean_dn: 2.5, hot_rate: 0.0 }, Gamma { gamma: 0.96 }],
         )
         .in_lab(),
         case(
