@@ -480,7 +480,8 @@ mod tests {
     #[test]
     fn each_shape_is_read_as_itself() {
         let fs = FS as f64;
-        let cases: Vec<(Shape, Box<dyn Fn(f64) -> f64>)> = vec![
+        type ShapeCase = (Shape, Box<dyn Fn(f64) -> f64>);
+        let cases: Vec<ShapeCase> = vec![
             (Shape::Affine, Box::new(|s| 1.05 * s - 2.0)),
             (Shape::Dark, Box::new(|s| s + 3.0)),
             (Shape::Tone, Box::new(move |s| fs * tone_curve(s / fs, 0.9, 0.02, true))),
