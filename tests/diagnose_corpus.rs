@@ -101,8 +101,9 @@ fn row_noise_is_sized_white_and_1f() {
 /// toe tangent to an offset power law, which over the mid-tones is close to a straight line):
 /// a decoding-form curve over a dark scene (the forward-model selection alone read it as
 /// `gain_offset` with gain 0.95) is named `gamma` with the least-squares power law of the curve,
-/// and a dark level under an encoding-form curve (read alone as one `gain_offset`, 1.06 and
-/// +3.5 DN) as `dark_current` and `gamma` with both parameters within tolerance; the level
+/// and a dark level under an encoding-form curve (read alone as one `gain_offset`: 1.06 and
+/// +3.5 DN for 3 DN under a q = 0.9 curve at 256x192) as `dark_current` and `gamma` with both
+/// parameters within tolerance; the level
 /// response decides (a tone curve fixes 0 and full scale and bends, a gain and offset is
 /// straight). Nothing else is reported.
 #[test]
