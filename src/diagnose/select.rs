@@ -937,9 +937,10 @@ fn tone_reading_valid(r: &tone::Reading) -> bool {
 
 /// Level-response check of the tone effects the selection chose (`dark_current`, `gain_offset`,
 /// `gamma`): the real level against the level of the model without them, read as each physical
-/// shape ([`super::tone::readings`]). When another reading is better by more than
-/// [`TONE_REPLACE_BIC`] (e.g. a tone curve that fixes 0 and full scale, which the library's pure
-/// power law fits worse than a straight line over the mid-tones), its effects replace the
+/// shape ([`super::tone::readings`]). When a tone-curve reading (a tone curve that fixes 0 and
+/// full scale, alone or over a dark level: shapes the library's pure power law cannot represent,
+/// and which it fits worse than a straight line over the mid-tones) is better by more than
+/// [`TONE_REPLACE_BIC`], its effects replace the
 /// chosen ones with the reading's parameters (a tone curve's `gamma` is the least-squares power
 /// law of the fitted curve), the other effects are refitted and every effect's drop-one evidence
 /// recomputed. Readings within [`TONE_ALTERNATIVE_BIC`] of the final one are kept as
@@ -983,8 +984,14 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
         n_values,
         cur.describe()
     );
+    // Only shapes that the library's effects cannot represent exactly (a tone curve that fixes 0
+    // and FS, a dark level under one) may replace the selection's choice: between the others (an
+    // offset, a straight gain and offset, a power law of one) the forward-model selection has
+    // already judged on every pixel with its materiality rule, and the bins' small standard
+    // errors would let a slight nonlinearity of the camera decide instead.
     if let Some(b) = best
         && !same(b.shape.effects(), &chosen)
+        && matches!(b.shape, tone::Shape::Tone | tone::Shape::DarkTone)
         && cur.bic - b.bic > TONE_REPLACE_BIC
     {
         let mut steps: Vec<Step> =
