@@ -935,6 +935,23 @@ fn tone_reading_valid(r: &tone::Reading) -> bool {
     })
 }
 
+/// The reading of the level response that replaces the selection's tone effects `chosen`, if
+/// any: the best valid reading, when it is a tone-curve shape with other effects and better than
+/// the chosen effects' reading by more than [`TONE_REPLACE_BIC`]. Only shapes that the library's
+/// effects cannot represent exactly (a tone curve that fixes 0 and FS, a dark level under one)
+/// may replace: between the others (an offset, a straight gain and offset, a power law of one)
+/// the forward-model selection has already judged on every pixel with its materiality rule, and
+/// the bins' small standard errors would let a slight nonlinearity of the camera decide instead.
+pub fn tone_replacement(rs: &[tone::Reading], chosen: &[&str]) -> Option<tone::Reading> {
+    let same = |a: &[&str], b: &[&str]| a.len() == b.len() && a.iter().all(|x| b.contains(x));
+    let cur = tone::reading_of(rs, chosen)?;
+    let b = rs.iter().find(|r| tone_reading_valid(r) || same(r.shape.effects(), chosen))?;
+    (!same(b.shape.effects(), chosen)
+        && matches!(b.shape, tone::Shape::Tone | tone::Shape::DarkTone)
+        && cur.bic - b.bic > TONE_REPLACE_BIC)
+        .then(|| b.clone())
+}
+
 /// Level-response check of the tone effects the selection chose (`dark_current`, `gain_offset`,
 /// `gamma`): the real level against the level of the model without them, read as each physical
 /// shape ([`super::tone::readings`]). When a tone-curve reading (a tone curve that fixes 0 and
@@ -975,7 +992,7 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
         return Ok(());
     };
     let same = |a: &[&str], b: &[&str]| a.len() == b.len() && a.iter().all(|x| b.contains(x));
-    let best = rs.iter().find(|r| tone_reading_valid(r) || same(r.shape.effects(), &chosen)).cloned();
+    let replacement = tone_replacement(&rs, &chosen);
     let mut final_reading = cur.clone();
     let mut evidence = format!(
         "level response (real against the model without {}, {} bins of {} values): the chosen effects read it as {}",
@@ -984,16 +1001,7 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
         n_values,
         cur.describe()
     );
-    // Only shapes that the library's effects cannot represent exactly (a tone curve that fixes 0
-    // and FS, a dark level under one) may replace the selection's choice: between the others (an
-    // offset, a straight gain and offset, a power law of one) the forward-model selection has
-    // already judged on every pixel with its materiality rule, and the bins' small standard
-    // errors would let a slight nonlinearity of the camera decide instead.
-    if let Some(b) = best
-        && !same(b.shape.effects(), &chosen)
-        && matches!(b.shape, tone::Shape::Tone | tone::Shape::DarkTone)
-        && cur.bic - b.bic > TONE_REPLACE_BIC
-    {
+    if let Some(b) = replacement {
         let mut steps: Vec<Step> =
             sel.steps.iter().filter(|s| s.fixed || !TONE_EFFECTS.contains(&s.name)).map(Step::boxed_clone).collect();
         for &e in b.shape.effects() {
@@ -1448,6 +1456,32 @@ mod tests {
         assert!((material(&b, &a) - 0.4).abs() < 1e-6);
         b[0][0].data[19] = 13.0;
         assert!((material(&b, &a) - 3.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn tone_check_replaces_only_by_tone_curve_shapes() {
+        use super::super::tone::{LevelPoint, readings, tone_curve};
+        let fs = FS as f64;
+        let pts = |f: &dyn Fn(f64) -> f64| -> Vec<LevelPoint> {
+            (2..240).step_by(2).map(|s| LevelPoint { s: s as f64, m: f(s as f64), se: 0.05, n: 2000 }).collect()
+        };
+        // A dark level seen through a camera with a slight gain error: the straight line reads it
+        // far better than the offset, but both are library shapes the forward selection compared
+        // on every pixel, so its `dark_current` stays.
+        let rs = readings(&pts(&|s| 1.01 * s + 3.0), 100_000);
+        assert_eq!(rs[0].shape, super::super::tone::Shape::Affine);
+        assert!(tone_replacement(&rs, &["dark_current"]).is_none());
+        // An sRGB-like tone curve taken for a gain and offset is replaced by `gamma` with the
+        // least-squares power law of the curve.
+        let rs = readings(&pts(&|s| fs * tone_curve(s / fs, 1.1, 0.02, false)), 100_000);
+        let r = tone_replacement(&rs, &["gain_offset"]).expect("tone curve replaces gain_offset");
+        assert_eq!(r.shape.effects(), ["gamma"]);
+        assert!((r.gamma - 1.063).abs() < 0.005, "gamma {}", r.gamma);
+        // A dark level under a tone curve taken for one gain and offset: dark_current + gamma.
+        let rs = readings(&pts(&|s| fs * tone_curve((s + 2.5) / fs, 0.92, 0.015, true)), 100_000);
+        let r = tone_replacement(&rs, &["gain_offset"]).expect("dark under tone replaces gain_offset");
+        assert_eq!(r.shape.effects(), ["dark_current", "gamma"]);
+        assert!((r.d - 2.5).abs() < 0.2, "dark {}", r.d);
     }
 
     #[test]
