@@ -99,6 +99,28 @@ fn row_noise_is_sized_white_and_1f() {
     assert!(problems.is_empty(), "row noise:\n{}", problems.join("\n"));
 }
 
+/// Tone curve against gain and offset (issue 13), on realcam's generalised sRGB curves (linear
+/// toe tangent to an offset power law, which over the mid-tones is close to a straight line):
+/// a decoding-form curve over a dark scene (the forward-model selection alone read it as
+/// `gain_offset` with gain 0.95) is named `gamma` with the least-squares power law of the curve,
+/// and a dark level under an encoding-form curve (read alone as one `gain_offset`: 1.06 and
+/// +3.5 DN for 3 DN under a q = 0.9 curve at 256x192) as `dark_current` and `gamma` with both
+/// parameters within tolerance; the level
+/// response decides (a tone curve fixes 0 and full scale and bends, a gain and offset is
+/// straight). Nothing else is reported.
+#[test]
+fn tone_curves_are_told_apart_from_gain_and_offset() {
+    let cases: Vec<Case> = corpus()
+        .into_iter()
+        .filter(|c| matches!(c.name.as_str(), "tone_srgb_decode_mono" | "dark_tone_mono"))
+        .map(|c| c.sized(192, 144, 4))
+        .collect();
+    assert_eq!(cases.len(), 2);
+    let scores = run_all(&cases);
+    let problems = subset_problems(&scores);
+    assert!(problems.is_empty(), "tone curves:\n{}", problems.join("\n"));
+}
+
 /// Unpaired mode on independent-forward-model data: the real frames show another spacecraft at
 /// other poses. A negative control (camera noise only) and a hidden defocus, at a reduced size
 /// so that the test stays fast in a debug build.

@@ -41,6 +41,9 @@ pub struct FittedEffect {
     pub method: String,
     /// Ranking key (larger = more important).
     pub importance: f64,
+    /// Other readings that explain the data about as well (effects, description, BIC
+    /// difference), from the level-response check of the tone effects.
+    pub alternatives: Vec<(Vec<&'static str>, String, f64)>,
 }
 
 /// Image metrics of a comparison.
@@ -467,6 +470,16 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             model_planes.push(select::apply_steps(&mut sel.steps, &p.sim_frame, k as u64, seed)?);
         }
     }
+    // The tone effects read by the shape of the level response (a tone curve fixes 0 and full
+    // scale, a gain and offset does not).
+    let before_tone: Vec<&str> = sel.steps.iter().map(|s| s.name).collect();
+    select::tone_check(&ctx, &mut sel, z)?;
+    if sel.steps.iter().map(|s| s.name).ne(before_tone.iter().copied()) {
+        model_planes.clear();
+        for (k, p) in pairs.iter().enumerate() {
+            model_planes.push(select::apply_steps(&mut sel.steps, &p.sim_frame, k as u64, seed)?);
+        }
+    }
     notes.push(format!(
         "forward-model selection: {} candidates, {} loss evaluations on {} of {} pairs{}",
         cands.len(),
@@ -502,7 +515,18 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             }
             dark_params = Some(params);
         }
-        let stderr = sig.map(|g| g.stderr.clone()).unwrap_or_default();
+        let mut stderr = sig.map(|g| g.stderr.clone()).unwrap_or_default();
+        let tone = sel.tone.as_ref().filter(|t| t.effects.contains(&s.name));
+        let mut sig_evidence = sig.map(|g| g.evidence.clone()).unwrap_or_default();
+        if let Some(t) = tone {
+            if s.fit.is_empty() {
+                // Parameters from the level response: the photometric signature's are not these.
+                stderr.clear();
+                sig_evidence = t.evidence.clone();
+            } else {
+                sig_evidence = format!("{sig_evidence}; {}", t.evidence);
+            }
+        }
         results.push(FittedEffect {
             name: s.name,
             params: Some(params),
@@ -514,15 +538,20 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             where_: sig.map(|g| g.where_.clone()).unwrap_or_default(),
             evidence: format!(
                 "{}; forward model: removing it raises the loss by {:.4} per value (ΔL = {:.1}, design effect {:.2}, z = {:.1} on {} parameter(s))",
-                sig.map(|g| g.evidence.as_str()).unwrap_or(""),
+                sig_evidence,
                 ev.delta / nv,
                 ev.delta,
                 ev.design,
                 ev.z,
                 ev.k
             ),
-            method: "joint forward-model fit on the library effect (Huber loss on noise-standardised residuals)".into(),
+            method: if s.fit.is_empty() {
+                "level response (real against the model level, censored bin means) fitted by the shape it reads as; a tone curve's gamma is its least-squares power law".into()
+            } else {
+                "joint forward-model fit on the library effect (Huber loss on noise-standardised residuals)".into()
+            },
             importance: ev.delta / ev.design,
+            alternatives: tone.map(|t| t.alternatives.clone()).unwrap_or_default(),
         });
     }
     // Hot pixels are part of the dark current when there is one.
@@ -592,6 +621,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             evidence: sig.evidence.clone(),
             method,
             importance: 1e-6 * sig.z.min(1e4),
+            alternatives: Vec::new(),
         });
     }
     // Deterministic findings by evidence, then the stochastic ones by significance.

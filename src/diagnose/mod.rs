@@ -38,6 +38,7 @@ pub mod report;
 pub mod saturation;
 pub mod select;
 pub mod stats;
+pub mod tone;
 pub mod unpaired;
 
 use crate::faults::FaultError;

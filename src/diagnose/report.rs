@@ -149,7 +149,23 @@ pub fn build(pairs: &[Pair], loc: &Located, fitted: &Fitted, mut notes: Vec<Stri
             z: round_sig(e.z, 4),
             stderr: e.stderr.iter().map(|(n, v)| (n.clone(), jnum(*v))).collect(),
             method: e.method.clone(),
-            alternatives: alternatives(e.name, &fitted.selection_tests, &in_model),
+            alternatives: {
+                let mut a = alternatives(e.name, &fitted.selection_tests, &in_model);
+                for (effects, describe, gap) in &e.alternatives {
+                    a.push(Alternative {
+                        effect: effects.join(" + "),
+                        label: format!("level response read as {}", effects.join(" + ")),
+                        bic_gap: round_sig(*gap, 3),
+                        z: f64::NAN,
+                        evidence: format!(
+                            "the level response reads about as well ({describe}; BIC difference {gap:.2} < {}) as {}: the data do not tell them apart",
+                            super::select::TONE_ALTERNATIVE_BIC,
+                            e.name
+                        ),
+                    });
+                }
+                a
+            },
         })
         .collect();
     notes.extend(loc.notes.iter().cloned());

@@ -25,7 +25,7 @@
 
 use super::img::{FS, Pair, Plane, planes_of};
 use super::noise::NoiseModel;
-use super::{DiagnoseError, stats};
+use super::{DiagnoseError, stats, tone};
 use crate::faults::{self, Effect, EffectCtx, ParamKind, Params, Scale, Stage, registry};
 use crate::frame::{Frame, FrameData, PixelFormat};
 use rayon::prelude::*;
@@ -877,6 +877,185 @@ pub struct Selection {
     pub notes: Vec<String>,
     /// Best significance of each candidate over all rounds.
     pub best_z: Vec<f64>,
+    /// The level-response check of the tone effects ([`tone_check`]), when it ran.
+    pub tone: Option<ToneOutcome>,
+}
+
+/// Effects that shape the level response (see [`super::tone`]).
+pub const TONE_EFFECTS: [&str; 3] = ["dark_current", "gain_offset", "gamma"];
+
+/// How much better (BIC) another reading of the level response must be to replace the tone
+/// effects the selection chose ("very strong" evidence on Kass and Raftery's scale): the
+/// forward-model selection sees every pixel, the level response only the shape.
+pub const TONE_REPLACE_BIC: f64 = 10.0;
+
+/// BIC difference below which two readings of the level response are listed as near-equal.
+pub const TONE_ALTERNATIVE_BIC: f64 = 2.0;
+
+/// Outcome of the level-response check.
+#[derive(Debug, Clone)]
+pub struct ToneOutcome {
+    /// The tone effects of the final model.
+    pub effects: Vec<&'static str>,
+    /// Evidence line for their findings.
+    pub evidence: String,
+    /// Readings with other effects that explain the level response about as well: (effects,
+    /// description, BIC difference).
+    pub alternatives: Vec<(Vec<&'static str>, String, f64)>,
+}
+
+fn tone_params(name: &'static str, r: &tone::Reading) -> Option<Params> {
+    let reg = registry::find(name)?;
+    let mut p = Params::defaults(reg.info);
+    let mut set = |n: &str, v: f64| {
+        if let Some((_, spec)) = p.info().param(n) {
+            let _ = p.set(n, v.clamp(spec.min, spec.max));
+        }
+    };
+    match name {
+        "dark_current" => {
+            set("mean_dn", r.d);
+            set("hot_pixel_rate", 0.0);
+        }
+        "gain_offset" => {
+            set("gain", r.g);
+            set("offset_dn", r.o);
+        }
+        _ => set("gamma", r.gamma),
+    }
+    Some(p)
+}
+
+/// Whether a reading can be expressed by the library's effects above their floors.
+fn tone_reading_valid(r: &tone::Reading) -> bool {
+    r.shape.effects().iter().all(|&e| match e {
+        "dark_current" => r.d >= 0.5,
+        "gamma" => (r.gamma - 1.0).abs() >= 0.01,
+        _ => true,
+    })
+}
+
+/// The reading of the level response that replaces the selection's tone effects `chosen`, if
+/// any: the best valid reading, when it is a tone-curve shape with other effects and better than
+/// the chosen effects' reading by more than [`TONE_REPLACE_BIC`]. Only shapes that the library's
+/// effects cannot represent exactly (a tone curve that fixes 0 and FS, a dark level under one)
+/// may replace: between the others (an offset, a straight gain and offset, a power law of one)
+/// the forward-model selection has already judged on every pixel with its materiality rule, and
+/// the bins' small standard errors would let a slight nonlinearity of the camera decide instead.
+pub fn tone_replacement(rs: &[tone::Reading], chosen: &[&str]) -> Option<tone::Reading> {
+    let same = |a: &[&str], b: &[&str]| a.len() == b.len() && a.iter().all(|x| b.contains(x));
+    let cur = tone::reading_of(rs, chosen)?;
+    let b = rs.iter().find(|r| tone_reading_valid(r) || same(r.shape.effects(), chosen))?;
+    (!same(b.shape.effects(), chosen)
+        && matches!(b.shape, tone::Shape::Tone | tone::Shape::DarkTone)
+        && cur.bic - b.bic > TONE_REPLACE_BIC)
+        .then(|| b.clone())
+}
+
+/// Level-response check of the tone effects the selection chose (`dark_current`, `gain_offset`,
+/// `gamma`): the real level against the level of the model without them, read as each physical
+/// shape ([`super::tone::readings`]). When a tone-curve reading (a tone curve that fixes 0 and
+/// full scale, alone or over a dark level: shapes the library's pure power law cannot represent,
+/// and which it fits worse than a straight line over the mid-tones) is better by more than
+/// [`TONE_REPLACE_BIC`], its effects replace the
+/// chosen ones with the reading's parameters (a tone curve's `gamma` is the least-squares power
+/// law of the fitted curve), the other effects are refitted and every effect's drop-one evidence
+/// recomputed. Readings within [`TONE_ALTERNATIVE_BIC`] of the final one are kept as
+/// alternatives.
+pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), DiagnoseError> {
+    let chosen: Vec<&'static str> =
+        sel.steps.iter().filter(|s| !s.fixed && TONE_EFFECTS.contains(&s.name)).map(|s| s.name).collect();
+    if chosen.is_empty() {
+        return Ok(());
+    }
+    let mut base: Vec<Step> =
+        sel.steps.iter().filter(|s| !TONE_EFFECTS.contains(&s.name)).map(Step::boxed_clone).collect();
+    let planes = ctx.model_planes(&mut base)?;
+    let mut acc = tone::LevelAcc::default();
+    let mut n_values = 0usize;
+    for (k, mp) in planes.iter().enumerate() {
+        let p = ctx.loss.pairs[k];
+        for (c, plane) in mp.iter().enumerate() {
+            let r = &p.real[c].data;
+            for (i, &m) in plane.data.iter().enumerate() {
+                if ctx.loss.skip[k][i] || !ctx.loss.interior[k][i] {
+                    continue;
+                }
+                acc.push(m as f64, r[i] as f64);
+                n_values += 1;
+            }
+        }
+    }
+    let pts = tone::level_response(&acc, ctx.loss.noise());
+    let rs = tone::readings(&pts, n_values);
+    let Some(cur) = tone::reading_of(&rs, &chosen).cloned() else {
+        return Ok(());
+    };
+    let same = |a: &[&str], b: &[&str]| a.len() == b.len() && a.iter().all(|x| b.contains(x));
+    let replacement = tone_replacement(&rs, &chosen);
+    let mut final_reading = cur.clone();
+    let mut evidence = format!(
+        "level response (real against the model without {}, {} bins of {} values): the chosen effects read it as {}",
+        chosen.join(" and "),
+        pts.len(),
+        n_values,
+        cur.describe()
+    );
+    if let Some(b) = replacement {
+        let mut steps: Vec<Step> =
+            sel.steps.iter().filter(|s| s.fixed || !TONE_EFFECTS.contains(&s.name)).map(Step::boxed_clone).collect();
+        for &e in b.shape.effects() {
+            let Some(params) = tone_params(e, &b) else { return Ok(()) };
+            insert_sorted(
+                &mut steps,
+                Step::new(&Candidate { name: e, label: e.to_string(), params, fit: Vec::new() })?,
+            );
+        }
+        if !coords_of(&steps, None).is_empty() {
+            refine(ctx, &mut steps)?;
+        }
+        let current = ctx.eval(&mut steps)?;
+        let planes = ctx.physical_planes(&steps)?;
+        let jobs: Vec<(usize, Vec<Step>)> = (0..steps.len()).map(|j| (j, clone_steps(&steps))).collect();
+        let evs: Vec<Evidence> = jobs
+            .into_par_iter()
+            .map(|(j, mut st)| drop_one(ctx, &mut st, j, current, &planes, z_thr))
+            .collect::<Result<_, _>>()?;
+        sel.notes.push(format!(
+            "level response: {} replaced by {} (BIC better by {:.1}; the shape, not the library's fit of it, decides: {})",
+            chosen.join(" + "),
+            b.shape.effects().join(" + "),
+            cur.bic - b.bic,
+            b.describe()
+        ));
+        evidence = format!(
+            "level response (real against the model without the tone effects, {} bins of {} values) read as {}; {} (the forward-model choice) reads it as {}, BIC worse by {:.1}",
+            pts.len(),
+            n_values,
+            b.describe(),
+            chosen.join(" + "),
+            cur.describe(),
+            cur.bic - b.bic
+        );
+        sel.steps = steps;
+        sel.evidence = evs;
+        sel.loss_final = current;
+        final_reading = b;
+    }
+    let effects: Vec<&'static str> = final_reading.shape.effects().to_vec();
+    let mut alternatives: Vec<(Vec<&'static str>, String, f64)> = Vec::new();
+    for r in &rs {
+        let gap = r.bic - final_reading.bic;
+        if gap < TONE_ALTERNATIVE_BIC
+            && !same(r.shape.effects(), &effects)
+            && tone_reading_valid(r)
+            && !alternatives.iter().any(|a| same(&a.0, r.shape.effects()))
+        {
+            alternatives.push((r.shape.effects().to_vec(), r.describe(), gap.max(0.0)));
+        }
+    }
+    sel.tone = Some(ToneOutcome { effects, evidence, alternatives });
+    Ok(())
 }
 
 fn insert_sorted(steps: &mut Vec<Step>, s: Step) -> usize {
@@ -1259,7 +1438,7 @@ pub fn select(
             None => break,
         }
     }
-    Ok(Selection { steps, evidence: evidence_final, tests, loss_null, loss_final: current, notes, best_z })
+    Ok(Selection { steps, evidence: evidence_final, tests, loss_null, loss_final: current, notes, best_z, tone: None })
 }
 
 #[cfg(test)]
@@ -1277,6 +1456,32 @@ mod tests {
         assert!((material(&b, &a) - 0.4).abs() < 1e-6);
         b[0][0].data[19] = 13.0;
         assert!((material(&b, &a) - 3.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn tone_check_replaces_only_by_tone_curve_shapes() {
+        use super::super::tone::{LevelPoint, readings, tone_curve};
+        let fs = FS as f64;
+        let pts = |f: &dyn Fn(f64) -> f64| -> Vec<LevelPoint> {
+            (2..240).step_by(2).map(|s| LevelPoint { s: s as f64, m: f(s as f64), se: 0.05, n: 2000 }).collect()
+        };
+        // A dark level seen through a camera with a slight gain error: the straight line reads it
+        // far better than the offset, but both are library shapes the forward selection compared
+        // on every pixel, so its `dark_current` stays.
+        let rs = readings(&pts(&|s| 1.01 * s + 3.0), 100_000);
+        assert_eq!(rs[0].shape, super::super::tone::Shape::Affine);
+        assert!(tone_replacement(&rs, &["dark_current"]).is_none());
+        // An sRGB-like tone curve taken for a gain and offset is replaced by `gamma` with the
+        // least-squares power law of the curve.
+        let rs = readings(&pts(&|s| fs * tone_curve(s / fs, 1.1, 0.02, false)), 100_000);
+        let r = tone_replacement(&rs, &["gain_offset"]).expect("tone curve replaces gain_offset");
+        assert_eq!(r.shape.effects(), ["gamma"]);
+        assert!((r.gamma - 1.063).abs() < 0.005, "gamma {}", r.gamma);
+        // A dark level under a tone curve taken for one gain and offset: dark_current + gamma.
+        let rs = readings(&pts(&|s| fs * tone_curve((s + 2.5) / fs, 0.92, 0.015, true)), 100_000);
+        let r = tone_replacement(&rs, &["gain_offset"]).expect("dark under tone replaces gain_offset");
+        assert_eq!(r.shape.effects(), ["dark_current", "gamma"]);
+        assert!((r.d - 2.5).abs() < 0.2, "dark {}", r.d);
     }
 
     #[test]

@@ -18,6 +18,7 @@
 //! | `dark_current` | Poisson electrons at the camera's gain (+ optional hot pixels) | `mean_dn`, `hot_pixel_rate` |
 //! | `row_noise` | Gaussian row offsets, new per frame | `sigma_dn` |
 //! | `gamma` | `FS·(v/FS)^γ` after clipping | `gamma` |
+//! | `gamma` (generalised sRGB) | linear toe tangent to an offset power, `(1+a)·x^q − a` (encoding) or `((x+a)/(1+a))^q` (decoding), x = v/FS | `gamma` = least-squares power law over x in [0, 1] |
 //! | `jpeg` | `image` crate JPEG encoder round trip | `quality` |
 //!
 //! Camera noise is always present: Poisson photo-electrons at `gain_e_per_dn`, Gaussian read noise
@@ -537,6 +538,10 @@ pub enum Hidden {
     RowNoise1f { sigma_dn: f64 },
     /// Tone curve after clipping.
     Gamma { gamma: f64 },
+    /// Generalised sRGB tone curve after clipping (x = v/FS): an offset power law with a linear
+    /// toe from the origin tangent to it. `encode`: `(1+a)·x^q − a` (q < 1, sRGB's encoding
+    /// form); otherwise `((x+a)/(1+a))^q` (q > 1, its decoding form). Fixes 0 and FS.
+    ToneCurve { q: f64, a: f64, encode: bool },
     /// JPEG round trip through the `image` crate encoder.
     Jpeg { quality: u8 },
     /// Box-filtered straight streak of length `length_px` along `angle_deg` (counter-clockwise
@@ -565,7 +570,7 @@ impl Hidden {
             Hidden::Smear { .. } => "smear",
             Hidden::DarkCurrent { .. } => "dark_current",
             Hidden::RowNoise { .. } | Hidden::RowNoise1f { .. } => "row_noise",
-            Hidden::Gamma { .. } => "gamma",
+            Hidden::Gamma { .. } | Hidden::ToneCurve { .. } => "gamma",
             Hidden::Jpeg { .. } => "jpeg",
             Hidden::MotionBlur { .. } => "motion_blur",
             Hidden::Blooming { .. } => "blooming",
@@ -589,6 +594,7 @@ impl Hidden {
             Hidden::DarkCurrent { mean_dn, hot_rate } => vec![("mean_dn", mean_dn), ("hot_pixel_rate", hot_rate)],
             Hidden::RowNoise { sigma_dn } | Hidden::RowNoise1f { sigma_dn } => vec![("sigma_dn", sigma_dn)],
             Hidden::Gamma { gamma } => vec![("gamma", gamma)],
+            Hidden::ToneCurve { .. } => vec![("gamma", self.tone_ls_gamma())],
             Hidden::Jpeg { quality } => vec![("quality", quality as f64)],
             Hidden::MotionBlur { length_px, angle_deg } => vec![("length_px", length_px), ("angle_deg", angle_deg)],
             Hidden::Blooming { full_well, decay_px } => {
@@ -625,6 +631,14 @@ impl Hidden {
             Hidden::RowNoise { .. } => "Gaussian row offsets per frame".into(),
             Hidden::RowNoise1f { .. } => "row offsets with a 1/f spectrum along y, per frame".into(),
             Hidden::Gamma { .. } => "FS*(v/FS)^gamma after clip".into(),
+            Hidden::ToneCurve { q, a, encode } => {
+                let x0 = tone_toe(q, a, encode);
+                if encode {
+                    format!("generalised sRGB (1+a)x^q-a, q {q}, a {a}, linear toe below x {x0:.3}")
+                } else {
+                    format!("generalised sRGB ((x+a)/(1+a))^q, q {q}, a {a}, linear toe below x {x0:.3}")
+                }
+            }
             Hidden::Jpeg { .. } => "image crate JPEG encoder".into(),
             Hidden::MotionBlur { .. } => "box-filtered line streak, 64 samples".into(),
             Hidden::Blooming { decay_px, .. } => {
@@ -633,6 +647,48 @@ impl Hidden {
             Hidden::HotPixels { .. } => "fixed constant offsets 60-150 DN".into(),
             Hidden::GainOffset { .. } => "v*gain + offset before rounding".into(),
         }
+    }
+}
+
+impl Hidden {
+    /// The tone curve of a [`Hidden::ToneCurve`] at x = v/FS in [0, 1] (identity otherwise).
+    pub fn tone(&self, x: f64) -> f64 {
+        let Hidden::ToneCurve { q, a, encode } = *self else { return x };
+        let x = x.clamp(0.0, 1.0);
+        let x0 = tone_toe(q, a, encode);
+        let f = |x: f64| if encode { (1.0 + a) * x.powf(q) - a } else { ((x + a) / (1.0 + a)).powf(q) };
+        if x < x0 { x * f(x0) / x0 } else { f(x) }
+    }
+
+    /// The power law `x^γ` closest to the tone curve in least squares over 1001 evenly spaced
+    /// x in [0, 1] (golden-section search over γ in [0.5, 2]): the `gamma` truth of a generalised
+    /// sRGB curve.
+    pub fn tone_ls_gamma(&self) -> f64 {
+        let xs: Vec<f64> = (0..=1000).map(|i| i as f64 / 1000.0).collect();
+        let cost = |g: f64| xs.iter().map(|&x| (x.powf(g) - self.tone(x)).powi(2)).sum::<f64>();
+        let (mut lo, mut hi) = (0.5f64, 2.0f64);
+        let r = (5f64.sqrt() - 1.0) / 2.0;
+        for _ in 0..100 {
+            let (m1, m2) = (hi - r * (hi - lo), lo + r * (hi - lo));
+            if cost(m1) < cost(m2) {
+                hi = m2;
+            } else {
+                lo = m1;
+            }
+        }
+        0.5 * (lo + hi)
+    }
+}
+
+/// Break point x0 of the linear toe of a generalised sRGB curve: the line from the origin
+/// tangent to the power segment.
+pub fn tone_toe(q: f64, a: f64, encode: bool) -> f64 {
+    if encode {
+        // (1+a)x0^q − a = x0·q(1+a)x0^(q−1)  ⇒  x0 = (a / ((1+a)(1−q)))^(1/q)
+        (a / ((1.0 + a) * (1.0 - q))).powf(1.0 / q)
+    } else {
+        // ((x0+a)/(1+a))^q = x0·q(x0+a)^(q−1)/(1+a)^q  ⇒  x0 = a/(q−1)
+        a / (q - 1.0)
     }
 }
 
@@ -1097,6 +1153,7 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
     let row_sigma =
         hidden.iter().map(|hd| if let Hidden::RowNoise { sigma_dn } = *hd { sigma_dn } else { 0.0 }).sum::<f64>();
     let gamma = hidden.iter().find_map(|hd| if let Hidden::Gamma { gamma } = *hd { Some(gamma) } else { None });
+    let tone = hidden.iter().find(|hd| matches!(hd, Hidden::ToneCurve { .. }));
     let gain_off = hidden
         .iter()
         .find_map(|hd| if let Hidden::GainOffset { gain, offset_dn } = *hd { Some((gain, offset_dn)) } else { None });
@@ -1151,6 +1208,9 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
                 v = v.clamp(0.0, FS);
                 if let Some(gm) = gamma {
                     v = FS * (v / FS).powf(gm);
+                }
+                if let Some(t) = tone {
+                    v = FS * t.tone(v / FS);
                 }
                 out.v[i] = v.round();
             }
@@ -1387,6 +1447,11 @@ pub fn corpus() -> Vec<Case> {
         case("gain_offset_lab_mono", Mono8, 227, false, 6.0, 1.5, vec![GainOffset { gain: 1.05, offset_dn: -2.0 }])
             .in_lab(),
         case("jpeg_rgb", Rgb8, 228, true, 6.0, 1.5, vec![Jpeg { quality: 85 }]),
+        // Generalised sRGB tone curves (linear toe + offset power): not a pure power law, and
+        // over the mid-tones close to a gain and offset.
+        case("tone_srgb_lab_mono", Mono8, 230, false, 6.0, 1.5, vec![ToneCurve { q: 0.9, a: 0.02, encode: true }])
+            .in_lab(),
+        case("tone_srgb_decode_mono", Mono8, 231, true, 6.0, 1.5, vec![ToneCurve { q: 1.1, a: 0.02, encode: false }]),
         // Two hidden effects.
         case(
             "vignetting_dark_mono",
@@ -1434,6 +1499,26 @@ pub fn corpus() -> Vec<Case> {
             5.0,
             1.5,
             vec![MotionBlur { length_px: 3.0, angle_deg: 120.0 }, Vignetting { strength: 0.12 }],
+        )
+        .in_lab(),
+        // A dark level under a tone curve: two effects, not one gain and offset.
+        case(
+            "dark_tone_mono",
+            Mono8,
+            308,
+            true,
+            6.0,
+            1.5,
+            vec![DarkCurrent { mean_dn: 2.5, hot_rate: 0.0 }, ToneCurve { q: 0.92, a: 0.015, encode: true }],
+        ),
+        case(
+            "dark_gamma_lab_mono",
+            Mono8,
+            309,
+            false,
+            6.0,
+            1.5,
+            vec![DarkCurrent { mean_dn: 2.5, hot_rate: 0.0 }, Gamma { gamma: 0.96 }],
         )
         .in_lab(),
         case(
