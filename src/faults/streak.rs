@@ -29,9 +29,6 @@
 use super::defocus::mirror;
 use rayon::prelude::*;
 
-/// Positions (pixels along a line) by which the kept window of running sums grows at once.
-const GROW: usize = 64;
-
 /// Geometry and weights of one streak.
 #[derive(Clone, Debug, PartialEq)]
 pub struct StreakPlan {
@@ -154,6 +151,8 @@ struct Slot {
     b: Vec<f32>,
     u: Vec<f32>,
     pad: Vec<u8>,
+    // the cross-filter tap of each line of the band
+    taps: Vec<f32>,
 }
 
 /// Scratch of [`blur_u8`]; grows only (allocation when the frame size or the streak grows).
@@ -273,7 +272,12 @@ fn unshear_k(out: &mut [u8], b: &[f32], u: &mut [f32], ch: usize, g: u8, a: f32,
 }
 dispatch!(unshear_d, unshear_k, (out: &mut [u8], b: &[f32], u: &mut [f32], ch: usize, g: u8, a: f32, inv: f32));
 
-/// One band of output lines `i0..i0 + rows` (written to `dst`, lines `dstride` apart).
+/// Output positions (pixels along a line) per column block: the block's running sums and held
+/// lines stay in the L1 cache while it runs down the band.
+const CHUNK: isize = 256;
+
+/// One band of output lines `i0..i0 + rows` (written to `dst`, lines `dstride` apart), block by
+/// block of output positions `k` (line `i` writes pixel `x = k - klo(i)`).
 #[allow(clippy::too_many_arguments)]
 fn band(
     lv: u8,
@@ -287,28 +291,28 @@ fn band(
 ) {
     let (nl, ch) = (src.nl, src.ch);
     let n = plan.n as isize;
-    // k range of the band: klo(i) = floor(-i m) for i in the band, +- GROW, and w + 1 positions.
+    // Line i's output pixel x reads B at k = x + klo(i) and k + 1 (phase g); the cross filter
+    // needs one position more on each side.
     let klo = |i: usize| -> (isize, u8) {
         let q = -plan.shift_q(i as isize);
         ((q >> 6) as isize, (q & 63) as u8)
     };
-    let (ka, kb) = (klo(i0).0, klo(i0 + rows - 1).0);
-    let base = ka.min(kb) - GROW as isize - 2;
-    let span = (ka.max(kb) + (nl + 3 + GROW) as isize - base) as usize;
-    let len = span * ch;
+    slot.taps.clear();
+    slot.taps.extend((i0..i0 + rows).map(|i| plan.cross_tap(i as isize)));
+    let len = (CHUNK as usize + 3) * ch;
     for v in [&mut slot.r, &mut slot.b, &mut slot.u].into_iter().chain(slot.a.iter_mut()) {
         if v.len() < len {
             v.resize(len, 0.0);
         }
     }
-    // Fill A(j, k) for k in [k0, k1) into `a` (indices relative to `base`).
-    let fill = |a: &mut [f32], pad: &mut Vec<u8>, j: isize, k0: isize, k1: isize| {
+    // A(j, k) for k in [k0, k1) into `a` (index (k - base) ch).
+    let fill = |a: &mut [f32], pad: &mut Vec<u8>, base: isize, j: isize, k0: isize, k1: isize| {
         let q = plan.shift_q(j);
         let (s, f) = ((q >> 6) as isize, (q & 63) as u8);
         let line = src.line(j);
         let x = |k: isize| (k - base) as usize * ch;
-        // Positions whose two pixels are inside the line read it directly; the others (at most
-        // the kept window's margin at each end) go through a mirrored copy.
+        // Positions whose two pixels are inside the line read it directly; the others go
+        // through a mirrored copy.
         let (i0, i1) = ((-s).clamp(k0, k1), (nl as isize - 1 - s).clamp(k0, k1).max((-s).clamp(k0, k1)));
         if i1 > i0 {
             let p = ((i0 + s) as usize) * ch;
@@ -327,84 +331,94 @@ fn band(
     };
     // Lines held in `a`: slot t holds j = i + off[t].
     let off = [-n - 2, -n - 1, -n, n + 1, n + 2];
-    // (Re)compute running sums and held lines for k in [k0, k1) at output line i.
-    let init = |slot: &mut Slot, i: isize, k0: isize, k1: isize| {
-        let Slot { r, a, b, pad, .. } = slot;
-        let (x0, x1) = ((k0 - base) as usize * ch, (k1 - base) as usize * ch);
-        r[x0..x1].fill(0.0);
-        for d in -n..=n {
-            fill(b, pad, i + d, k0, k1);
-            add_d(lv, &mut r[x0..x1], &b[x0..x1]);
+    let (ka, kb) = (klo(i0).0, klo(i0 + rows - 1).0);
+    let mut c0 = ka.min(kb);
+    while c0 < ka.max(kb) + nl as isize {
+        let c1 = c0 + CHUNK;
+        // State over k in [c0 - 1, c1 + 2), local index (k - base) ch.
+        let base = c0 - 1;
+        let w = (c1 + 2 - base) as usize * ch;
+        let mut started = false;
+        for (row, i) in (i0..i0 + rows).enumerate() {
+            let (k, g) = klo(i);
+            let (o0, o1) = (c0.max(k), c1.min(k + nl as isize));
+            if o0 >= o1 {
+                if started {
+                    break;
+                }
+                continue;
+            }
+            let Slot { r, a, b, u, pad, taps } = &mut *slot;
+            if !started {
+                // Running sums and held lines at line i.
+                started = true;
+                r[..w].fill(0.0);
+                for d in -n..=n {
+                    fill(b, pad, base, i as isize + d, base, c1 + 2);
+                    add_d(lv, &mut r[..w], &b[..w]);
+                }
+                for (t, &o) in off.iter().enumerate() {
+                    fill(&mut a[t], pad, base, i as isize + o, base, c1 + 2);
+                }
+            }
+            // B over [o0 - 1, o1 + 2), then unshear and cross filter into pixels o0 - k.. o1 - k.
+            let (x0, x1) = ((o0 - 1 - base) as usize * ch, (o1 + 2 - base) as usize * ch);
+            ends_d(
+                lv,
+                &mut b[x0..x1],
+                &r[x0..x1],
+                &a[1][x0..x1],
+                &a[3][x0..x1],
+                &a[0][x0..x1],
+                &a[4][x0..x1],
+                plan.e[0],
+                plan.e[1],
+            );
+            let p0 = row * dstride + (o0 - k) as usize * ch;
+            let orow = &mut dst[p0..p0 + (o1 - o0) as usize * ch];
+            unshear_d(lv, orow, &b[x0..x1], u, ch, g, taps[row], plan.inv);
+            if row + 1 == rows {
+                break;
+            }
+            let Slot { r, a, pad, .. } = &mut *slot;
+            // Advance to line i + 1.
+            slide_d(lv, &mut r[..w], &a[3][..w], &a[2][..w]);
+            // Trail: t2 <- t1 <- t0 <- A(i + 1 - n); lead: l1 <- l2 <- A(i + 1 + n + 2).
+            a.swap(0, 1);
+            a.swap(1, 2);
+            fill(&mut a[2], pad, base, i as isize + 1 - n, base, c1 + 2);
+            a.swap(3, 4);
+            fill(&mut a[4], pad, base, i as isize + 1 + n + 2, base, c1 + 2);
         }
-        for (t, &o) in off.iter().enumerate() {
-            fill(&mut a[t], pad, i + o, k0, k1);
-        }
-    };
-    let (k_first, _) = klo(i0);
-    let (mut v0, mut v1) = (k_first - 1 - GROW as isize, k_first + (nl + 2 + GROW) as isize);
-    init(slot, i0 as isize, v0, v1);
-    for (row, i) in (i0..i0 + rows).enumerate() {
-        let (k, g) = klo(i);
-        // B is needed at k - 1 ..= k + nl + 1 (the unshear and one position each side for the
-        // cross filter).
-        let (need0, need1) = (k - 1, k + nl as isize + 2);
-        while need0 < v0 {
-            init(slot, i as isize, v0 - GROW as isize, v0);
-            v0 -= GROW as isize;
-        }
-        while need1 > v1 {
-            init(slot, i as isize, v1, v1 + GROW as isize);
-            v1 += GROW as isize;
-        }
-        // Drop positions no later line needs (the window only moves one way).
-        if plan.m > 0.0 && v1 > need1 + 2 * GROW as isize {
-            v1 = need1 + GROW as isize;
-        }
-        if plan.m < 0.0 && v0 < need0 - 2 * GROW as isize {
-            v0 = need0 - GROW as isize;
-        }
-        let Slot { r, a, b, u, pad } = slot;
-        let (x0, x1) = ((need0 - base) as usize * ch, (need1 - base) as usize * ch);
-        ends_d(
-            lv,
-            &mut b[x0..x1],
-            &r[x0..x1],
-            &a[1][x0..x1],
-            &a[3][x0..x1],
-            &a[0][x0..x1],
-            &a[4][x0..x1],
-            plan.e[0],
-            plan.e[1],
-        );
-        let orow = &mut dst[row * dstride..row * dstride + nl * ch];
-        unshear_d(lv, orow, &b[x0..x1], u, ch, g, plan.cross_tap(i as isize), plan.inv);
-        if row + 1 == rows {
-            break;
-        }
-        // Advance to line i + 1 over the kept window.
-        let (y0, y1) = ((v0 - base) as usize * ch, (v1 - base) as usize * ch);
-        slide_d(lv, &mut r[y0..y1], &a[3][y0..y1], &a[2][y0..y1]);
-        // Trail: t2 <- t1 <- t0 <- A(i + 1 - n); lead: l1 <- l2 <- A(i + 1 + n + 2).
-        a.swap(0, 1); // a0 = old t1, a1 = old t2
-        a.swap(1, 2); // a1 = old t0, a2 = old t2 (to overwrite)
-        fill(&mut a[2], pad, i as isize + 1 - n, v0, v1);
-        a.swap(3, 4); // a3 = old l2, a4 = old l1 (to overwrite)
-        fill(&mut a[4], pad, i as isize + 1 + n + 2, v0, v1);
+        c0 = c1;
     }
 }
 
-/// Pixel transpose: `dst[x * dstride + y * ch + c] = src[y * sstride + x * ch + c]`.
+/// Pixel transpose: `dst[x * dstride + y * ch + c] = src[y * sstride + x * ch + c]` for
+/// `x < w`, `y < h`, in blocks of 16 x 16 pixels (a block's rows stay in cache).
 fn transpose(src: &[u8], sstride: usize, w: usize, h: usize, ch: usize, dst: &mut [u8], dstride: usize) {
-    const B: usize = 32;
+    match ch {
+        1 => transpose_px::<1>(src, sstride, w, h, dst, dstride),
+        3 => transpose_px::<3>(src, sstride, w, h, dst, dstride),
+        _ => unreachable!("8-bit frames have 1 or 3 channels"),
+    }
+}
+
+fn transpose_px<const C: usize>(src: &[u8], sstride: usize, w: usize, h: usize, dst: &mut [u8], dstride: usize) {
+    const B: usize = 16;
     let used = dst.len().min(dstride * w);
     dst[..used].par_chunks_mut(dstride * B).enumerate().for_each(|(bx, dband)| {
         let x0 = bx * B;
         let xs = B.min(w - x0);
         for y0 in (0..h).step_by(B) {
-            for y in y0..(y0 + B).min(h) {
-                let srow = &src[y * sstride + x0 * ch..y * sstride + (x0 + xs) * ch];
-                for (dx, px) in srow.chunks_exact(ch).enumerate() {
-                    dband[dx * dstride + y * ch..dx * dstride + y * ch + ch].copy_from_slice(px);
+            let ys = B.min(h - y0);
+            for y in y0..y0 + ys {
+                let srow = &src[y * sstride + x0 * C..y * sstride + (x0 + xs) * C];
+                for (dx, px) in srow.chunks_exact(C).enumerate() {
+                    let px: &[u8; C] = px.try_into().expect("C bytes");
+                    let o = dx * dstride + y * C;
+                    let d: &mut [u8; C] = (&mut dband[o..o + C]).try_into().expect("C bytes");
+                    *d = *px;
                 }
             }
         }
@@ -481,6 +495,32 @@ mod tests {
             let want = (2.0 * tt).powi(2) / 12.0 + 1.0 / 6.0;
             assert!((var - want).abs() < 1e-3 * want, "{len} {ang}: variance {var} vs {want}");
             assert!(p.m.abs() <= 1.0);
+        }
+    }
+
+    #[test]
+    fn every_kernel_level_and_thread_count_gives_the_same_bytes() {
+        use crate::frame::{FrameData, PixelFormat};
+        for (w, h, format) in [(203u32, 131u32, PixelFormat::Rgb8), (150, 190, PixelFormat::Mono8)] {
+            let f = crate::faults::kit::bench_scene(w, h, format, 3).unwrap();
+            let ch = format.channels();
+            for (len, ang) in [(13.0, 10.0), (40.0, 63.0), (100.0, 137.0), (30.0, 90.0), (25.0, 0.0)] {
+                let plan = StreakPlan::new(len, ang);
+                let run = |lv: u8, threads: usize| {
+                    let mut g = f.clone();
+                    let stride = g.stride;
+                    let FrameData::U8(d) = &mut g.data else { unreachable!() };
+                    rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(|| {
+                        blur_u8_at(lv, d, stride, w as usize, h as usize, ch, &plan, &mut Scratch::default())
+                    });
+                    g
+                };
+                let scalar = run(0, 1);
+                assert_ne!(scalar, f, "{format} {len}@{ang}: blurred");
+                assert_eq!(run(1, 1), scalar, "{format} {len}@{ang}: AVX2 vs scalar");
+                assert_eq!(run(2, 1), scalar, "{format} {len}@{ang}: AVX-512 vs scalar");
+                assert_eq!(run(2, 3), scalar, "{format} {len}@{ang}: 3 threads vs 1");
+            }
         }
     }
 }
