@@ -19,12 +19,23 @@ pub static INFO: EffectInfo = EffectInfo {
             +45 = streak rising to the right on screen, i.e. towards -y in image rows, 90 = vertical. The \
             line is sampled every 1/8 px (trapezoid weights) and each sample is spread bilinearly over its \
             four nearest pixels (sub-pixel accurate, anti-aliased), then normalised to sum 1. Borders are \
-            mirrored. Channels are blurred independently. 8-bit frames are computed in 16-bit fixed \
+            mirrored. Channels are blurred independently. 8-bit frames, length_px <= 12: 16-bit fixed \
             point (samples x 64, the point-symmetric tap pairs' weights rounded to multiples of 2^-15 \
             that sum exactly to 1, every product rounded to nearest, the same integer operations on \
             every CPU path): each output is within 1 DN of the exact convolution (tested against an f64 \
-            reference for lengths 0.7-12 px). 16-bit frames in f32, rounded and clipped. Cost grows \
-            linearly with length_px (about 1.5 taps per px of streak). length_px = 0 is the identity.",
+            reference for lengths 0.7-12 px); cost grows with length_px (about 1.5 taps per px). \
+            8-bit frames, length_px > 12: cost independent of the length: the lines across the \
+            streak's major axis are sheared (linear interpolation, shifts rounded to 1/64 px) so the \
+            streak runs straight across them, a running sum across lines applies the model's exact \
+            weights along the major axis (a box of 2T = length x |major component| lines convolved \
+            with the tent), the result is unsheared (linear interpolation) and a 3-tap filter along \
+            the lines matches, per output line, the model's cross-streak variance (sharpening where \
+            the two interpolations are wider). f32 on integer-valued data (exact running sums), the \
+            same IEEE operations on every CPU path and thread count. Against the model it is within \
+            14 DN on hard edges and point sources for 12-16 px near the axes, 10 DN from 20 px, 6 DN \
+            from 37.5 px, 3.5 DN at 100 px, 0.5 DN for axis-aligned streaks, mean within 0.05 DN \
+            (tested). 16-bit frames in f32 with the model's taps, rounded and clipped (cost grows \
+            with length_px). length_px = 0 is the identity.",
     params: &[
         ParamSpec::float("length_px", "px", 0.0, 100.0, 10.0, "length of the motion streak"),
         ParamSpec::float("angle_deg", "deg", 0.0, 180.0, 0.0, "direction, CCW from +x with y up, modulo 180"),
@@ -73,9 +84,21 @@ pub fn line_taps(length: f64, angle_deg: f64) -> Vec<(i32, i32, f32)> {
 /// length), longer streaks the running-sum path (`streak`, cost independent of the length).
 pub const FIR_MAX_LENGTH: f64 = 12.0;
 
-/// Stated bound of the running-sum path against the model (DN, 8-bit), on point sources, hard
-/// edges and a textured scene.
-pub const STREAK_MAX_ERROR_DN: f64 = 14.0;
+/// Stated bound of the running-sum path against the model (DN, 8-bit) on point sources, hard
+/// edges and a textured scene, by length (the model text quotes it).
+pub fn streak_max_error_dn(length: f64, angle_deg: f64) -> f64 {
+    if angle_deg.rem_euclid(90.0) == 0.0 {
+        0.5 + 1e-4 // the final rounding (and f32 rounding of the weights)
+    } else if length < 20.0 {
+        14.0
+    } else if length < 37.5 {
+        10.0
+    } else if length < 100.0 {
+        6.0
+    } else {
+        3.5
+    }
+}
 
 #[derive(Default)]
 pub struct MotionBlur {
@@ -485,7 +508,11 @@ mod streak_tests {
                 let mean = got.iter().map(|&v| v as f64).sum::<f64>() / got.len() as f64;
                 let mean0 = want.iter().sum::<f64>() / want.len() as f64;
                 report.push(format!("{} {len}@{ang}: max {worst:.2} DN ({at}), mean {:+.3}", f.format, mean - mean0));
-                assert!(worst <= STREAK_MAX_ERROR_DN, "{}: {len} px @ {ang}: max |error| {worst} DN", f.format);
+                assert!(
+                    worst <= streak_max_error_dn(len, ang) + 1e-9,
+                    "{}: {len} px @ {ang}: max |error| {worst} DN",
+                    f.format
+                );
                 assert!((mean - mean0).abs() < 0.05, "{}: {len} px @ {ang}: mean {}", f.format, mean - mean0);
             }
         }
