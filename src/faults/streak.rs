@@ -405,20 +405,20 @@ fn transpose(src: &[u8], sstride: usize, w: usize, h: usize, ch: usize, dst: &mu
 }
 
 fn transpose_px<const C: usize>(src: &[u8], sstride: usize, w: usize, h: usize, dst: &mut [u8], dstride: usize) {
-    const B: usize = 16;
+    const B: usize = 32;
     let used = dst.len().min(dstride * w);
     dst[..used].par_chunks_mut(dstride * B).enumerate().for_each(|(bx, dband)| {
         let x0 = bx * B;
         let xs = B.min(w - x0);
         for y0 in (0..h).step_by(B) {
             let ys = B.min(h - y0);
-            for y in y0..y0 + ys {
-                let srow = &src[y * sstride + x0 * C..y * sstride + (x0 + xs) * C];
-                for (dx, px) in srow.chunks_exact(C).enumerate() {
-                    let px: &[u8; C] = px.try_into().expect("C bytes");
-                    let o = dx * dstride + y * C;
-                    let d: &mut [u8; C] = (&mut dband[o..o + C]).try_into().expect("C bytes");
-                    *d = *px;
+            let sblock = &src[y0 * sstride + x0 * C..];
+            for dx in 0..xs {
+                let drow = &mut dband[dx * dstride + y0 * C..dx * dstride + (y0 + ys) * C];
+                for (dy, d) in drow.chunks_exact_mut(C).enumerate() {
+                    let o = dy * sstride + dx * C;
+                    let px: &[u8; C] = sblock[o..o + C].try_into().expect("C bytes");
+                    d.copy_from_slice(px);
                 }
             }
         }
