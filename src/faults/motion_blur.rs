@@ -19,12 +19,13 @@ pub static INFO: EffectInfo = EffectInfo {
             +45 = streak rising to the right on screen, i.e. towards -y in image rows, 90 = vertical. The \
             line is sampled every 1/8 px (trapezoid weights) and each sample is spread bilinearly over its \
             four nearest pixels (sub-pixel accurate, anti-aliased), then normalised to sum 1. Borders are \
-            mirrored. Channels are blurred independently. 8-bit frames, length_px <= 12: 16-bit fixed \
+            mirrored. Channels are blurred independently. 8-bit frames, short streaks: 16-bit fixed \
             point (samples x 64, the point-symmetric tap pairs' weights rounded to multiples of 2^-15 \
             that sum exactly to 1, every product rounded to nearest, the same integer operations on \
             every CPU path): each output is within 1 DN of the exact convolution (tested against an f64 \
-            reference for lengths 0.7-12 px); cost grows with length_px (about 1.5 taps per px). \
-            8-bit frames, length_px > 12: cost independent of the length: the lines across the \
+            reference for lengths 0.7-60 px); cost grows with length_px (about 1.5 taps per px). \
+            8-bit frames, length_px > 24 for mostly vertical streaks (|sin angle| >= |cos angle|) or \
+            > 60 for mostly horizontal ones: cost independent of the length: the lines across the \
             streak's major axis are sheared (linear interpolation, shifts rounded to 1/64 px) so the \
             streak runs straight across them, a running sum across lines applies the model's exact \
             weights along the major axis (a box of 2T = length x |major component| lines convolved \
@@ -32,10 +33,10 @@ pub static INFO: EffectInfo = EffectInfo {
             the lines matches, per output line, the model's cross-streak variance (sharpening where \
             the two interpolations are wider). f32 on integer-valued data (exact running sums), the \
             same IEEE operations on every CPU path and thread count. Against the model it is within \
-            14 DN on hard edges and point sources for 12-16 px near the axes, 10 DN from 20 px, 6 DN \
-            from 37.5 px, 3.5 DN at 100 px, 0.5 DN for axis-aligned streaks, mean within 0.05 DN \
-            (tested). 16-bit frames in f32 with the model's taps, rounded and clipped (cost grows \
-            with length_px). length_px = 0 is the identity.",
+            10 DN on hard edges and point sources from 24 px, 6 DN from 37.5 px, 3.5 DN at 100 px, \
+            0.5 DN for axis-aligned streaks, mean within 0.05 DN (tested). 16-bit frames in f32 with \
+            the model's taps, rounded and clipped (cost grows with length_px). length_px = 0 is the \
+            identity.",
     params: &[
         ParamSpec::float("length_px", "px", 0.0, 100.0, 10.0, "length of the motion streak"),
         ParamSpec::float("angle_deg", "deg", 0.0, 180.0, 0.0, "direction, CCW from +x with y up, modulo 180"),
@@ -81,13 +82,19 @@ pub fn line_taps(length: f64, angle_deg: f64) -> Vec<(i32, i32, f32)> {
 }
 
 /// 8-bit frames with length_px up to this use the exact FIR (`fir16`, cost linear in the
-/// length), longer streaks the running-sum path (`streak`, cost independent of the length).
-pub const FIR_MAX_LENGTH: f64 = 12.0;
+/// length), longer streaks the running-sum path (`streak`, cost independent of the length): 24 px
+/// for mostly vertical streaks, 60 px for mostly horizontal ones (their running sums run on a
+/// transposed copy, about twice the cost), about where the two cost the same (BENCHMARKS.md).
+pub fn fir_max_length(angle_deg: f64) -> f64 {
+    if streak::is_vertical(angle_deg) { 24.0 } else { 60.0 }
+}
 
 /// Stated bound of the running-sum path against the model (DN, 8-bit) on point sources, hard
 /// edges and a textured scene, by length (the model text quotes it).
 pub fn streak_max_error_dn(length: f64, angle_deg: f64) -> f64 {
-    if angle_deg.rem_euclid(90.0) == 0.0 {
+    if length <= fir_max_length(angle_deg) {
+        1.0 // the FIR
+    } else if angle_deg.rem_euclid(90.0) == 0.0 {
         0.5 + 1e-4 // the final rounding (and f32 rounding of the weights)
     } else if length < 20.0 {
         14.0
@@ -103,7 +110,7 @@ pub fn streak_max_error_dn(length: f64, angle_deg: f64) -> f64 {
 #[derive(Default)]
 pub struct MotionBlur {
     key: Option<(u64, u64)>,
-    // 8-bit frames with length_px > FIR_MAX_LENGTH: the running-sum plan and its scratch
+    // 8-bit frames with length_px > fir_max_length: the running-sum plan and its scratch
     streak: Option<streak::StreakPlan>,
     streak_scratch: streak::Scratch,
     taps: Vec<(i32, i32, f32)>,
@@ -230,7 +237,7 @@ impl Effect for MotionBlur {
             let (pairs, half) = pair_up(&self.taps);
             self.q15 = fir16::q15_pairs(&half);
             self.pairs = pairs;
-            self.streak = (len > FIR_MAX_LENGTH).then(|| streak::StreakPlan::new(len, ang));
+            self.streak = (len > fir_max_length(ang)).then(|| streak::StreakPlan::new(len, ang));
             self.key = Some((len.to_bits(), ang.to_bits()));
         }
         let (w, h, ch, stride, r) =
@@ -340,7 +347,7 @@ mod tests {
         orig.set(30, 90, 1, 255.0);
         let (w, h) = (140usize, 120usize);
         let src = orig.packed_samples_f32();
-        for &(len, ang) in &[(0.7, 20.0), (5.0, 0.0), (10.0, 30.0), (12.0, 90.0), (11.3, 137.0), (12.0, 63.0)] {
+        for &(len, ang) in &[(0.7, 20.0), (5.0, 0.0), (10.0, 30.0), (24.0, 90.0), (37.5, 137.0), (60.0, 10.0)] {
             let mut f = orig.clone();
             let mut p = Params::defaults(&INFO);
             p.set("length_px", len).unwrap();
@@ -476,7 +483,7 @@ mod streak_tests {
             let src: Vec<f64> = f.packed_samples_f32().iter().map(|&v| v as f64).collect();
             let cases = if std::env::var_os("STREAK_SWEEP").is_some() {
                 let mut v = Vec::new();
-                for len in [12.5, 13.0, 16.0, 20.0, 25.0, 37.5, 50.0, 100.0] {
+                for len in [12.5, 16.0, 25.0, 37.5, 50.0, 61.0, 75.0, 100.0] {
                     for ang in [0.0, 10.0, 22.5, 30.0, 45.0, 60.0, 80.0, 100.0, 137.0, 170.0] {
                         v.push((len, ang));
                     }

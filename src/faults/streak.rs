@@ -79,12 +79,19 @@ fn model_cross_variance(m: f64, phi: f64) -> f64 {
     s2 / s
 }
 
+/// Whether a streak at `angle_deg` runs its lines along image rows (at least as vertical as
+/// horizontal), see [`StreakPlan::vertical`].
+pub fn is_vertical(angle_deg: f64) -> bool {
+    let t = angle_deg.to_radians();
+    t.sin().abs() >= t.cos().abs()
+}
+
 impl StreakPlan {
     /// Plan for a streak of `length` px (>= 2) at `angle_deg` (CCW from +x, y up on screen).
     pub fn new(length: f64, angle_deg: f64) -> StreakPlan {
         let t = angle_deg.to_radians();
         let (ux, uy) = (t.cos(), -t.sin());
-        let vertical = uy.abs() >= ux.abs();
+        let vertical = is_vertical(angle_deg);
         let (major, minor) = if vertical { (uy, ux) } else { (ux, uy) };
         let m = minor / major;
         let tt = 0.5 * length * major.abs();
