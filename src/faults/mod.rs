@@ -22,6 +22,7 @@ pub mod defocus;
 pub mod lens_flare;
 pub mod motion_blur;
 pub mod stray_light;
+pub mod streak;
 pub mod veiling_glare;
 pub mod vignetting;
 // Sensor
