@@ -14,20 +14,8 @@
 # Needs socat and python3. Prints the summary, the RSS samples and the log check.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-MINUTES=${1:-10}
-SIZE=${2:-1920x1200}
-FPS=${3:-60}
-W=${SIZE%x*}
-H=${SIZE#*x}
-. scripts/rust-env.sh
-if [ -z "${FAULTCAM_BIN:-}" ]; then
-  cargo build --release --bin faultcam
-  FAULTCAM_BIN=./target/release/faultcam
-  [ -n "${CARGO_TARGET_DIR:-}" ] && FAULTCAM_BIN="$CARGO_TARGET_DIR/release/faultcam"
-fi
-OUT=${SOAK_OUT:-out/soak-faults}
-rm -rf "$OUT"
-mkdir -p "$OUT"
+SOAK_NAME=soak-faults
+. scripts/soak/setup.sh "$@"
 echo "soak-faults: ${MINUTES} min, ${W}x${H} mono8 at ${FPS} fps, $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2)"
 
 socat pty,raw,echo=0,link="$OUT/rig" pty,raw,echo=0,link="$OUT/dut" 2>"$OUT/socat.log" &

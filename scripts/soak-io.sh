@@ -4,7 +4,7 @@
 #
 #   ./scripts/soak-io.sh [MINUTES] [WxH] [FPS]     # default: 10 1920x1200 60
 #
-# Phase 1 (MINUTES): a camera on a pipe (scripts/soak/feeder.py: raw GRAY8 at FPS, a 2 s stall
+# Phase 1 (MINUTES): a camera on a pipe (scripts/soak/feeder.py: synthetic scenes, raw GRAY8 at FPS, a 2 s stall
 #   every 20 s, end of stream at the end) → `gst:fdsrc ! rawvideoparse ! appsink` → the original
 #   chain (hil/campaigns/original8.toml), `--live --budget-ms 16.7 --overrun drop` → `gst:appsrc !
 #   queue ! fdsink` → a reader that stops reading for 3 s every 30 s (scripts/soak/reader.py);
@@ -18,20 +18,8 @@
 # SOAK_PHASES=23 runs only phases 2 and 3; FAULTCAM_BIN and SOAK_OUT as in scripts/soak-faults.sh.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-MINUTES=${1:-10}
-SIZE=${2:-1920x1200}
-FPS=${3:-60}
-W=${SIZE%x*}
-H=${SIZE#*x}
-. scripts/rust-env.sh
-if [ -z "${FAULTCAM_BIN:-}" ]; then
-  cargo build --release --bin faultcam
-  FAULTCAM_BIN=./target/release/faultcam
-  [ -n "${CARGO_TARGET_DIR:-}" ] && FAULTCAM_BIN="$CARGO_TARGET_DIR/release/faultcam"
-fi
-OUT=${SOAK_OUT:-out/soak-io}
-rm -rf "$OUT"
-mkdir -p "$OUT"
+SOAK_NAME=soak-io
+. scripts/soak/setup.sh "$@"
 PHASES=${SOAK_PHASES:-123}   # e.g. SOAK_PHASES=23 skips phase 1
 FAIL=0
 fail() { echo "soak-io: FAIL: $*"; FAIL=1; }
@@ -44,7 +32,11 @@ SECS=$((MINUTES * 60))
 FIFO_IN="$OUT/in.fifo"
 FIFO_OUT="$OUT/out.fifo"
 mkfifo "$FIFO_IN" "$FIFO_OUT"
-python3 scripts/soak/feeder.py "$W" "$H" "$FPS" "$SECS" 20 2 >"$FIFO_IN" 2>"$OUT/feeder.log" &
+# The camera's frames: eight synthetic scenes (spacecraft, Earth limb, stars) as PGM.
+printf 'seed = 0\n' >"$OUT/no-faults.toml"
+"$FAULTCAM_BIN" run --source "synth:?width=$W&height=$H&format=mono8&frames=8&earth=true&seed=3" \
+  --faults "$OUT/no-faults.toml" --sink "files:$OUT/scene?format=pgm" --log "$OUT/scene.jsonl" 2>"$OUT/scene.stderr"
+python3 scripts/soak/feeder.py "$W" "$H" "$FPS" "$SECS" 20 2 "$OUT"/scene/*.pgm >"$FIFO_IN" 2>"$OUT/feeder.log" &
 FEEDER=$!
 python3 scripts/soak/reader.py 30 3 $((W * H)) <"$FIFO_OUT" 2>"$OUT/reader.log" &
 READER=$!

@@ -90,23 +90,27 @@ fn diagnose_writes_the_report_contract_and_an_applicable_model() {
     assert!(md.contains("Forward-model selection"));
 }
 
+/// `faultcam diagnose --unpaired` on two folders; the parsed report.json.
+fn diagnose_unpaired(sim: &Path, real: &Path, out: &Path) -> serde_json::Value {
+    faultcam()
+        .args(["diagnose", "--unpaired", "--sim"])
+        .arg(sim)
+        .arg("--real")
+        .arg(real)
+        .arg("--out")
+        .arg(out)
+        .assert()
+        .success();
+    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report.json")).expect("json")
+}
+
 #[test]
 fn diagnose_unpaired_writes_a_report() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let (sim, real, out) = (tmp.path().join("sim"), tmp.path().join("real"), tmp.path().join("out"));
     make_inputs(&sim, 2);
     make_inputs(&real, 2);
-    faultcam()
-        .args(["diagnose", "--unpaired", "--sim"])
-        .arg(&sim)
-        .arg("--real")
-        .arg(&real)
-        .arg("--out")
-        .arg(&out)
-        .assert()
-        .success();
-    let rep: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report.json")).expect("json");
+    let rep = diagnose_unpaired(&sim, &real, &out);
     assert_eq!(rep["mode"], "unpaired");
     // Identical sets: nothing to find.
     assert_eq!(rep["findings"].as_array().expect("findings").len(), 0, "{}", rep["findings"]);
@@ -187,17 +191,7 @@ fn diagnose_unpaired_reads_a_black_sim_sky_as_zero() {
     };
     write_set(&sim, 0.0, None);
     write_set(&real, 140.0, Some((12.0, 2.0)));
-    faultcam()
-        .args(["diagnose", "--unpaired", "--sim"])
-        .arg(&sim)
-        .arg("--real")
-        .arg(&real)
-        .arg("--out")
-        .arg(&out)
-        .assert()
-        .success();
-    let rep: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report.json")).expect("json");
+    let rep = diagnose_unpaired(&sim, &real, &out);
     let dark = rep["findings"]
         .as_array()
         .expect("findings")
