@@ -112,12 +112,20 @@ pub fn yuyv_row(src: &[u8], width: usize, out: PixelFormat, dst: &mut [u8]) {
     }
 }
 
+/// Longest run of frames the driver may drop that is counted as a gap; a longer jump of its
+/// sequence number (a writer that restarted, a reset counter) continues the numbering instead
+/// of being read as billions of dropped frames.
+const MAX_GAP: u64 = 1024;
+
 /// A frame's number from the driver's sequence number `raw` (relative to the first buffer's):
-/// the driver's own while it advances (a jump leaves a gap: frames the driver dropped), else
-/// `next`, the number after the last frame's (a driver whose sequence numbers stay put or go
-/// back).
+/// the driver's steps while it advances by 1..=`MAX_GAP + 1` (a step of k leaves a gap of k - 1
+/// frames the driver dropped), else `next`, the number after the last frame's (a driver whose
+/// sequence numbers stay put, go back or jump far).
 fn frame_seq(last_raw: Option<u64>, raw: u64, next: u64) -> u64 {
-    if last_raw.is_some_and(|l| raw <= l) { next } else { raw.max(next) }
+    match last_raw.map(|l| raw.wrapping_sub(l)) {
+        Some(step) if (1..=MAX_GAP + 1).contains(&step) => next + step - 1,
+        _ => next,
+    }
 }
 
 /// An open, streaming capture device.
@@ -437,6 +445,12 @@ mod tests {
         assert_eq!(run(&[0, 1, 2, 5, 6]), [0, 1, 2, 5, 6], "an advancing driver's numbers, gaps kept");
         assert_eq!(run(&[0, 0, 0, 0]), [0, 1, 2, 3], "v4l2loopback 0.12.7 (mmap writer): all 0");
         assert_eq!(run(&[0, 1, 2, 1, 2, 3]), [0, 1, 2, 3, 4, 5], "a sequence that goes back");
+        // A sequence number far behind the first one (a restarted writer: u32 differences wrap
+        // to ~4e9) or far ahead is a jump, not billions of dropped frames; gaps resume after it.
+        let far = u32::MAX as u64 - 95;
+        assert_eq!(run(&[0, 1, far, far + 1, far + 3]), [0, 1, 2, 3, 5], "a restarted writer");
+        assert_eq!(run(&[0, 1, 1 + MAX_GAP + 2, 1 + MAX_GAP + 3]), [0, 1, 2, 3], "a jump past the largest gap");
+        assert_eq!(run(&[0, 1 + MAX_GAP]), [0, 1 + MAX_GAP], "the largest gap (MAX_GAP frames) is counted");
     }
 
     #[test]
