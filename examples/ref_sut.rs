@@ -97,15 +97,7 @@ impl Level {
             glint_px: ((fh as f64 / 400.0).max(2.0) / k as f64).max(0.3),
             ..SynthConfig::default()
         };
-        let frame = Frame {
-            seq: 0,
-            pts_ns: 0,
-            width: 0,
-            height: 0,
-            stride: 0,
-            format: PixelFormat::Mono8,
-            data: FrameData::U8(Vec::new()),
-        };
+        let frame = Frame::empty();
         Level { w, h, blur, obs, src: SynthSource::new(cfg), frame, tmp, tmp2: Vec::new() }
     }
 

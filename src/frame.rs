@@ -307,6 +307,19 @@ impl Frame {
         Ok(Frame { seq: 0, pts_ns: 0, width, height, stride, format, data })
     }
 
+    /// A frame with no pixels (0x0 mono8): a slot a source or decoder fills and reshapes.
+    pub fn empty() -> Frame {
+        Frame {
+            seq: 0,
+            pts_ns: 0,
+            width: 0,
+            height: 0,
+            stride: 0,
+            format: PixelFormat::Mono8,
+            data: FrameData::U8(Vec::new()),
+        }
+    }
+
     /// Wrap existing samples, validating sizes.
     pub fn from_data(
         width: u32,

@@ -19,7 +19,7 @@
 
 use anyhow::{Context, bail};
 use faultcam::faults::Outcome;
-use faultcam::frame::{Frame, FrameData, PixelFormat};
+use faultcam::frame::{Frame, PixelFormat};
 use faultcam::gtlog::{DiskFloor, FrameRecord, FrameStatus, GroundTruthLog, LowDiskPolicy};
 use faultcam::masks::{MaskOptions, MaskRecord, MaskRecorder, mask_stem};
 use faultcam::sink::files::{ImageFormat, WriteOptions, output_name, write_image};
@@ -103,15 +103,7 @@ struct Slot {
 impl Slot {
     fn new() -> Slot {
         Slot {
-            frame: Frame {
-                seq: 0,
-                pts_ns: 0,
-                width: 0,
-                height: 0,
-                stride: 0,
-                format: PixelFormat::Mono8,
-                data: FrameData::U8(Vec::new()),
-            },
+            frame: Frame::empty(),
             scratch: Vec::new(),
             index: 0,
             decoded: Ok(Shape { width: 0, height: 0, format: PixelFormat::Mono8 }),

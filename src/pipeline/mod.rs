@@ -41,7 +41,7 @@ pub use stats::{EffectCost, LatencyHistogram, LatencyStats, StopReason, Summary}
 use crate::control::{Controller, LogEvent};
 use crate::faults::chain::{Chain, FrameReport};
 use crate::faults::{EffectCtx, Outcome};
-use crate::frame::{Frame, FrameData, PixelFormat};
+use crate::frame::{Frame, FrameData};
 use crate::gtlog::{FrameRecord, FrameStatus, GroundTruthLog, Timing};
 use crate::masks::{MaskOptions, MaskRecord, MaskRecorder, mask_stem};
 use crate::sink::{Sink, SinkError};
@@ -254,18 +254,6 @@ struct Slot {
     masks: Option<MaskRecord>,
 }
 
-fn empty_frame() -> Frame {
-    Frame {
-        seq: 0,
-        pts_ns: 0,
-        width: 0,
-        height: 0,
-        stride: 0,
-        format: PixelFormat::Mono8,
-        data: FrameData::U8(Vec::new()),
-    }
-}
-
 fn frame_is_empty(f: &Frame) -> bool {
     match &f.data {
         FrameData::U8(v) => v.capacity() == 0,
@@ -277,7 +265,7 @@ impl Slot {
     fn new() -> Box<Slot> {
         // allocation: once per pool slot (the pool grows to the number of frames in flight)
         Box::new(Slot {
-            frame: empty_frame(),
+            frame: Frame::empty(),
             report: FrameReport::default(),
             item: String::new(),
             has_item: false,
@@ -445,7 +433,7 @@ fn source_loop(
     let mut produced = 0u64;
     let mut end = SourceEnd { reason: None, error: None };
     let take_back = |source: &mut Box<dyn Source>, shells: &mut Vec<Box<Slot>>, mut s: Box<Slot>| {
-        let f = std::mem::replace(&mut s.frame, empty_frame());
+        let f = std::mem::replace(&mut s.frame, Frame::empty());
         if !frame_is_empty(&f) {
             source.recycle(f);
         }
@@ -515,7 +503,7 @@ fn source_loop(
             Some(s) => s,
             None => match free_rx.try_recv() {
                 Ok(mut s) => {
-                    let f = std::mem::replace(&mut s.frame, empty_frame());
+                    let f = std::mem::replace(&mut s.frame, Frame::empty());
                     if !frame_is_empty(&f) {
                         source.recycle(f);
                     }

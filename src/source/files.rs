@@ -411,15 +411,7 @@ impl Source for FilesSource {
         let mut frame = match self.pool.pop() {
             Some(f) => f,
             // allocation: until the pool holds recycled frames
-            None => Frame {
-                seq,
-                pts_ns: 0,
-                width: 0,
-                height: 0,
-                stride: 0,
-                format: PixelFormat::Mono8,
-                data: FrameData::U8(Vec::new()),
-            },
+            None => Frame { seq, ..Frame::empty() },
         };
         match decode_into(&self.items[index], self.reference, &mut frame, &mut self.scratch) {
             Ok(_) => {

@@ -870,15 +870,7 @@ impl Source for SynthSource {
         }
         let mut frame = self.pool.pop().unwrap_or_else(|| {
             // allocation: until the pool holds recycled frames
-            Frame {
-                seq: 0,
-                pts_ns: 0,
-                width: 0,
-                height: 0,
-                stride: 0,
-                format: self.cfg.format,
-                data: FrameData::U8(Vec::new()),
-            }
+            Frame { format: self.cfg.format, ..Frame::empty() }
         });
         self.render_into(self.seq, &mut frame);
         self.seq += 1;
