@@ -5,9 +5,12 @@
 
 #[path = "support/files.rs"]
 mod files;
+#[path = "support/logs.rs"]
+mod logs;
 use faultcam::faults::chain::{Chain, FrameReport};
 use faultcam::{FaultConfig, Outcome};
 use files::png_folder;
+use logs::{frames, records, run_ok as ok};
 use serde_json::Value;
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -22,21 +25,6 @@ fn faultcam() -> Command {
     let mut c = Command::new(FAULTCAM);
     c.arg("run");
     c
-}
-
-fn ok(c: &mut Command) -> String {
-    let out = c.output().unwrap();
-    let err = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(out.status.success(), "{err}");
-    err
-}
-
-fn records(path: &Path) -> Vec<Value> {
-    std::fs::read_to_string(path).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
-}
-
-fn frames(recs: &[Value]) -> Vec<&Value> {
-    recs.iter().filter(|r| r["record"] == "frame").collect()
 }
 
 fn summary(recs: &[Value]) -> &Value {

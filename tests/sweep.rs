@@ -8,30 +8,18 @@
 
 #[path = "support/files.rs"]
 mod files;
+#[path = "support/logs.rs"]
+mod logs;
 use faultcam::pose::{Pose, rotation_error};
 use faultcam::source::Source;
 use faultcam::source::synth::SynthSource;
+use logs::{frames, records, run_ok};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
 const FAULTCAM: &str = env!("CARGO_BIN_EXE_faultcam");
 const SYNTH: &str = "synth:?width=64&height=48&frames=3&spin_dps=30";
-
-fn run_ok(c: &mut Command) -> String {
-    let out = c.output().unwrap();
-    let err = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(out.status.success(), "{err}");
-    err
-}
-
-fn records(path: &Path) -> Vec<Value> {
-    std::fs::read_to_string(path).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
-}
-
-fn frames(recs: &[Value]) -> Vec<&Value> {
-    recs.iter().filter(|r| r["record"] == "frame").collect()
-}
 
 fn pose_of(v: &Value) -> Pose {
     serde_json::from_value(v.clone()).unwrap()
