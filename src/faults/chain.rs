@@ -173,6 +173,39 @@ impl Chain {
         }
         Ok(Outcome::Keep)
     }
+
+    /// The next frame an effect still holds at the end of the stream ([`Effect::drain`]: a
+    /// `reorder` buffer), passed through the enabled effects after the one that held it (which
+    /// may hold it in turn: then the next call finds it there). `report` is cleared and filled
+    /// with those effects. `None` once no effect holds a frame. The frame keeps its own `seq`
+    /// and `pts_ns`. Used at the end of a stream by `faultcam run`, the GStreamer element (at EOS)
+    /// and the Python package (`Chain.drain()`).
+    pub fn drain_next(&mut self, report: &mut FrameReport) -> Option<(Frame, Result<Outcome, FaultError>)> {
+        report.clear();
+        let seed = self.seed;
+        let n = self.entries.len();
+        let (pos, mut frame) = (0..n).find_map(|pos| self.entries[pos].effect.drain().map(|f| (pos, f)))?;
+        for e in self.entries[pos + 1..].iter_mut().filter(|e| e.enabled) {
+            let mut ctx = EffectCtx::new(seed, frame.seq, e.index);
+            let name = e.effect.info().name;
+            report.applied.push(AppliedEffect {
+                name,
+                stage: e.effect.info().stage,
+                index: e.index,
+                seed: ctx.rng.seed(),
+                params: e.params,
+            });
+            match e.effect.apply(&mut frame, &e.params, &mut ctx) {
+                Ok(Outcome::Keep) => report.delay_ns += ctx.delay_ns,
+                Ok(Outcome::Drop) => {
+                    report.dropped_by = Some(name);
+                    return Some((frame, Ok(Outcome::Drop)));
+                }
+                Err(err) => return Some((frame, Err(err))),
+            }
+        }
+        Some((frame, Ok(Outcome::Keep)))
+    }
 }
 
 /// Hooks around each effect of [`Chain::apply_observed`]. `k` is the effect's position among the

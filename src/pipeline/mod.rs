@@ -39,8 +39,8 @@ pub mod stats;
 pub use stats::{EffectCost, LatencyHistogram, LatencyStats, StopReason, Summary};
 
 use crate::control::{Controller, LogEvent};
+use crate::faults::Outcome;
 use crate::faults::chain::{Chain, FrameReport};
-use crate::faults::{EffectCtx, Outcome};
 use crate::frame::{Frame, FrameData};
 use crate::gtlog::{FrameRecord, FrameStatus, GroundTruthLog, Timing};
 use crate::masks::{MaskOptions, MaskRecord, MaskRecorder, mask_stem};
@@ -732,51 +732,26 @@ impl FaultStage<'_> {
         self.send(Msg::Frame(slot));
     }
 
-    /// Frames effects still hold at the end (`Effect::drain`), passed through the effects
+    /// Frames effects still hold at the end (`Chain::drain_next`), passed through the effects
     /// after the one that held them.
     fn drain(&mut self) {
-        let seed = self.chain.seed();
-        let n = self.chain.entries().len();
-        for pos in 0..n {
-            while let Some(mut frame) = self.chain.entries_mut()[pos].effect.drain() {
-                let mut slot = Slot::new(); // allocation: end of stream only
-                slot.capture_ns = self.sh.now_ns();
-                slot.t_ns = self.last_t;
-                slot.drained = true;
-                let mut dropped_by = None;
-                let mut error = None;
-                for e in self.chain.entries_mut()[pos + 1..].iter_mut().filter(|e| e.enabled) {
-                    let mut ctx = EffectCtx::new(seed, frame.seq, e.index);
-                    slot.report.applied.push(crate::faults::chain::AppliedEffect {
-                        name: e.effect.info().name,
-                        stage: e.effect.info().stage,
-                        index: e.index,
-                        seed: ctx.rng.seed(),
-                        params: e.params,
-                    });
-                    match e.effect.apply(&mut frame, &e.params, &mut ctx) {
-                        Ok(Outcome::Keep) => slot.report.delay_ns += ctx.delay_ns,
-                        Ok(Outcome::Drop) => {
-                            dropped_by = Some(e.effect.info().name);
-                            break;
-                        }
-                        Err(err) => {
-                            error = Some(err.to_string());
-                            break;
-                        }
-                    }
-                }
-                slot.report.dropped_by = dropped_by;
-                slot.state = match (&error, dropped_by) {
-                    (Some(_), _) => SlotState::Failed,
-                    (None, Some(_)) => SlotState::DroppedByFault,
-                    _ => SlotState::Pending,
-                };
-                slot.error = error;
-                slot.frame = frame;
-                slot.ready_ns = self.sh.now_ns();
-                self.send(Msg::Frame(slot));
-            }
+        loop {
+            let mut slot = Slot::new(); // allocation: end of stream only
+            let Some((frame, result)) = self.chain.drain_next(&mut slot.report) else {
+                return;
+            };
+            slot.capture_ns = self.sh.now_ns();
+            slot.t_ns = self.last_t;
+            slot.drained = true;
+            slot.state = match &result {
+                Err(_) => SlotState::Failed,
+                Ok(Outcome::Drop) => SlotState::DroppedByFault,
+                Ok(Outcome::Keep) => SlotState::Pending,
+            };
+            slot.error = result.err().map(|e| e.to_string());
+            slot.frame = frame;
+            slot.ready_ns = self.sh.now_ns();
+            self.send(Msg::Frame(slot));
         }
     }
 }

@@ -20,7 +20,8 @@
 use faultcam::control::{Controller, LogEvent};
 use faultcam::frame::FrameError;
 use faultcam::gtlog::{FrameRecord, FrameStatus, GroundTruthLog};
-use faultcam::masks::{MaskOptions, MaskRecorder, mask_stem};
+use faultcam::masks::{MaskOptions, MaskRecord, MaskRecorder, mask_stem};
+use faultcam::pipeline::HOLDING_EFFECTS;
 use faultcam::pipeline::pool::{copy_rows_into, copy_rows_out};
 use faultcam::schedule::{TriggerOptions, controllers_from_config};
 use faultcam::{Chain, FaultConfig, Frame, FrameData, FrameReport, Outcome, PixelFormat};
@@ -143,9 +144,71 @@ mod imp {
         delivered: u64,
         dropped: u64,
         failed: u64,
+        /// Frames held back by an effect (`reorder`): released later, or at EOS.
+        held: u64,
+        /// Held frames released at EOS (each also counted by its final status).
+        drained: u64,
+        /// PTS and duration of the last buffer (the time slots of frames released at EOS).
+        last_pts: Option<u64>,
+        last_duration: Option<u64>,
     }
 
     impl State {
+        /// Count a frame by its final status, write its record (after the pending campaign
+        /// events) to the log and build the element message (`post`). Returns a log write
+        /// error, if any, and the message.
+        #[allow(clippy::too_many_arguments)]
+        fn account(
+            &mut self,
+            seq: u64,
+            t_ns: u64,
+            pts: Option<u64>,
+            status: FrameStatus,
+            error: Option<&str>,
+            masks: Option<&MaskRecord>,
+            post: bool,
+            src: &super::FaultCamFilter,
+        ) -> (Option<String>, Option<gst::Message>) {
+            match status {
+                FrameStatus::Delivered => self.delivered += 1,
+                FrameStatus::Failed => self.failed += 1,
+                FrameStatus::DroppedByFault if self.report.dropped_by.is_some_and(|e| HOLDING_EFFECTS.contains(&e)) => {
+                    self.held += 1
+                }
+                _ => self.dropped += 1,
+            }
+            let mut rec = FrameRecord::from_report(seq, t_ns, &self.report);
+            rec.status = status;
+            rec.error = error;
+            rec.masks = masks;
+            let mut log_error = None;
+            if let Some(log) = self.log.as_mut()
+                && let Err(e) = self.events.iter().try_for_each(|e| log.event(e)).and_then(|_| log.frame(&rec))
+            {
+                log_error = Some(format!("cannot write the ground-truth log: {e}"));
+            }
+            self.events.clear();
+            if !post {
+                return (log_error, None);
+            }
+            // allocation: per buffer, only with post-messages (the message itself).
+            let effects: Vec<&str> = self.report.applied.iter().map(|a| a.name).collect();
+            let mut s = gst::Structure::builder(MESSAGE_NAME)
+                .field("seq", seq)
+                .field("stream-time", t_ns)
+                .field("status", serde_json::to_value(status).ok().and_then(|v| v.as_str().map(String::from)))
+                .field("effects", effects.join(","))
+                .field("delay", self.report.delay_ns)
+                .field("record", serde_json::to_string(&rec).unwrap_or_default());
+            if let Some(p) = pts {
+                s = s.field("pts", p);
+            }
+            if let Some(d) = self.report.dropped_by {
+                s = s.field("dropped-by", d);
+            }
+            (log_error, Some(gst::message::Element::builder(s.build()).src(src).build()))
+        }
+
         fn write_events(&mut self) -> Result<(), String> {
             if let Some(log) = self.log.as_mut() {
                 for e in self.events.drain(..) {
@@ -245,6 +308,102 @@ mod imp {
 
     impl GstObjectImpl for FaultCamFilter {}
 
+    impl FaultCamFilter {
+        /// At EOS: the frames effects still hold (`reorder`) go through the effects after the
+        /// one that held them and are pushed downstream after the last buffer (PTS: the last
+        /// buffer's + k buffer durations + the frame's delay; offset: the frame's `seq`), each
+        /// with its own log record and message (its own `seq` and stream time), so
+        /// every input buffer is accounted for (`held` in the summary counts the hold records,
+        /// `drained` the releases).
+        fn drain_at_eos(&self) {
+            let post = self.settings.lock().unwrap().post_messages;
+            loop {
+                let mut guard = self.state.lock().unwrap();
+                let Some(st) = guard.as_mut() else { return };
+                let Some(info) = st.info.clone() else { return };
+                let Some((frame, result)) = st.chain.drain_next(&mut st.report) else { return };
+                st.drained += 1;
+                let (outcome, mut error) = match result {
+                    Ok(o) => (o, None),
+                    Err(e) => (Outcome::Drop, Some(e.to_string())),
+                };
+                // As in the stream, a released frame's bytes go out in the next time slot:
+                // after the last buffer, one buffer duration apart (plus its own delay).
+                let slot = st.drained * st.last_duration.unwrap_or(0);
+                let pts = st.last_pts.map(|p| p + slot + st.report.delay_ns);
+                let mut out = None;
+                if outcome == Outcome::Keep && error.is_none() {
+                    // allocation: end of stream only (one buffer per held frame).
+                    match self.drained_buffer(&frame, &info, st.bgr, st.format) {
+                        Ok(mut b) => {
+                            if let Some(b) = b.get_mut() {
+                                b.set_pts(pts.map(gst::ClockTime::from_nseconds));
+                                b.set_offset(frame.seq);
+                            }
+                            out = Some(b);
+                        }
+                        Err(e) => error = Some(e),
+                    }
+                }
+                drop(guard);
+                // Push without the state lock (downstream may call back into the element).
+                if let Some(b) = out
+                    && let Err(flow) = self.obj().src_pad().push(b)
+                {
+                    error = Some(format!("downstream refused the held frame at EOS: {flow:?}"));
+                }
+                let status = match (&error, outcome) {
+                    (Some(_), _) => FrameStatus::Failed,
+                    (None, Outcome::Drop) => FrameStatus::DroppedByFault,
+                    (None, Outcome::Keep) => FrameStatus::Delivered,
+                };
+                let mut guard = self.state.lock().unwrap();
+                let Some(st) = guard.as_mut() else { return };
+                let (log_error, msg) =
+                    st.account(frame.seq, frame.pts_ns, pts, status, error.as_deref(), None, post, &self.obj());
+                drop(guard);
+                if let Some(msg) = msg {
+                    let _ = self.obj().post_message(msg);
+                }
+                if let Some(e) = log_error {
+                    gst::element_imp_error!(self, gst::StreamError::Failed, ["frame {}: {}", frame.seq, e]);
+                    return;
+                }
+            }
+        }
+
+        /// A new buffer holding a drained frame, laid out as the negotiated caps say.
+        fn drained_buffer(
+            &self,
+            frame: &Frame,
+            info: &gst_video::VideoInfo,
+            bgr: bool,
+            format: PixelFormat,
+        ) -> Result<gst::Buffer, String> {
+            if frame.width != info.width() || frame.height != info.height() || frame.format != format {
+                return Err(format!(
+                    "the held frame is {}x{} {}, the stream {}x{} {}",
+                    frame.width,
+                    frame.height,
+                    frame.format,
+                    info.width(),
+                    info.height(),
+                    format
+                ));
+            }
+            let mut buf = gst::Buffer::with_size(info.size()).map_err(|e| format!("cannot allocate a buffer: {e}"))?;
+            {
+                let b = buf.get_mut().ok_or("new buffer not writable")?;
+                let mut vf = gst_video::VideoFrameRef::from_buffer_ref_writable(b, info)
+                    .map_err(|_| "cannot map the new buffer".to_string())?;
+                let stride = vf.plane_stride()[0] as usize;
+                let data = vf.plane_data_mut(0).map_err(|e| e.to_string())?;
+                copy_out(frame, data, stride, bgr).map_err(|e| e.to_string())?;
+            }
+            Ok(buf)
+        }
+    }
+
     impl ElementImpl for FaultCamFilter {
         fn metadata() -> Option<&'static gst::subclass::ElementMetadata> {
             static META: LazyLock<gst::subclass::ElementMetadata> = LazyLock::new(|| {
@@ -338,12 +497,32 @@ mod imp {
                 delivered: 0,
                 dropped: 0,
                 failed: 0,
+                held: 0,
+                drained: 0,
+                last_pts: None,
+                last_duration: None,
             });
             Ok(())
         }
 
         fn stop(&self) -> Result<(), gst::ErrorMessage> {
             let Some(mut st) = self.state.lock().unwrap().take() else { return Ok(()) };
+            // Frames an effect still holds (stopped without EOS): never pushed, logged as failed.
+            let mut report = FrameReport::default();
+            while let Some((frame, _)) = st.chain.drain_next(&mut report) {
+                st.report = std::mem::take(&mut report);
+                st.drained += 1;
+                let _ = st.account(
+                    frame.seq,
+                    frame.pts_ns,
+                    None,
+                    FrameStatus::Failed,
+                    Some("held by an effect when the element stopped before EOS: never pushed"),
+                    None,
+                    false,
+                    &self.obj(),
+                );
+            }
             for c in &mut st.controllers {
                 c.finish(&mut st.events);
             }
@@ -354,6 +533,8 @@ mod imp {
                     "delivered": st.delivered,
                     "dropped": st.dropped,
                     "failed": st.failed,
+                    "held": st.held,
+                    "drained": st.drained,
                     "unaccounted": 0,
                     "stopped_by": "element stopped",
                     "error": events_written.as_ref().err(),
@@ -397,6 +578,9 @@ mod imp {
                 st.seq = 0;
                 st.first_pts = None;
             }
+            if let gst::EventView::Eos(_) = event.view() {
+                self.drain_at_eos();
+            }
             self.parent_sink_event(event)
         }
 
@@ -410,6 +594,8 @@ mod imp {
             let seq = st.seq;
             st.seq += 1;
             let pts = buf.pts().map(|p| p.nseconds());
+            st.last_pts = pts;
+            st.last_duration = buf.duration().map(|d| d.nseconds());
             let t_ns = match (pts, st.first_pts) {
                 (Some(p), Some(f)) => p.saturating_sub(f),
                 (Some(p), None) => {
@@ -504,48 +690,16 @@ mod imp {
                 (None, Outcome::Drop) => FrameStatus::DroppedByFault,
                 (None, Outcome::Keep) => FrameStatus::Delivered,
             };
-            match status {
-                FrameStatus::Delivered => st.delivered += 1,
-                FrameStatus::Failed => st.failed += 1,
-                _ => st.dropped += 1,
-            }
             for c in &mut st.controllers {
                 c.after_frame(seq, t_ns, status, &mut st.events);
             }
 
             // 4. Log and message.
-            let mut rec = FrameRecord::from_report(seq, t_ns, &st.report);
-            rec.status = status;
-            rec.error = error.as_deref();
-            rec.masks = mask_record.as_ref();
-            let mut log_error = None;
-            if let Some(log) = st.log.as_mut()
-                && let Err(e) = st.events.iter().try_for_each(|e| log.event(e)).and_then(|_| log.frame(&rec))
-            {
-                log_error = Some(format!("cannot write the ground-truth log: {e}"));
-            }
-            st.events.clear();
-            if post {
-                // allocation: per buffer, only with post-messages (the message itself).
-                let effects: Vec<&str> = st.report.applied.iter().map(|a| a.name).collect();
-                let mut s = gst::Structure::builder(MESSAGE_NAME)
-                    .field("seq", seq)
-                    .field("stream-time", t_ns)
-                    .field("status", serde_json::to_value(status).ok().and_then(|v| v.as_str().map(String::from)))
-                    .field("effects", effects.join(","))
-                    .field("delay", delay)
-                    .field("record", serde_json::to_string(&rec).unwrap_or_default());
-                if let Some(p) = pts {
-                    s = s.field("pts", p);
-                }
-                if let Some(d) = st.report.dropped_by {
-                    s = s.field("dropped-by", d);
-                }
-                let msg = gst::message::Element::builder(s.build()).src(&*self.obj()).build();
-                drop(guard);
+            let (log_error, msg) =
+                st.account(seq, t_ns, pts, status, error.as_deref(), mask_record.as_ref(), post, &self.obj());
+            drop(guard);
+            if let Some(msg) = msg {
                 let _ = self.obj().post_message(msg);
-            } else {
-                drop(guard);
             }
             if let Some(e) = log_error.or(error) {
                 gst::element_imp_error!(self, gst::StreamError::Failed, ["frame {}: {}", seq, e]);

@@ -7,8 +7,10 @@
 //! bytes), and writes the result into a new array of the same shape and dtype. The GIL is
 //! released while the pixels are copied and the chain runs.
 
+use faultcam::control::{Controller, LogEvent};
 use faultcam::faults::{ParamKind, Scale, registry};
 use faultcam::gtlog::{FrameRecord, FrameStatus};
+use faultcam::schedule::{TriggerOptions, controllers_from_config};
 use faultcam::{Chain, FaultConfig, Frame, FrameData, FrameReport, Outcome, PixelFormat};
 use numpy::{PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyUntypedArray, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyRuntimeError, PyTypeError, PyValueError};
@@ -24,6 +26,54 @@ struct Inner {
     report: FrameReport,
     /// allocation: once per image size/format (the packed copy the chain works on).
     frame: Option<Frame>,
+    /// The campaign timeline (`timeline=True`).
+    timeline: Option<Timeline>,
+}
+
+/// The config's campaign timeline (`[[events]]`, `[triggers]` without a serial port), run as
+/// `faultcam run` runs it on a `files:` source at `fps`: frame `seq` has stream time
+/// `seq / fps`. Frame indices may come in any order: a jump forward steps the timeline through
+/// the skipped frames, a jump back rebuilds chain and timeline from the config and replays them
+/// from frame 0 (cost: the controller's steps, no pixels), so every index gets the effect
+/// states of a sequential run.
+struct Timeline {
+    cfg: FaultConfig,
+    controllers: Vec<Box<dyn Controller>>,
+    /// The frame index the timeline expects next.
+    next: u64,
+    fps: f64,
+    events: Vec<LogEvent>,
+}
+
+impl Timeline {
+    fn t_ns(&self, seq: u64) -> u64 {
+        (seq as f64 * 1e9 / self.fps).round() as u64
+    }
+
+    fn controllers(cfg: &FaultConfig) -> Result<Vec<Box<dyn Controller>>, String> {
+        let opts = TriggerOptions { no_serial: true, ..TriggerOptions::default() };
+        controllers_from_config(cfg, &opts).map_err(|e| e.to_string())
+    }
+
+    /// Bring the timeline (and the chain's effect states) to just before frame `seq`.
+    fn seek(&mut self, seq: u64, chain: &mut Chain) -> Result<(), String> {
+        if seq < self.next {
+            *chain = Chain::from_config(&self.cfg).map_err(|e| e.to_string())?;
+            self.controllers = Self::controllers(&self.cfg)?;
+            self.next = 0;
+        }
+        while self.next < seq {
+            let (s, t) = (self.next, self.t_ns(self.next));
+            for c in &mut self.controllers {
+                c.before_frame(s, t, chain, &mut self.events).map_err(|e| format!("frame {s}: {e:#}"))?;
+                c.after_frame(s, t, FrameStatus::Delivered, &mut self.events);
+            }
+            self.next += 1;
+        }
+        // Events of the skipped frames are not this frame's.
+        self.events.clear();
+        Ok(())
+    }
 }
 
 /// A fault chain loaded from a faultcam fault config (TOML).
@@ -107,14 +157,32 @@ impl Inner {
             _ => return Err("internal: sample type mismatch".into()),
         }
         frame.seq = seq;
-        // As `faultcam apply`: files carry no timestamps.
+        // As `faultcam apply`: files carry no timestamps; with the timeline, as `faultcam run` on
+        // a `files:` source: seq / fps.
         frame.pts_ns = 0;
+        if let Some(tl) = self.timeline.as_mut() {
+            tl.seek(seq, &mut self.chain)?;
+            frame.pts_ns = tl.t_ns(seq);
+            for c in &mut tl.controllers {
+                c.before_frame(seq, frame.pts_ns, &mut self.chain, &mut tl.events)
+                    .map_err(|e| format!("frame {seq}: {e:#}"))?;
+            }
+        }
         let result = self.chain.apply(frame, &mut self.report);
         let (kept, status, error) = match result {
             Ok(Outcome::Keep) => (true, FrameStatus::Delivered, None),
             Ok(Outcome::Drop) => (false, FrameStatus::DroppedByFault, None),
             Err(e) => (false, FrameStatus::Failed, Some(e.to_string())),
         };
+        let pts_ns = frame.pts_ns;
+        let mut events = Vec::new();
+        if let Some(tl) = self.timeline.as_mut() {
+            for c in &mut tl.controllers {
+                c.after_frame(seq, pts_ns, status, &mut tl.events);
+            }
+            tl.next = seq + 1;
+            events = std::mem::take(&mut tl.events); // allocation: only with campaign events
+        }
         if kept {
             if frame.width != w || frame.height != h || frame.format != format {
                 return Err(format!(
@@ -128,10 +196,17 @@ impl Inner {
                 _ => return Err("internal: sample type mismatch".into()),
             }
         }
-        let mut rec = FrameRecord::from_report(seq, 0, &self.report);
+        let mut rec = FrameRecord::from_report(seq, pts_ns, &self.report);
         rec.status = status;
         rec.error = error.as_deref();
-        let json = serde_json::to_string(&rec).map_err(|e| e.to_string())?;
+        let mut json = serde_json::to_string(&rec).map_err(|e| e.to_string())?;
+        if self.timeline.is_some() {
+            // The campaign events logged before this frame (the log's `event` lines).
+            json.pop();
+            json.push_str(",\"events\":");
+            json.push_str(&serde_json::to_string(&events).map_err(|e| e.to_string())?);
+            json.push('}');
+        }
         if let Some(e) = error {
             return Err(format!("frame {seq}: {e}"));
         }
@@ -143,19 +218,29 @@ impl Inner {
 impl PyChain {
     /// Load a fault config (TOML, as `faultcam apply --faults`); `seed` overrides its `seed`.
     #[staticmethod]
-    #[pyo3(signature = (path, seed=None))]
-    fn from_toml(path: std::path::PathBuf, seed: Option<u64>) -> PyResult<PyChain> {
+    #[pyo3(signature = (path, seed=None, timeline=false, fps=30.0))]
+    fn from_toml(path: std::path::PathBuf, seed: Option<u64>, timeline: bool, fps: f64) -> PyResult<PyChain> {
         let mut cfg = FaultConfig::load(&path).map_err(|e| PyValueError::new_err(e.to_string()))?;
         if let Some(s) = seed {
             cfg.seed = s;
         }
         let chain = Chain::from_config(&cfg).map_err(|e| PyValueError::new_err(format!("{}: {e}", path.display())))?;
         let names = chain.entries().iter().filter(|e| e.enabled).map(|e| e.name()).collect();
+        let timeline = if timeline {
+            if !(fps.is_finite() && fps > 0.0 && fps <= 1e6) {
+                return Err(PyValueError::new_err(format!("fps {fps} is not accepted; accepted: 0 < fps <= 1e6")));
+            }
+            let controllers =
+                Timeline::controllers(&cfg).map_err(|e| PyValueError::new_err(format!("{}: {e}", path.display())))?;
+            Some(Timeline { cfg: cfg.clone(), controllers, next: 0, fps, events: Vec::new() })
+        } else {
+            None
+        };
         Ok(PyChain {
             seed: cfg.seed,
             origin: path.display().to_string(),
             names,
-            inner: Mutex::new(Inner { chain, report: FrameReport::default(), frame: None }),
+            inner: Mutex::new(Inner { chain, report: FrameReport::default(), frame: None, timeline }),
         })
     }
 
@@ -207,6 +292,53 @@ impl PyChain {
             r.map(|(kept, json)| (kept.then(|| out.into_any().cast_into::<PyUntypedArray>().expect("array")), json))
         };
         result.map_err(PyRuntimeError::new_err)
+    }
+
+    /// Frames effects still hold at the end of a stream (`reorder`), passed through the later
+    /// effects: a list of (output array or None when a later effect dropped it, the record as a
+    /// JSON string). Call once after the last `apply`, as `faultcam run` does at the end.
+    fn drain_json<'py>(&self, py: Python<'py>) -> PyResult<Vec<(Option<Bound<'py, PyUntypedArray>>, String)>> {
+        let mut out = Vec::new();
+        loop {
+            let next = {
+                let mut g = self.inner.lock().map_err(|_| PyRuntimeError::new_err("an earlier call panicked"))?;
+                let g = &mut *g;
+                g.chain.drain_next(&mut g.report).map(|(frame, result)| {
+                    let (status, error) = match &result {
+                        Ok(Outcome::Keep) => (FrameStatus::Delivered, None),
+                        Ok(Outcome::Drop) => (FrameStatus::DroppedByFault, None),
+                        Err(e) => (FrameStatus::Failed, Some(e.to_string())),
+                    };
+                    let mut rec = FrameRecord::from_report(frame.seq, frame.pts_ns, &g.report);
+                    rec.status = status;
+                    rec.error = error.as_deref();
+                    let json = serde_json::to_string(&rec).unwrap_or_default();
+                    (frame, status, json)
+                })
+            };
+            let Some((frame, status, json)) = next else { return Ok(out) };
+            let arr = if status != FrameStatus::Delivered {
+                None
+            } else {
+                let (h, w) = (frame.height as usize, frame.width as usize);
+                let shape: Vec<usize> = if frame.format == PixelFormat::Rgb8 { vec![h, w, 3] } else { vec![h, w] };
+                let row = frame.row_len();
+                let a = match &frame.data {
+                    FrameData::U8(d) => {
+                        let v: Vec<u8> =
+                            d.chunks(frame.stride).take(h).flat_map(|r| r[..row].iter().copied()).collect();
+                        numpy::PyArray1::from_vec(py, v).reshape(shape)?.into_any()
+                    }
+                    FrameData::U16(d) => {
+                        let v: Vec<u16> =
+                            d.chunks(frame.stride).take(h).flat_map(|r| r[..row].iter().copied()).collect();
+                        numpy::PyArray1::from_vec(py, v).reshape(shape)?.into_any()
+                    }
+                };
+                Some(a.cast_into::<PyUntypedArray>().expect("array"))
+            };
+            out.push((arr, json));
+        }
     }
 
     fn __repr__(&self) -> String {

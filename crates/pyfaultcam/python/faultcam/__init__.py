@@ -8,7 +8,8 @@
 ``frame_index`` of a folder, for the same config and seed. Images are uint8 (H, W), (H, W, 1)
 or (H, W, 3) RGB, or uint16 (H, W) / (H, W, 1); the GIL is released while the chain runs, so
 threads applying separate chains run in parallel. Like ``faultcam apply``, the config's
-campaign timeline (``[[events]]``) is not run: effects stay at their configured parameters.
+campaign timeline (``[[events]]``) is not run unless ``timeline=True`` is given to
+``Chain.from_toml`` (then as ``faultcam run`` on a ``files:`` source at ``fps``).
 """
 
 from __future__ import annotations
@@ -32,9 +33,16 @@ class Chain:
         self._next = 0
 
     @classmethod
-    def from_toml(cls, path, seed: int | None = None) -> "Chain":
-        """Load ``path`` (as ``faultcam apply --faults``); ``seed`` overrides the config's seed."""
-        return cls(_Chain.from_toml(str(path), seed))
+    def from_toml(cls, path, seed: int | None = None, timeline: bool = False, fps: float = 30.0) -> "Chain":
+        """Load ``path`` (as ``faultcam apply --faults``); ``seed`` overrides the config's seed.
+
+        ``timeline=True`` also runs the config's campaign timeline (``[[events]]``; ``[triggers]``
+        without a serial port) as ``faultcam run`` does on a ``files:`` source at ``fps``: frame
+        ``k`` has stream time ``k / fps`` and gets the effect states of a sequential run,
+        whatever order the indices come in; the record then has an ``events`` list (the
+        campaign events logged before the frame).
+        """
+        return cls(_Chain.from_toml(str(path), seed, timeline, float(fps)))
 
     @property
     def seed(self) -> int:
@@ -61,6 +69,12 @@ class Chain:
             raise TypeError(f"image must be a numpy.ndarray, got {type(image).__name__}")
         out, record = self._inner.apply_json(image, int(frame_index))
         return out, json.loads(record)
+
+    def drain(self) -> list:
+        """Frames effects still hold at the end of a stream (``reorder``), as ``(output, record)``
+        pairs (output ``None`` when a later effect dropped the frame). Call after the last
+        ``apply``; every input frame is then accounted for."""
+        return [(out, json.loads(rec)) for out, rec in self._inner.drain_json()]
 
     def __repr__(self) -> str:
         return repr(self._inner)
