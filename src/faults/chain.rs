@@ -151,27 +151,7 @@ impl Chain {
         obs: &mut dyn ChainObserver,
     ) -> Result<Outcome, FaultError> {
         report.clear();
-        for e in self.entries.iter_mut().filter(|e| e.enabled) {
-            let mut ctx = EffectCtx::new(self.seed, frame.seq, e.index);
-            let k = report.applied.len();
-            let name = e.effect.info().name;
-            report.applied.push(AppliedEffect {
-                name,
-                stage: e.effect.info().stage,
-                index: e.index,
-                seed: ctx.rng.seed(),
-                params: e.params,
-            });
-            obs.before_effect(k, name, frame);
-            let out = e.effect.apply(frame, &e.params, &mut ctx)?;
-            obs.after_effect(k, name, frame, out);
-            report.delay_ns += ctx.delay_ns;
-            if out == Outcome::Drop {
-                report.dropped_by = Some(name);
-                return Ok(Outcome::Drop);
-            }
-        }
-        Ok(Outcome::Keep)
+        run_entries(&mut self.entries, self.seed, frame, report, obs)
     }
 
     /// The next frame an effect still holds at the end of the stream ([`Effect::drain`]: a
@@ -182,30 +162,43 @@ impl Chain {
     /// and the Python package (`Chain.drain()`).
     pub fn drain_next(&mut self, report: &mut FrameReport) -> Option<(Frame, Result<Outcome, FaultError>)> {
         report.clear();
-        let seed = self.seed;
         let n = self.entries.len();
         let (pos, mut frame) = (0..n).find_map(|pos| self.entries[pos].effect.drain().map(|f| (pos, f)))?;
-        for e in self.entries[pos + 1..].iter_mut().filter(|e| e.enabled) {
-            let mut ctx = EffectCtx::new(seed, frame.seq, e.index);
-            let name = e.effect.info().name;
-            report.applied.push(AppliedEffect {
-                name,
-                stage: e.effect.info().stage,
-                index: e.index,
-                seed: ctx.rng.seed(),
-                params: e.params,
-            });
-            match e.effect.apply(&mut frame, &e.params, &mut ctx) {
-                Ok(Outcome::Keep) => report.delay_ns += ctx.delay_ns,
-                Ok(Outcome::Drop) => {
-                    report.dropped_by = Some(name);
-                    return Some((frame, Ok(Outcome::Drop)));
-                }
-                Err(err) => return Some((frame, Err(err))),
-            }
-        }
-        Some((frame, Ok(Outcome::Keep)))
+        let result = run_entries(&mut self.entries[pos + 1..], self.seed, &mut frame, report, &mut NoObserver);
+        Some((frame, result))
     }
+}
+
+/// Apply the enabled `entries` in order to `frame`, appending to `report`; stops at the first
+/// effect that drops the frame (or fails).
+fn run_entries(
+    entries: &mut [ChainEntry],
+    seed: u64,
+    frame: &mut Frame,
+    report: &mut FrameReport,
+    obs: &mut dyn ChainObserver,
+) -> Result<Outcome, FaultError> {
+    for e in entries.iter_mut().filter(|e| e.enabled) {
+        let mut ctx = EffectCtx::new(seed, frame.seq, e.index);
+        let k = report.applied.len();
+        let name = e.effect.info().name;
+        report.applied.push(AppliedEffect {
+            name,
+            stage: e.effect.info().stage,
+            index: e.index,
+            seed: ctx.rng.seed(),
+            params: e.params,
+        });
+        obs.before_effect(k, name, frame);
+        let out = e.effect.apply(frame, &e.params, &mut ctx)?;
+        obs.after_effect(k, name, frame, out);
+        report.delay_ns += ctx.delay_ns;
+        if out == Outcome::Drop {
+            report.dropped_by = Some(name);
+            return Ok(Outcome::Drop);
+        }
+    }
+    Ok(Outcome::Keep)
 }
 
 /// Hooks around each effect of [`Chain::apply_observed`]. `k` is the effect's position among the
