@@ -431,7 +431,8 @@ fn estimate(path: &Path, cam: Option<Camera>) -> Option<([f64; 4], [f64; 3])> {
     let mut ver = Verifier::new(&full, w, h, cam);
     let mut best: Option<(f64, Hypothesis)> = None;
     for c in &cands {
-        let c = refine(&cam, &model, &det, c, tol).ok()?;
+        // An OpenCV error in the refinement leaves the P3P pose.
+        let c = refine(&cam, &model, &det, c, tol).unwrap_or_else(|_| c.clone());
         let s = ver.ncc(&c);
         if best.as_ref().is_none_or(|b| s > b.0) {
             best = Some((s, c));
