@@ -14,7 +14,7 @@ pub struct Args {
     pub merge: Option<Merge>,
     /// Sweep config (TOML): source, poses, sut, timeout_s, levels, seeds, tolerance, threshold,
     /// effects, campaign, pairs, [[effect]] grids; live: mode = "live", sink, sut_report,
-    /// frame_timeout_s, startup_s. Options given here override it.
+    /// frame_timeout_s, startup_s, fps. Options given here override it.
     #[arg(long, value_name = "FILE")]
     pub config: Option<PathBuf>,
     /// Batch SUT: a shell command with {in_dir} (images), {out_file} (one pose per image, JSON
@@ -41,6 +41,10 @@ pub struct Args {
     /// Live: extra time for the first frame's report (SUT start-up), seconds (default 10).
     #[arg(long, value_name = "S")]
     pub startup_s: Option<f64>,
+    /// Live: pacing, frames per second: frame N is shown no earlier than N/F s after the
+    /// stream's start (still one at a time, after the previous frame's report or time-out).
+    #[arg(long, value_name = "F")]
+    pub fps: Option<f64>,
     /// Frame source (default: a small synth: scene); files:DIR needs --poses.
     #[arg(long, value_name = "URI")]
     pub source: Option<String>,
@@ -155,6 +159,7 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         sut_report: args.sut_report.clone(),
         frame_timeout_s: args.frame_timeout_s,
         startup_s: args.startup_s,
+        fps: args.fps,
     };
     let mut settings = file.overlay(cli);
     if args.effects.is_some() || args.campaign.is_some() {

@@ -17,7 +17,8 @@
 //!
 //! Frames go one at a time (lockstep): faultcam writes frame N, waits for its report up to the
 //! per-frame time-out (`frame_timeout_s`, plus `startup_s` for the first frame), then writes
-//! the next, so a deterministic SUT gives the same report on every run, and the same as the
+//! the next (with `fps`, no earlier than N / fps seconds after the stream's start: a camera's
+//! frame rate as a floor), so a deterministic SUT gives the same report on every run, and the same as the
 //! batch mode with the same poses. The SUT's standard input is a pipe closed at the end of the
 //! stream (it may exit then; it is stopped after a grace period otherwise). Per frame, an
 //! **incident** is recorded for: no report within the time-out, a garbage line, a report for
@@ -62,6 +63,11 @@ pub struct LivePlan {
     pub frame_timeout_s: f64,
     /// Extra time for the first frame's report (SUT start-up), seconds.
     pub startup_s: f64,
+    /// Pacing: frame N (its index in the cell's stream) is shown no earlier than N / fps
+    /// seconds after the stream's start (still lockstep: never before frame N-1's report or
+    /// time-out). None: as soon as the previous frame is answered.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fps: Option<f64>,
 }
 
 /// A parsed `report` setting.
@@ -569,6 +575,22 @@ pub(super) fn run(
                 s.check_exit();
                 if s.gone {
                     stop_why = Some(format!("the SUT ended ({})", s.why_gone()));
+                }
+            }
+            if stop_why.is_none()
+                && let Some(fps) = live.fps
+            {
+                // Pacing: frame i no earlier than i / fps after the start (the cell's time-out
+                // still holds).
+                // Reports taken meanwhile belong to no awaited frame (a report of the previous
+                // frame is late now).
+                let due = (t0 + Duration::from_secs_f64(i as f64 / fps)).min(cell_deadline);
+                while let Some(d) = due.checked_duration_since(Instant::now()) {
+                    if s.gone {
+                        std::thread::sleep(d.min(POLL));
+                    } else {
+                        s.drain(d.min(POLL), None);
+                    }
                 }
             }
             match &stop_why {

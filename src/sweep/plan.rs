@@ -233,6 +233,8 @@ pub struct Settings {
     pub sut_report: Option<String>,
     pub frame_timeout_s: Option<f64>,
     pub startup_s: Option<f64>,
+    /// Live: pacing, frames per second (default: none, lockstep only).
+    pub fps: Option<f64>,
 }
 
 fn err(origin: &str, key: &str, msg: impl std::fmt::Display) -> String {
@@ -279,7 +281,7 @@ impl Settings {
                     )
                 }
                 "campaign" => s.campaign = Some(rel(v.as_str().ok_or_else(|| bad("expected a file path"))?)),
-                "timeout_s" | "tolerance" | "threshold" | "frame_timeout_s" | "startup_s" => {
+                "timeout_s" | "tolerance" | "threshold" | "frame_timeout_s" | "startup_s" | "fps" => {
                     let x = v
                         .as_float()
                         .or_else(|| v.as_integer().map(|i| i as f64))
@@ -288,6 +290,7 @@ impl Settings {
                         "timeout_s" => s.timeout_s = Some(x),
                         "frame_timeout_s" => s.frame_timeout_s = Some(x),
                         "startup_s" => s.startup_s = Some(x),
+                        "fps" => s.fps = Some(x),
                         "tolerance" => s.tolerance = Some(x),
                         _ => s.threshold = Some(x),
                     }
@@ -355,7 +358,7 @@ impl Settings {
                     return Err(format!(
                         "{origin}: unknown key '{other}'; accepted: source, poses, sut, timeout_s, levels, seeds, \
                          tolerance, threshold, effects, campaign, pairs, [[effect]], mode, sink, sut_report, \
-                         frame_timeout_s, startup_s"
+                         frame_timeout_s, startup_s, fps"
                     ));
                 }
             }
@@ -369,7 +372,7 @@ impl Settings {
             ($($f:ident),*) => { $( if o.$f.is_some() { self.$f = o.$f; } )* };
         }
         take!(source, poses, sut, timeout_s, levels, seeds, tolerance, threshold, effects, campaign);
-        take!(live, sink, sut_report, frame_timeout_s, startup_s);
+        take!(live, sink, sut_report, frame_timeout_s, startup_s, fps);
         if !o.grids.is_empty() {
             self.grids = o.grids;
         }
@@ -506,6 +509,7 @@ impl Settings {
                 ("sut_report", self.sut_report.is_some()),
                 ("frame_timeout_s", self.frame_timeout_s.is_some()),
                 ("startup_s", self.startup_s.is_some()),
+                ("fps", self.fps.is_some()),
             ];
             if let Some((k, _)) = given.iter().find(|g| g.1) {
                 return Err(format!("{k} is a live-mode setting; give --live or mode = \"live\""));
@@ -524,7 +528,12 @@ impl Settings {
         if !(0.0..=3600.0).contains(&startup_s) {
             return Err(format!("startup_s = {startup_s} is out of range; accepted [0, 3600] s"));
         }
-        Ok(Some(LivePlan { sink, report, frame_timeout_s, startup_s }))
+        if let Some(fps) = self.fps
+            && !(fps > 0.0 && fps <= 10_000.0)
+        {
+            return Err(format!("fps = {fps} is out of range; accepted (0, 10000] frames per second"));
+        }
+        Ok(Some(LivePlan { sink, report, frame_timeout_s, startup_s, fps: self.fps }))
     }
 }
 

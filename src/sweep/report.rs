@@ -330,8 +330,12 @@ pub fn markdown(r: &Report) -> String {
         if let Some(l) = r.plan.get("live") {
             let t = |k: &str| l.get(k).and_then(|v| v.as_str()).unwrap_or("").to_string();
             let n = |k: &str| l.get(k).and_then(|v| v.as_f64()).map(g).unwrap_or_default();
+            let pacing = match l.get("fps").and_then(|v| v.as_f64()) {
+                Some(f) => format!(", paced at {} frames/s", g(f)),
+                None => String::new(),
+            };
             s += &format!(
-                "Live: frames streamed into `{}`, poses reported over `{}`, {} s per frame (+ {} s start-up).\n\n",
+                "Live: frames streamed into `{}`, poses reported over `{}`, {} s per frame (+ {} s start-up){pacing}.\n\n",
                 t("sink"),
                 t("report"),
                 n("frame_timeout_s"),
