@@ -217,80 +217,168 @@ fn push_all<const LV: u8>(cur: &Cursor, state: &mut [Lane], v: &mut Lane) -> boo
     true
 }
 
-/// Strips per column block of pass 1 (rows are read 512 bytes at a time).
-const STRIPS_PER_BLOCK: usize = 8;
-
-/// Pass 1 over a block of strips (strip `s0 + k` starts at byte column `min((s0 + k) LANES,
-/// rl - LANES)`): all rows, into `out` (`h` lanes per strip).
+/// Vertical cascade of one strip (byte columns `j0..j0 + LANES`) over virtual rows `i0..i1`
+/// (relative to the super-band's start `y_start`: virtual row `i` reads source row
+/// `mirror(y_start + i - radius)`); outputs (relative row `i - 2 radius`, from `o0` on) go to
+/// `blk[row - o0]`. `row_of(k)` gives source row `y_start - radius + k`.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn column_block<const LV: u8>(
+fn strip_rows<'a, const LV: u8>(
     plan: &BoxPlan,
-    src: &[u8],
-    stride: usize,
-    rl: usize,
-    h: usize,
-    s0: usize,
-    out: &mut [Lane],
+    row_of: &impl Fn(usize) -> &'a [u8],
+    j0: usize,
+    cur: &mut Cursor,
+    i1: usize,
+    o0: usize,
+    blk: &mut [Lane],
     state: &mut [Lane],
 ) {
-    let sl = plan.state_lanes();
-    let nst = out.len() / h;
     let sc = plan.scale;
-    let r = plan.radius as isize;
     let r2 = 2 * plan.radius;
-    state.iter_mut().for_each(|l| *l = [0; LANES]);
     let mut v = [0u16; LANES];
-    let mut cur = Cursor::new(plan);
-    for i in 0..h + r2 {
-        let y = mirror(i as isize - r, h);
-        // The rows are a page apart: prefetch the block's bytes of a row a few steps ahead (the
-        // hardware prefetchers do not follow such strides). No effect on the values.
+    while cur.i < i1 {
+        // The rows are a page apart: prefetch this strip's bytes a few rows ahead (the hardware
+        // prefetchers do not follow such strides). No effect on the values.
         #[cfg(target_arch = "x86_64")]
-        {
-            let yp = mirror(i as isize + 6 - r, h);
-            for k in 0..nst {
-                let j0 = ((s0 + k) * LANES).min(rl - LANES);
-                // SAFETY: a prefetch hint of an address inside `src` (no access is made).
-                unsafe {
-                    use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-                    _mm_prefetch::<_MM_HINT_T0>(src.as_ptr().add(yp * stride + j0) as *const i8);
-                }
+        if cur.i + 6 < i1 {
+            // SAFETY: a prefetch hint of an address inside a row slice (no access is made).
+            unsafe {
+                use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+                _mm_prefetch::<_MM_HINT_T0>(row_of(cur.i + 6).as_ptr().add(j0) as *const i8);
             }
         }
-        for k in 0..nst {
-            let j0 = ((s0 + k) * LANES).min(rl - LANES);
-            let row: &[u8; LANES] = src[y * stride + j0..y * stride + j0 + LANES].try_into().unwrap();
-            for l in 0..LANES {
-                v[l] = row[l] as u16 * sc;
-            }
-            if push_all::<LV>(&cur, &mut state[k * sl..(k + 1) * sl], &mut v) {
-                out[k * h + i - r2] = v;
-            }
+        let row: &[u8; LANES] = row_of(cur.i)[j0..j0 + LANES].try_into().unwrap();
+        for l in 0..LANES {
+            v[l] = row[l] as u16 * sc;
+        }
+        if push_all::<LV>(cur, state, &mut v) {
+            blk[cur.i - r2 - o0] = v;
         }
         cur.advance();
     }
 }
 
-/// Pass 2 over one band: `bt` holds the band transposed (`bt[j]` = byte column `j` of the
-/// band's rows, scaled); the cascade runs along each channel; `ot[j]` receives the 8-bit
-/// results (in `u16` lanes).
+/// Write byte columns `jb..jb + n` (n <= 8) of `rows` rows from `ring[k][l]` (column `jb + k`,
+/// row `l`, values <= 255) into `band` (rows of `stride` bytes).
 #[inline(always)]
-fn row_band<const LV: u8>(plan: &BoxPlan, w: usize, ch: usize, bt: &[Lane], ot: &mut [Lane], state: &mut [Lane]) {
-    let s = plan.scale;
-    let r = plan.radius as isize;
-    let r2 = 2 * plan.radius;
-    for c in 0..ch {
-        state.iter_mut().for_each(|l| *l = [0; LANES]);
+fn flush8(lv: u8, ring: &[Lane], band: &mut [u8], stride: usize, rows: usize, jb: usize, n: usize) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if lv > 0 && n == 8 {
+        done = rows / 8 * 8;
+        if done > 0 {
+            assert!(ring.len() >= 8 && band.len() >= (done - 1) * stride + jb + 8);
+        }
+        for lb in (0..done).step_by(8) {
+            // SAFETY: reads ring[0..8][lb..lb + 8] (in bounds), writes 8 bytes at
+            // band[(lb + r) * stride + jb..] for r < 8 (asserted above).
+            unsafe {
+                simd::t8x8_u8(
+                    ring.as_ptr().cast::<u16>().add(lb),
+                    LANES,
+                    band.as_mut_ptr().add(lb * stride + jb),
+                    stride,
+                )
+            };
+        }
+    }
+    for l in done..rows {
+        for k in 0..n {
+            band[l * stride + jb + k] = ring[k][l] as u8;
+        }
+    }
+}
+
+/// Per-thread scratch of one super-band, in lanes: vertical state of every strip, horizontal
+/// state of every channel, a vertical output block, the transposed band, the output ring.
+fn slot_lanes(ns: usize, sl: usize, ch: usize, rl8: usize) -> usize {
+    ns * sl + ch * sl + LANES + rl8 + 8
+}
+
+/// One super-band: output rows `y_start..y_end` (`sb` holds them, `stride` bytes each; `halo`
+/// the `radius` source rows above and the `radius` below it, copied before any band was
+/// written). Per band of [`LANES`] rows: the vertical cascade of every strip continues (state
+/// kept across bands), each 64 x 64 block is transposed into `bt`, the horizontal cascade runs
+/// along the band's pixels (all channels in one pass) and every 8 finished byte columns are
+/// transposed back into the frame.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn super_band<const LV: u8>(
+    plan: &BoxPlan,
+    w: usize,
+    ch: usize,
+    stride: usize,
+    y_start: usize,
+    y_end: usize,
+    sb: &mut [u8],
+    halo: &[u8],
+    scratch: &mut [Lane],
+) {
+    let rl = w * ch;
+    let ns = rl.div_ceil(LANES);
+    let sl = plan.state_lanes();
+    let r = plan.radius;
+    let r2 = 2 * r;
+    let rl8 = rl.div_ceil(8) * 8;
+    let (vstate, rest) = scratch.split_at_mut(ns * sl);
+    let (hstate, rest) = rest.split_at_mut(ch * sl);
+    let (blk, rest) = rest.split_at_mut(LANES);
+    let (bt, ring) = rest.split_at_mut(rl8);
+    vstate.iter_mut().for_each(|l| *l = [0; LANES]);
+    let mut vcur = Cursor::new(plan);
+    let mut y0 = y_start;
+    while y0 < y_end {
+        let rows = LANES.min(y_end - y0);
+        // Relative virtual rows of this band: outputs o0..o0 + rows need inputs up to
+        // o0 + rows + r2.
+        let o0 = y0 - y_start;
+        let i1 = o0 + rows + r2;
+        {
+            let src: &[u8] = sb;
+            let row_of = |k: usize| -> &[u8] {
+                let yv = y_start + k; // = source row + r
+                if yv < y_start + r {
+                    &halo[k * rl..(k + 1) * rl]
+                } else if yv < y_end + r {
+                    let y = yv - r - y_start;
+                    &src[y * stride..y * stride + rl]
+                } else {
+                    let j = r + (yv - r - y_end);
+                    &halo[j * rl..(j + 1) * rl]
+                }
+            };
+            let cur0 = vcur;
+            for s in 0..ns {
+                let j0 = (s * LANES).min(rl - LANES);
+                vcur = cur0;
+                strip_rows::<LV>(plan, &row_of, j0, &mut vcur, i1, o0, blk, &mut vstate[s * sl..(s + 1) * sl]);
+                transpose_in(LV, &blk[..rows], &mut bt[j0..j0 + LANES]);
+            }
+        }
+        // Horizontal cascade, all channels, with the output written 8 columns at a time.
+        let band = &mut sb[o0 * stride..];
+        hstate.iter_mut().for_each(|l| *l = [0; LANES]);
         let mut cur = Cursor::new(plan);
+        let s = plan.scale;
         for i in 0..w + r2 {
-            let mut v = bt[mirror(i as isize - r, w) * ch + c];
-            if push_all::<LV>(&cur, state, &mut v) {
-                descale::<LV>(&mut v, s);
-                ot[(i - r2) * ch + c] = v;
+            let x = mirror(i as isize - r as isize, w);
+            for c in 0..ch {
+                let mut v = bt[x * ch + c];
+                if push_all::<LV>(&cur, &mut hstate[c * sl..(c + 1) * sl], &mut v) {
+                    descale::<LV>(&mut v, s);
+                    let j = (i - r2) * ch + c;
+                    ring[j % 8] = v;
+                    if j % 8 == 7 {
+                        flush8(LV, ring, band, stride, rows, j - 7, 8);
+                    }
+                }
             }
             cur.advance();
         }
+        if rl % 8 != 0 {
+            flush8(LV, ring, band, stride, rows, rl / 8 * 8, rl % 8);
+        }
+        y0 += rows;
     }
 }
 
@@ -459,8 +547,7 @@ macro_rules! dispatch {
     };
 }
 
-dispatch!(column_block_d, column_block, (plan: &BoxPlan, src: &[u8], stride: usize, rl: usize, h: usize, s0: usize, out: &mut [Lane], state: &mut [Lane]));
-dispatch!(row_band_d, row_band, (plan: &BoxPlan, w: usize, ch: usize, bt: &[Lane], ot: &mut [Lane], state: &mut [Lane]));
+dispatch!(super_band_d, super_band, (plan: &BoxPlan, w: usize, ch: usize, stride: usize, y_start: usize, y_end: usize, sb: &mut [u8], halo: &[u8], scratch: &mut [Lane]));
 
 /// `dst[j][l] = src[l][j]` for `l < src.len()` (<= LANES) and `j < LANES`.
 fn transpose_in(lv: u8, src: &[Lane], dst: &mut [Lane]) {
@@ -497,56 +584,16 @@ fn transpose_in(lv: u8, src: &[Lane], dst: &mut [Lane]) {
     }
 }
 
-/// `band[l * stride + j] = ot[j][l]` (as bytes, values <= 255) for `l < rows`, `j < ot.len()`.
-fn transpose_out(lv: u8, ot: &[Lane], band: &mut [u8], stride: usize, rows: usize) {
-    let rl = ot.len();
-    let (fr, fj) = (rows / 8 * 8, rl / 8 * 8);
-    #[cfg(target_arch = "x86_64")]
-    if lv > 0 {
-        for lb in (0..fr).step_by(8) {
-            assert!(band.len() >= (lb + 7) * stride + rl);
-            for jb in (0..fj).step_by(8) {
-                // SAFETY: reads ot[jb..jb + 8][lb..lb + 8] (in bounds), writes 8 bytes at
-                // band[(lb + r) * stride + jb..] for r < 8 (asserted above).
-                unsafe {
-                    simd::t8x8_u8(
-                        ot.as_ptr().add(jb).cast::<u16>().add(lb),
-                        LANES,
-                        band.as_mut_ptr().add(lb * stride + jb),
-                        stride,
-                    )
-                };
-            }
-            for l in lb..lb + 8 {
-                for j in fj..rl {
-                    band[l * stride + j] = ot[j][l] as u8;
-                }
-            }
-        }
-        for l in fr..rows {
-            for j in 0..rl {
-                band[l * stride + j] = ot[j][l] as u8;
-            }
-        }
-        return;
-    }
-    for l in 0..rows {
-        for j in 0..rl {
-            band[l * stride + j] = ot[j][l] as u8;
-        }
-    }
-}
-
-/// Scratch of [`blur_u8`]; grows only (allocation when the frame size or the widths grow).
+/// Scratch of [`blur_u8`]; grows only (allocation when the frame size, the widths or the
+/// thread count grow).
 #[derive(Default)]
 pub struct Scratch {
-    // allocation: per frame size: pass-1 output, strip-major (strip, row, lane)
-    cols: Vec<Lane>,
-    // allocation: per frame size and thread count: per band slot the transposed band (input and
-    // output) and the line state
-    bands: Vec<Lane>,
-    // allocation: per width change: per strip the line state
-    state: Vec<Lane>,
+    // allocation: per frame size and thread count: per super-band the source rows it reads but
+    // does not own (copied before any is written)
+    halo: Vec<u8>,
+    // allocation: per frame size, widths and thread count: per super-band the line states, a
+    // block, the transposed band and the output ring (see `slot_lanes`)
+    slots: Vec<Lane>,
 }
 
 /// Separable box-cascade blur of an 8-bit frame (`ch` interleaved channels, rows of `stride`
@@ -558,6 +605,11 @@ pub fn blur_u8(d: &mut [u8], stride: usize, w: usize, h: usize, ch: usize, plan:
 }
 
 /// [`blur_u8`] with the kernels of level `lv` at most (see [`cpu_level`]; tests compare them).
+///
+/// The rows are cut into one super-band per thread (whole bands of [`LANES`] rows). Every box
+/// average is the exact rounded mean of its window (the running sums are exact), so a
+/// super-band that starts its cascades `2 radius` rows early gives the same values as one pass
+/// over the whole frame: the bytes do not depend on the thread count.
 #[allow(clippy::too_many_arguments)]
 pub fn blur_u8_at(
     lv: u8,
@@ -573,62 +625,44 @@ pub fn blur_u8_at(
     assert!(rl >= LANES, "box blur needs rows of at least {LANES} samples");
     let ns = rl.div_ceil(LANES);
     let sl = plan.state_lanes();
-    if sc.cols.len() < ns * h {
-        sc.cols.resize(ns * h, [0; LANES]);
+    let rl8 = rl.div_ceil(8) * 8;
+    let r = plan.radius;
+    let nb = h.div_ceil(LANES);
+    // Super-bands of `bps` whole bands, one per thread.
+    let bps = nb.max(1).div_ceil(rayon::current_num_threads().max(1));
+    let nsb = nb.max(1).div_ceil(bps);
+    let per = slot_lanes(ns, sl, ch, rl8);
+    if sc.slots.len() < nsb * per {
+        sc.slots.resize(nsb * per, [0; LANES]);
     }
-    let nblk = ns.div_ceil(STRIPS_PER_BLOCK);
-    if sc.state.len() < nblk * STRIPS_PER_BLOCK * sl {
-        sc.state.resize(nblk * STRIPS_PER_BLOCK * sl, [0; LANES]);
+    let per_halo = (2 * r * rl).max(1);
+    if sc.halo.len() < nsb * per_halo {
+        sc.halo.resize(nsb * per_halo, 0);
     }
-    // Pass 1: columns, in blocks of strips. The last strip overlaps the previous one (same
-    // values for the shared columns).
+    let bounds = |k: usize| (k * bps * LANES, ((k + 1) * bps * LANES).min(h));
+    // The rows each super-band reads but does not own (r above, r below, mirrored at the frame's
+    // edges), copied while the frame is still unmodified.
     {
         let src: &[u8] = d;
-        sc.cols[..ns * h]
-            .par_chunks_mut(h * STRIPS_PER_BLOCK)
-            .zip(sc.state.par_chunks_mut(STRIPS_PER_BLOCK * sl))
-            .enumerate()
-            .for_each(|(b, (out, state))| {
-                column_block_d(lv, plan, src, stride, rl, h, b * STRIPS_PER_BLOCK, out, state);
-            });
+        sc.halo[..nsb * per_halo].par_chunks_mut(per_halo).enumerate().for_each(|(k, hb)| {
+            let (y0, y1) = bounds(k);
+            let rows = (y0 as isize - r as isize..y0 as isize).chain(y1 as isize..(y1 + r) as isize);
+            for (j, yv) in rows.enumerate() {
+                let s = mirror(yv, h);
+                hb[j * rl..(j + 1) * rl].copy_from_slice(&src[s * stride..s * stride + rl]);
+            }
+        });
     }
-    // Pass 2: bands of LANES rows, in groups of as many bands as there are threads (one
-    // scratch slot each).
-    let rl8 = rl.div_ceil(8) * 8;
-    let per = 2 * rl8 + sl;
-    let slots = rayon::current_num_threads().max(1);
-    if sc.bands.len() < slots * per {
-        sc.bands.resize(slots * per, [0; LANES]);
-    }
-    let nb = h.div_ceil(LANES);
-    let cols = &sc.cols;
     let used = d.len().min(stride * h);
-    let mut b0 = 0;
-    while b0 < nb {
-        let n = slots.min(nb - b0);
-        d[..used]
-            .par_chunks_mut(stride * LANES)
-            .skip(b0)
-            .take(n)
-            .zip(sc.bands.par_chunks_mut(per).take(n))
-            .enumerate()
-            .for_each(|(k, (band, slot))| {
-                let y0 = (b0 + k) * LANES;
-                let rows = LANES.min(h - y0);
-                let (bt, rest) = slot.split_at_mut(rl8);
-                let (ot, state) = rest.split_at_mut(rl8);
-                // Transpose: bt[j][l] = cols[strip(j)][y0 + l][j - j0].
-                for s in 0..ns {
-                    let j0 = (s * LANES).min(rl - LANES);
-                    let strip = &cols[s * h + y0..s * h + y0 + rows];
-                    transpose_in(lv, strip, &mut bt[j0..j0 + LANES]);
-                }
-                row_band_d(lv, plan, w, ch, &bt[..rl], &mut ot[..rl], state);
-                // Transpose back and store bytes.
-                transpose_out(lv, &ot[..rl], band, stride, rows);
-            });
-        b0 += n;
-    }
+    d[..used]
+        .par_chunks_mut(stride * LANES * bps)
+        .enumerate()
+        .zip(sc.halo[..nsb * per_halo].par_chunks(per_halo))
+        .zip(sc.slots[..nsb * per].par_chunks_mut(per))
+        .for_each(|(((k, sb), hb), slot)| {
+            let (y0, y1) = bounds(k);
+            super_band_d(lv, plan, w, ch, stride, y0, y1, sb, hb, slot);
+        });
 }
 
 #[cfg(test)]
@@ -661,7 +695,10 @@ mod tests {
                 let ot: Vec<Lane> = (0..rl).map(|j| std::array::from_fn(|l| ((j * 7 + l * 3) % 256) as u16)).collect();
                 let stride = rl + 3;
                 let mut band = vec![9u8; stride * rows];
-                transpose_out(cpu_level(), &ot, &mut band, stride, rows);
+                for jb in (0..rl).step_by(8) {
+                    let n = 8.min(rl - jb);
+                    flush8(cpu_level(), &ot[jb..jb + n], &mut band, stride, rows, jb, n);
+                }
                 for l in 0..rows {
                     for j in 0..rl {
                         assert_eq!(band[l * stride + j] as u16, ot[j][l]);
