@@ -34,6 +34,48 @@ pub struct BoxPlan {
     pub scale: u16,
     /// Half support of the cascade: `sum(w - 1) / 2`.
     pub radius: usize,
+    /// Per stage (widths > 1, in order) the rounded division by its width.
+    divs: [Div; K],
+    /// The last stage of the second axis: division by `w * scale` (straight to whole DN).
+    last_dn: Div,
+}
+
+/// Rounded division of a window sum `a` by a constant `d` (2..=256) with one 16-bit multiply:
+/// `round(a / d) = floor((a + d/2) / d) = mulhi(a + add, m) >> sh`, where `m` is either
+/// `ceil(2^(16+sh) / d)` (`add = d/2`) or `floor(2^(16+sh) / d)` with the increment folded into
+/// `add = d/2 + 1` (Robison's N-bit division by an N-bit multiply-add: for every divisor one of
+/// the two is exact), `2^sh < d`. Chosen, and checked exhaustively, for every `a` up to the
+/// stage's largest window sum when the plan is made.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Div {
+    add: u16,
+    m: u16,
+    sh: u32,
+}
+
+impl Div {
+    /// The exact division by `d` for every `a <= amax`, if one of the two forms is.
+    fn exact(d: u32, amax: u32) -> Option<Div> {
+        assert!((2..=256).contains(&d));
+        let sh = 15 - ((d - 1) as u16).leading_zeros();
+        let p = 1u64 << (16 + sh);
+        let up = p.div_ceil(d as u64);
+        let down = p / d as u64;
+        let check = |div: Div| {
+            (amax + div.add as u32 <= 65535 && (0..=amax).all(|a| div.apply(a as u16) as u32 == (a + d / 2) / d))
+                .then_some(div)
+        };
+        let h = (d / 2) as u16;
+        (up < 65536)
+            .then(|| check(Div { add: h, m: up as u16, sh }))
+            .flatten()
+            .or_else(|| check(Div { add: h + 1, m: down as u16, sh }))
+    }
+
+    #[inline(always)]
+    fn apply(self, a: u16) -> u16 {
+        ((a.wrapping_add(self.add) as u32 * self.m as u32) >> (16 + self.sh)) as u16
+    }
 }
 
 /// Exact 1D kernel of a box cascade (taps `-radius..=radius`).
@@ -94,13 +136,29 @@ impl BoxPlan {
     pub fn new(widths: [usize; K]) -> BoxPlan {
         let wmax = *widths.iter().max().unwrap();
         assert!(widths.iter().map(|w| w - 1).sum::<usize>() % 2 == 0, "box cascade must be centred");
-        // Window sum of the widest box, plus half a box for the rounding, below 2^16.
-        // Odd, so that the final rounding to whole DN never meets a tie (round half up would
-        // bias the mean by 0.5 / scale DN).
+        // Window sum of the widest box, plus half a box for the rounding, below 2^16. Odd: the
+        // second axis's last stage divides by `w scale` at once, which for an odd scale equals
+        // rounding to a box average first and then to whole DN (no half-way value is crossed),
+        // and keeps the rounding to whole DN free of ties; then every divisor is <= 256.
         let scale = ((65535 - wmax / 2) / (255 * wmax)).min(127) as u16;
-        let scale = if scale.is_multiple_of(2) { scale - 1 } else { scale };
-        assert!(scale >= 1, "box width {wmax} too large for 16-bit lanes");
-        BoxPlan { widths, scale, radius: widths.iter().map(|w| w - 1).sum::<usize>() / 2 }
+        let mut scale = if scale.is_multiple_of(2) { scale - 1 } else { scale };
+        let stages: Vec<usize> = widths.iter().copied().filter(|&w| w > 1).collect();
+        // Every division exact over its stage's range (window sums up to 255 scale w); a lower
+        // (odd) scale if not (none of the plans for sigma in (3, 20] needs it).
+        loop {
+            assert!(scale >= 1, "box width {wmax} too large for 16-bit lanes");
+            let s = scale as u32;
+            let divs: Option<Vec<Div>> = stages.iter().map(|&w| Div::exact(w as u32, 255 * s * w as u32)).collect();
+            let last = stages.last().map_or(1, |&w| w as u32);
+            let last_dn = if last * s >= 2 { Div::exact(last * s, 255 * s * last) } else { None };
+            if let (Some(divs), Some(last_dn)) = (divs, last_dn) {
+                let mut d = [Div { add: 0, m: 0, sh: 0 }; K];
+                d[..divs.len()].copy_from_slice(&divs);
+                let radius = widths.iter().map(|w| w - 1).sum::<usize>() / 2;
+                return BoxPlan { widths, scale, radius, divs: d, last_dn };
+            }
+            scale = scale.saturating_sub(2);
+        }
     }
 
     fn stages(&self) -> impl Iterator<Item = usize> + '_ {
@@ -113,44 +171,25 @@ impl BoxPlan {
     }
 }
 
-/// Division of `a < 2^16` by `w` (2..=255), rounded half up, as the lanes compute it.
+/// One stage on 64 lanes: `acc += v - slot; slot = v; v = round(acc / d)` ([`Div`]).
 #[inline(always)]
-fn div_round(a: u16, w: u16, m: u16) -> u16 {
-    let a = a.wrapping_add(w / 2);
-    // q = floor(a * floor(2^16 / w) / 2^16) is floor(a / w) or one less.
-    let q = ((a as u32 * m as u32) >> 16) as u16;
-    let r = a.wrapping_sub(q.wrapping_mul(w));
-    q + (r >= w) as u16
-}
-
-/// One stage on 64 lanes: `acc += v - slot; slot = v; v = round(acc / w)` ([`div_round`]).
-#[inline(always)]
-fn stage<const LV: u8>(acc: &mut Lane, slot: &mut Lane, v: &mut Lane, w: u16, m: u16) {
+fn stage<const LV: u8>(acc: &mut Lane, slot: &mut Lane, v: &mut Lane, div: Div) {
     #[cfg(target_arch = "x86_64")]
     {
         if LV == 2 {
             // SAFETY: LV == 2 only inside functions compiled with AVX-512 F/BW/VL, called after
             // the runtime check.
-            return unsafe { simd::stage512(acc, slot, v, w, m) };
+            return unsafe { simd::stage512(acc, slot, v, div.add, div.m, div.sh) };
         }
         if LV == 1 {
             // SAFETY: as above, AVX2.
-            return unsafe { simd::stage256(acc, slot, v, w, m) };
+            return unsafe { simd::stage256(acc, slot, v, div.add, div.m, div.sh) };
         }
     }
     for l in 0..LANES {
         acc[l] = acc[l].wrapping_add(v[l]).wrapping_sub(slot[l]);
         slot[l] = v[l];
-        v[l] = div_round(acc[l], w, m);
-    }
-}
-
-/// `v = round(v / s)` on 64 lanes (the same operations as [`stage`], on a zero window).
-#[inline(always)]
-fn descale<const LV: u8>(v: &mut Lane, s: u16) {
-    if s > 1 {
-        let (mut acc, mut slot) = ([0u16; LANES], [0u16; LANES]);
-        stage::<LV>(&mut acc, &mut slot, v, s, (65536 / s as u32) as u16);
+        v[l] = div.apply(acc[l]);
     }
 }
 
@@ -161,7 +200,8 @@ fn descale<const LV: u8>(v: &mut Lane, s: u16) {
 struct Cursor {
     n: usize,
     w: [usize; K],
-    m: [u16; K],
+    // per stage the division of the window sum
+    div: [Div; K],
     lag: [usize; K],
     pos: [usize; K],
     i: usize,
@@ -169,16 +209,22 @@ struct Cursor {
 
 impl Cursor {
     fn new(plan: &BoxPlan) -> Cursor {
-        let mut c = Cursor { n: 0, w: [1; K], m: [0; K], lag: [0; K], pos: [0; K], i: 0 };
+        let mut c = Cursor { n: 0, w: [1; K], div: plan.divs, lag: [0; K], pos: [0; K], i: 0 };
         let mut lag = 0;
         for w in plan.stages() {
             c.w[c.n] = w;
-            c.m[c.n] = (65536 / w) as u16;
             c.lag[c.n] = lag;
             lag += w - 1;
             c.n += 1;
         }
         c
+    }
+
+    /// The last stage divides by `w * scale` instead of `w`: its output is the 8-bit result
+    /// (one rounding instead of a box average and a second rounding to whole DN).
+    fn to_dn(mut self, plan: &BoxPlan) -> Cursor {
+        self.div[self.n - 1] = plan.last_dn;
+        self
     }
 
     /// Move to the next virtual index.
@@ -208,7 +254,7 @@ fn push_all<const LV: u8>(cur: &Cursor, state: &mut [Lane], v: &mut Lane) -> boo
             return false;
         }
         let (ring, rest) = state[off..].split_at_mut(w);
-        stage::<LV>(&mut rest[0], &mut ring[cur.pos[k]], v, w as u16, cur.m[k]);
+        stage::<LV>(&mut rest[0], &mut ring[cur.pos[k]], v, cur.div[k]);
         if cur.i - cur.lag[k] + 1 < w {
             return false;
         }
@@ -358,14 +404,12 @@ fn super_band<const LV: u8>(
         // Horizontal cascade, all channels, with the output written 8 columns at a time.
         let band = &mut sb[o0 * stride..];
         hstate.iter_mut().for_each(|l| *l = [0; LANES]);
-        let mut cur = Cursor::new(plan);
-        let s = plan.scale;
+        let mut cur = Cursor::new(plan).to_dn(plan);
         for i in 0..w + r2 {
             let x = mirror(i as isize - r as isize, w);
             for c in 0..ch {
                 let mut v = bt[x * ch + c];
                 if push_all::<LV>(&cur, &mut hstate[c * sl..(c + 1) * sl], &mut v) {
-                    descale::<LV>(&mut v, s);
                     let j = (i - r2) * ch + c;
                     ring[j % 8] = v;
                     if j % 8 == 7 {
@@ -454,13 +498,8 @@ mod simd {
 
     #[inline]
     #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2")]
-    pub unsafe fn stage512(acc: &mut Lane, slot: &mut Lane, v: &mut Lane, w: u16, m: u16) {
-        let (wv, mv, hv, one) = (
-            _mm512_set1_epi16(w as i16),
-            _mm512_set1_epi16(m as i16),
-            _mm512_set1_epi16((w / 2) as i16),
-            _mm512_set1_epi16(1),
-        );
+    pub unsafe fn stage512(acc: &mut Lane, slot: &mut Lane, v: &mut Lane, add: u16, m: u16, sh: u32) {
+        let (av, mv, shv) = (_mm512_set1_epi16(add as i16), _mm512_set1_epi16(m as i16), _mm_cvtsi32_si128(sh as i32));
         for k in 0..LANES / 32 {
             // SAFETY: 32 u16 at offset 32k of 64-lane arrays.
             unsafe {
@@ -474,20 +513,16 @@ mod simd {
                 );
                 _mm512_storeu_si512(pa, a);
                 _mm512_storeu_si512(ps, x);
-                let t = _mm512_add_epi16(a, hv);
-                let q = _mm512_mulhi_epu16(t, mv);
-                let rem = _mm512_sub_epi16(t, _mm512_mullo_epi16(q, wv));
-                let ge = _mm512_cmpge_epu16_mask(rem, wv);
-                _mm512_storeu_si512(pv, _mm512_mask_add_epi16(q, ge, q, one));
+                let q = _mm512_mulhi_epu16(_mm512_add_epi16(a, av), mv);
+                _mm512_storeu_si512(pv, _mm512_srl_epi16(q, shv));
             }
         }
     }
 
     #[inline]
     #[target_feature(enable = "avx2")]
-    pub unsafe fn stage256(acc: &mut Lane, slot: &mut Lane, v: &mut Lane, w: u16, m: u16) {
-        let (wv, mv, hv) =
-            (_mm256_set1_epi16(w as i16), _mm256_set1_epi16(m as i16), _mm256_set1_epi16((w / 2) as i16));
+    pub unsafe fn stage256(acc: &mut Lane, slot: &mut Lane, v: &mut Lane, add: u16, m: u16, sh: u32) {
+        let (av, mv, shv) = (_mm256_set1_epi16(add as i16), _mm256_set1_epi16(m as i16), _mm_cvtsi32_si128(sh as i32));
         for k in 0..LANES / 16 {
             // SAFETY: 16 u16 at offset 16k of 64-lane arrays.
             unsafe {
@@ -498,12 +533,8 @@ mod simd {
                 let a = _mm256_sub_epi16(_mm256_add_epi16(_mm256_loadu_si256(pa), x), _mm256_loadu_si256(ps));
                 _mm256_storeu_si256(pa, a);
                 _mm256_storeu_si256(ps, x);
-                let t = _mm256_add_epi16(a, hv);
-                let q = _mm256_mulhi_epu16(t, mv);
-                let rem = _mm256_sub_epi16(t, _mm256_mullo_epi16(q, wv));
-                // rem >= w (unsigned) <=> max(rem, w) == rem: all ones, i.e. -1.
-                let ge = _mm256_cmpeq_epi16(_mm256_max_epu16(rem, wv), rem);
-                _mm256_storeu_si256(pv, _mm256_sub_epi16(q, ge));
+                let q = _mm256_mulhi_epu16(_mm256_add_epi16(a, av), mv);
+                _mm256_storeu_si256(pv, _mm256_srl_epi16(q, shv));
             }
         }
     }
@@ -671,12 +702,22 @@ mod tests {
 
     #[test]
     fn division_is_exact_rounding() {
-        for w in 2u16..=255 {
-            let m = (65536 / w as u32) as u16;
-            for a in (0u32..65536 - w as u32 / 2).step_by(7).chain([65535 - w as u32 / 2]) {
-                let want = (a + w as u32 / 2) / w as u32;
-                assert_eq!(div_round(a as u16, w, m) as u32, want, "{a} / {w}");
+        // Every divisor a plan can use, over the whole 16-bit range it allows.
+        for d in 2u32..=256 {
+            let amax = 65535 - d / 2 - 1;
+            let div = Div::exact(d, amax).unwrap_or_else(|| panic!("no exact division by {d}"));
+            for a in (0..=amax).step_by(3).chain([amax]) {
+                assert_eq!(div.apply(a as u16) as u32, (a + d / 2) / d, "{a} / {d}");
             }
+        }
+        // Plans for every sigma of the box path keep the scale of the exact reference (the
+        // largest odd one that fits), so their bytes are those of an exact rounded division.
+        for i in 0..=170 {
+            let sigma = 3.0 + 0.1 * i as f64 + 0.01;
+            let plan = BoxPlan::for_sigma(sigma);
+            let wmax = *plan.widths.iter().max().unwrap();
+            let s = ((65535 - wmax / 2) / (255 * wmax)).min(127) as u16;
+            assert_eq!(plan.scale, if s % 2 == 0 { s - 1 } else { s }, "sigma {sigma}: {plan:?}");
         }
     }
 
