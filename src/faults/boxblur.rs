@@ -816,6 +816,75 @@ pub(crate) mod reference_tests {
         let _ = Frame::new(1, 1, PixelFormat::Mono8);
     }
 
+    /// The integer cascade written plainly, whole lines at a time: each line mirrored by
+    /// `radius`, then per stage the rounded (half up) mean of every full window; samples times
+    /// `scale`, and the last stage of the second axis divides by `w * scale` (straight to DN).
+    fn plain_integer_cascade(src: &[u8], w: usize, h: usize, ch: usize, plan: &BoxPlan) -> Vec<u8> {
+        let r = plan.radius as isize;
+        let s = plan.scale as u32;
+        let stages: Vec<u32> = plan.widths.iter().filter(|&&w| w > 1).map(|&w| w as u32).collect();
+        let line = |vals: &dyn Fn(usize) -> u32, n: usize, to_dn: bool| -> Vec<u32> {
+            let mut l: Vec<u32> = (-r..n as isize + r).map(|i| vals(mirror(i, n))).collect();
+            for (k, &bw) in stages.iter().enumerate() {
+                let d = if to_dn && k + 1 == stages.len() { bw * s } else { bw };
+                l = l.windows(bw as usize).map(|win| (win.iter().sum::<u32>() + d / 2) / d).collect();
+            }
+            l
+        };
+        let rl = w * ch;
+        let mut cols = vec![0u32; rl * h];
+        for j in 0..rl {
+            let out = line(&|y| src[y * rl + j] as u32 * s, h, false);
+            for y in 0..h {
+                cols[y * rl + j] = out[y];
+            }
+        }
+        let mut dst = vec![0u8; rl * h];
+        for y in 0..h {
+            for c in 0..ch {
+                let out = line(&|x| cols[y * rl + x * ch + c], w, true);
+                for x in 0..w {
+                    dst[y * rl + x * ch + c] = out[x] as u8;
+                }
+            }
+        }
+        dst
+    }
+
+    #[test]
+    fn same_bytes_as_the_plain_integer_cascade_on_any_thread_count() {
+        for (w, h, format) in [
+            (203usize, 131usize, PixelFormat::Rgb8),
+            (97, 200, PixelFormat::Mono8),
+            (64, 9, PixelFormat::Mono8),
+            (70, 330, PixelFormat::Rgb8),
+        ] {
+            let f = crate::faults::kit::bench_scene(w as u32, h as u32, format, 5).unwrap();
+            let ch = format.channels();
+            for sigma in [3.2, 9.0, 20.0] {
+                let plan = BoxPlan::for_sigma(sigma);
+                let want = plain_integer_cascade(&f.to_packed().as_u8().unwrap().to_vec(), w, h, ch, &plan);
+                for threads in [1, 2, 3, 5] {
+                    for lv in [0, cpu_level().min(1), cpu_level()] {
+                        let mut g = f.clone();
+                        let stride = g.stride;
+                        let FrameData::U8(d) = &mut g.data else { unreachable!() };
+                        rayon::ThreadPoolBuilder::new()
+                            .num_threads(threads)
+                            .build()
+                            .unwrap()
+                            .install(|| blur_u8_at(lv, d, stride, w, h, ch, &plan, &mut Scratch::default()));
+                        let got = g.to_packed();
+                        assert!(
+                            got.as_u8().unwrap() == want.as_slice(),
+                            "{format} {w}x{h} sigma {sigma}, {threads} threads, level {lv}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn scalar_avx2_and_avx512_levels_give_the_same_bytes() {
         for (w, h, format) in
