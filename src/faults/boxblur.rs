@@ -419,7 +419,7 @@ fn super_band<const LV: u8>(
             }
             cur.advance();
         }
-        if rl % 8 != 0 {
+        if !rl.is_multiple_of(8) {
             flush8(LV, ring, band, stride, rows, rl / 8 * 8, rl % 8);
         }
         y0 += rows;
@@ -717,7 +717,7 @@ mod tests {
             let plan = BoxPlan::for_sigma(sigma);
             let wmax = *plan.widths.iter().max().unwrap();
             let s = ((65535 - wmax / 2) / (255 * wmax)).min(127) as u16;
-            assert_eq!(plan.scale, if s % 2 == 0 { s - 1 } else { s }, "sigma {sigma}: {plan:?}");
+            assert_eq!(plan.scale, if s.is_multiple_of(2) { s - 1 } else { s }, "sigma {sigma}: {plan:?}");
         }
     }
 
@@ -863,7 +863,7 @@ pub(crate) mod reference_tests {
             let ch = format.channels();
             for sigma in [3.2, 9.0, 20.0] {
                 let plan = BoxPlan::for_sigma(sigma);
-                let want = plain_integer_cascade(&f.to_packed().as_u8().unwrap().to_vec(), w, h, ch, &plan);
+                let want = plain_integer_cascade(f.to_packed().as_u8().unwrap(), w, h, ch, &plan);
                 for threads in [1, 2, 3, 5] {
                     for lv in [0, cpu_level().min(1), cpu_level()] {
                         let mut g = f.clone();
