@@ -34,6 +34,48 @@ pub struct BoxPlan {
     pub scale: u16,
     /// Half support of the cascade: `sum(w - 1) / 2`.
     pub radius: usize,
+    /// Per stage (widths > 1, in order) the rounded division by its width.
+    divs: [Div; K],
+    /// The last stage of the second axis: division by `w * scale` (straight to whole DN).
+    last_dn: Div,
+}
+
+/// Rounded division of a window sum `a` by a constant `d` (2..=256) with one 16-bit multiply:
+/// `round(a / d) = floor((a + d/2) / d) = mulhi(a + add, m) >> sh`, where `m` is either
+/// `ceil(2^(16+sh) / d)` (`add = d/2`) or `floor(2^(16+sh) / d)` with the increment folded into
+/// `add = d/2 + 1` (Robison's N-bit division by an N-bit multiply-add: for every divisor one of
+/// the two is exact), `2^sh < d`. Chosen, and checked exhaustively, for every `a` up to the
+/// stage's largest window sum when the plan is made.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Div {
+    add: u16,
+    m: u16,
+    sh: u32,
+}
+
+impl Div {
+    /// The exact division by `d` for every `a <= amax`, if one of the two forms is.
+    fn exact(d: u32, amax: u32) -> Option<Div> {
+        assert!((2..=256).contains(&d));
+        let sh = 15 - ((d - 1) as u16).leading_zeros();
+        let p = 1u64 << (16 + sh);
+        let up = p.div_ceil(d as u64);
+        let down = p / d as u64;
+        let check = |div: Div| {
+            (amax + div.add as u32 <= 65535 && (0..=amax).all(|a| div.apply(a as u16) as u32 == (a + d / 2) / d))
+                .then_some(div)
+        };
+        let h = (d / 2) as u16;
+        (up < 65536)
+            .then(|| check(Div { add: h, m: up as u16, sh }))
+            .flatten()
+            .or_else(|| check(Div { add: h + 1, m: down as u16, sh }))
+    }
+
+    #[inline(always)]
+    fn apply(self, a: u16) -> u16 {
+        ((a.wrapping_add(self.add) as u32 * self.m as u32) >> (16 + self.sh)) as u16
+    }
 }
 
 /// Exact 1D kernel of a box cascade (taps `-radius..=radius`).
@@ -94,13 +136,29 @@ impl BoxPlan {
     pub fn new(widths: [usize; K]) -> BoxPlan {
         let wmax = *widths.iter().max().unwrap();
         assert!(widths.iter().map(|w| w - 1).sum::<usize>() % 2 == 0, "box cascade must be centred");
-        // Window sum of the widest box, plus half a box for the rounding, below 2^16.
-        // Odd, so that the final rounding to whole DN never meets a tie (round half up would
-        // bias the mean by 0.5 / scale DN).
+        // Window sum of the widest box, plus half a box for the rounding, below 2^16. Odd: the
+        // second axis's last stage divides by `w scale` at once, which for an odd scale equals
+        // rounding to a box average first and then to whole DN (no half-way value is crossed),
+        // and keeps the rounding to whole DN free of ties; then every divisor is <= 256.
         let scale = ((65535 - wmax / 2) / (255 * wmax)).min(127) as u16;
-        let scale = if scale.is_multiple_of(2) { scale - 1 } else { scale };
-        assert!(scale >= 1, "box width {wmax} too large for 16-bit lanes");
-        BoxPlan { widths, scale, radius: widths.iter().map(|w| w - 1).sum::<usize>() / 2 }
+        let mut scale = if scale.is_multiple_of(2) { scale - 1 } else { scale };
+        let stages: Vec<usize> = widths.iter().copied().filter(|&w| w > 1).collect();
+        // Every division exact over its stage's range (window sums up to 255 scale w); a lower
+        // (odd) scale if not (none of the plans for sigma in (3, 20] needs it).
+        loop {
+            assert!(scale >= 1, "box width {wmax} too large for 16-bit lanes");
+            let s = scale as u32;
+            let divs: Option<Vec<Div>> = stages.iter().map(|&w| Div::exact(w as u32, 255 * s * w as u32)).collect();
+            let last = stages.last().map_or(1, |&w| w as u32);
+            let last_dn = if last * s >= 2 { Div::exact(last * s, 255 * s * last) } else { None };
+            if let (Some(divs), Some(last_dn)) = (divs, last_dn) {
+                let mut d = [Div { add: 0, m: 0, sh: 0 }; K];
+                d[..divs.len()].copy_from_slice(&divs);
+                let radius = widths.iter().map(|w| w - 1).sum::<usize>() / 2;
+                return BoxPlan { widths, scale, radius, divs: d, last_dn };
+            }
+            scale = scale.saturating_sub(2);
+        }
     }
 
     fn stages(&self) -> impl Iterator<Item = usize> + '_ {
@@ -113,44 +171,25 @@ impl BoxPlan {
     }
 }
 
-/// Division of `a < 2^16` by `w` (2..=255), rounded half up, as the lanes compute it.
+/// One stage on 64 lanes: `acc += v - slot; slot = v; v = round(acc / d)` ([`Div`]).
 #[inline(always)]
-fn div_round(a: u16, w: u16, m: u16) -> u16 {
-    let a = a.wrapping_add(w / 2);
-    // q = floor(a * floor(2^16 / w) / 2^16) is floor(a / w) or one less.
-    let q = ((a as u32 * m as u32) >> 16) as u16;
-    let r = a.wrapping_sub(q.wrapping_mul(w));
-    q + (r >= w) as u16
-}
-
-/// One stage on 64 lanes: `acc += v - slot; slot = v; v = round(acc / w)` ([`div_round`]).
-#[inline(always)]
-fn stage<const LV: u8>(acc: &mut Lane, slot: &mut Lane, v: &mut Lane, w: u16, m: u16) {
+fn stage<const LV: u8>(acc: &mut Lane, slot: &mut Lane, v: &mut Lane, div: Div) {
     #[cfg(target_arch = "x86_64")]
     {
         if LV == 2 {
             // SAFETY: LV == 2 only inside functions compiled with AVX-512 F/BW/VL, called after
             // the runtime check.
-            return unsafe { simd::stage512(acc, slot, v, w, m) };
+            return unsafe { simd::stage512(acc, slot, v, div.add, div.m, div.sh) };
         }
         if LV == 1 {
             // SAFETY: as above, AVX2.
-            return unsafe { simd::stage256(acc, slot, v, w, m) };
+            return unsafe { simd::stage256(acc, slot, v, div.add, div.m, div.sh) };
         }
     }
     for l in 0..LANES {
         acc[l] = acc[l].wrapping_add(v[l]).wrapping_sub(slot[l]);
         slot[l] = v[l];
-        v[l] = div_round(acc[l], w, m);
-    }
-}
-
-/// `v = round(v / s)` on 64 lanes (the same operations as [`stage`], on a zero window).
-#[inline(always)]
-fn descale<const LV: u8>(v: &mut Lane, s: u16) {
-    if s > 1 {
-        let (mut acc, mut slot) = ([0u16; LANES], [0u16; LANES]);
-        stage::<LV>(&mut acc, &mut slot, v, s, (65536 / s as u32) as u16);
+        v[l] = div.apply(acc[l]);
     }
 }
 
@@ -161,7 +200,8 @@ fn descale<const LV: u8>(v: &mut Lane, s: u16) {
 struct Cursor {
     n: usize,
     w: [usize; K],
-    m: [u16; K],
+    // per stage the division of the window sum
+    div: [Div; K],
     lag: [usize; K],
     pos: [usize; K],
     i: usize,
@@ -169,16 +209,22 @@ struct Cursor {
 
 impl Cursor {
     fn new(plan: &BoxPlan) -> Cursor {
-        let mut c = Cursor { n: 0, w: [1; K], m: [0; K], lag: [0; K], pos: [0; K], i: 0 };
+        let mut c = Cursor { n: 0, w: [1; K], div: plan.divs, lag: [0; K], pos: [0; K], i: 0 };
         let mut lag = 0;
         for w in plan.stages() {
             c.w[c.n] = w;
-            c.m[c.n] = (65536 / w) as u16;
             c.lag[c.n] = lag;
             lag += w - 1;
             c.n += 1;
         }
         c
+    }
+
+    /// The last stage divides by `w * scale` instead of `w`: its output is the 8-bit result
+    /// (one rounding instead of a box average and a second rounding to whole DN).
+    fn to_dn(mut self, plan: &BoxPlan) -> Cursor {
+        self.div[self.n - 1] = plan.last_dn;
+        self
     }
 
     /// Move to the next virtual index.
@@ -208,7 +254,7 @@ fn push_all<const LV: u8>(cur: &Cursor, state: &mut [Lane], v: &mut Lane) -> boo
             return false;
         }
         let (ring, rest) = state[off..].split_at_mut(w);
-        stage::<LV>(&mut rest[0], &mut ring[cur.pos[k]], v, w as u16, cur.m[k]);
+        stage::<LV>(&mut rest[0], &mut ring[cur.pos[k]], v, cur.div[k]);
         if cur.i - cur.lag[k] + 1 < w {
             return false;
         }
@@ -217,80 +263,166 @@ fn push_all<const LV: u8>(cur: &Cursor, state: &mut [Lane], v: &mut Lane) -> boo
     true
 }
 
-/// Strips per column block of pass 1 (rows are read 512 bytes at a time).
-const STRIPS_PER_BLOCK: usize = 8;
-
-/// Pass 1 over a block of strips (strip `s0 + k` starts at byte column `min((s0 + k) LANES,
-/// rl - LANES)`): all rows, into `out` (`h` lanes per strip).
+/// Vertical cascade of one strip (byte columns `j0..j0 + LANES`) over virtual rows `i0..i1`
+/// (relative to the super-band's start `y_start`: virtual row `i` reads source row
+/// `mirror(y_start + i - radius)`); outputs (relative row `i - 2 radius`, from `o0` on) go to
+/// `blk[row - o0]`. `row_of(k)` gives source row `y_start - radius + k`.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn column_block<const LV: u8>(
+fn strip_rows<'a, const LV: u8>(
     plan: &BoxPlan,
-    src: &[u8],
-    stride: usize,
-    rl: usize,
-    h: usize,
-    s0: usize,
-    out: &mut [Lane],
+    row_of: &impl Fn(usize) -> &'a [u8],
+    j0: usize,
+    cur: &mut Cursor,
+    i1: usize,
+    o0: usize,
+    blk: &mut [Lane],
     state: &mut [Lane],
 ) {
-    let sl = plan.state_lanes();
-    let nst = out.len() / h;
     let sc = plan.scale;
-    let r = plan.radius as isize;
     let r2 = 2 * plan.radius;
-    state.iter_mut().for_each(|l| *l = [0; LANES]);
     let mut v = [0u16; LANES];
-    let mut cur = Cursor::new(plan);
-    for i in 0..h + r2 {
-        let y = mirror(i as isize - r, h);
-        // The rows are a page apart: prefetch the block's bytes of a row a few steps ahead (the
-        // hardware prefetchers do not follow such strides). No effect on the values.
+    while cur.i < i1 {
+        // The rows are a page apart: prefetch this strip's bytes a few rows ahead (the hardware
+        // prefetchers do not follow such strides). No effect on the values.
         #[cfg(target_arch = "x86_64")]
-        {
-            let yp = mirror(i as isize + 6 - r, h);
-            for k in 0..nst {
-                let j0 = ((s0 + k) * LANES).min(rl - LANES);
-                // SAFETY: a prefetch hint of an address inside `src` (no access is made).
-                unsafe {
-                    use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-                    _mm_prefetch::<_MM_HINT_T0>(src.as_ptr().add(yp * stride + j0) as *const i8);
-                }
+        if cur.i + 6 < i1 {
+            // SAFETY: a prefetch hint of an address inside a row slice (no access is made).
+            unsafe {
+                use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+                _mm_prefetch::<_MM_HINT_T0>(row_of(cur.i + 6).as_ptr().add(j0) as *const i8);
             }
         }
-        for k in 0..nst {
-            let j0 = ((s0 + k) * LANES).min(rl - LANES);
-            let row: &[u8; LANES] = src[y * stride + j0..y * stride + j0 + LANES].try_into().unwrap();
-            for l in 0..LANES {
-                v[l] = row[l] as u16 * sc;
-            }
-            if push_all::<LV>(&cur, &mut state[k * sl..(k + 1) * sl], &mut v) {
-                out[k * h + i - r2] = v;
-            }
+        let row: &[u8; LANES] = row_of(cur.i)[j0..j0 + LANES].try_into().unwrap();
+        for l in 0..LANES {
+            v[l] = row[l] as u16 * sc;
+        }
+        if push_all::<LV>(cur, state, &mut v) {
+            blk[cur.i - r2 - o0] = v;
         }
         cur.advance();
     }
 }
 
-/// Pass 2 over one band: `bt` holds the band transposed (`bt[j]` = byte column `j` of the
-/// band's rows, scaled); the cascade runs along each channel; `ot[j]` receives the 8-bit
-/// results (in `u16` lanes).
+/// Write byte columns `jb..jb + n` (n <= 8) of `rows` rows from `ring[k][l]` (column `jb + k`,
+/// row `l`, values <= 255) into `band` (rows of `stride` bytes).
 #[inline(always)]
-fn row_band<const LV: u8>(plan: &BoxPlan, w: usize, ch: usize, bt: &[Lane], ot: &mut [Lane], state: &mut [Lane]) {
-    let s = plan.scale;
-    let r = plan.radius as isize;
-    let r2 = 2 * plan.radius;
-    for c in 0..ch {
-        state.iter_mut().for_each(|l| *l = [0; LANES]);
-        let mut cur = Cursor::new(plan);
+fn flush8(lv: u8, ring: &[Lane], band: &mut [u8], stride: usize, rows: usize, jb: usize, n: usize) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if lv > 0 && n == 8 {
+        done = rows / 8 * 8;
+        if done > 0 {
+            assert!(ring.len() >= 8 && band.len() >= (done - 1) * stride + jb + 8);
+        }
+        for lb in (0..done).step_by(8) {
+            // SAFETY: reads ring[0..8][lb..lb + 8] (in bounds), writes 8 bytes at
+            // band[(lb + r) * stride + jb..] for r < 8 (asserted above).
+            unsafe {
+                simd::t8x8_u8(
+                    ring.as_ptr().cast::<u16>().add(lb),
+                    LANES,
+                    band.as_mut_ptr().add(lb * stride + jb),
+                    stride,
+                )
+            };
+        }
+    }
+    for l in done..rows {
+        for k in 0..n {
+            band[l * stride + jb + k] = ring[k][l] as u8;
+        }
+    }
+}
+
+/// Per-thread scratch of one super-band, in lanes: vertical state of every strip, horizontal
+/// state of every channel, a vertical output block, the transposed band, the output ring.
+fn slot_lanes(ns: usize, sl: usize, ch: usize, rl8: usize) -> usize {
+    ns * sl + ch * sl + LANES + rl8 + 8
+}
+
+/// One super-band: output rows `y_start..y_end` (`sb` holds them, `stride` bytes each; `halo`
+/// the `radius` source rows above and the `radius` below it, copied before any band was
+/// written). Per band of [`LANES`] rows: the vertical cascade of every strip continues (state
+/// kept across bands), each 64 x 64 block is transposed into `bt`, the horizontal cascade runs
+/// along the band's pixels (all channels in one pass) and every 8 finished byte columns are
+/// transposed back into the frame.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn super_band<const LV: u8>(
+    plan: &BoxPlan,
+    w: usize,
+    ch: usize,
+    stride: usize,
+    y_start: usize,
+    y_end: usize,
+    sb: &mut [u8],
+    halo: &[u8],
+    scratch: &mut [Lane],
+) {
+    let rl = w * ch;
+    let ns = rl.div_ceil(LANES);
+    let sl = plan.state_lanes();
+    let r = plan.radius;
+    let r2 = 2 * r;
+    let rl8 = rl.div_ceil(8) * 8;
+    let (vstate, rest) = scratch.split_at_mut(ns * sl);
+    let (hstate, rest) = rest.split_at_mut(ch * sl);
+    let (blk, rest) = rest.split_at_mut(LANES);
+    let (bt, ring) = rest.split_at_mut(rl8);
+    vstate.iter_mut().for_each(|l| *l = [0; LANES]);
+    let mut vcur = Cursor::new(plan);
+    let mut y0 = y_start;
+    while y0 < y_end {
+        let rows = LANES.min(y_end - y0);
+        // Relative virtual rows of this band: outputs o0..o0 + rows need inputs up to
+        // o0 + rows + r2.
+        let o0 = y0 - y_start;
+        let i1 = o0 + rows + r2;
+        {
+            let src: &[u8] = sb;
+            let row_of = |k: usize| -> &[u8] {
+                let yv = y_start + k; // = source row + r
+                if yv < y_start + r {
+                    &halo[k * rl..(k + 1) * rl]
+                } else if yv < y_end + r {
+                    let y = yv - r - y_start;
+                    &src[y * stride..y * stride + rl]
+                } else {
+                    let j = r + (yv - r - y_end);
+                    &halo[j * rl..(j + 1) * rl]
+                }
+            };
+            let cur0 = vcur;
+            for s in 0..ns {
+                let j0 = (s * LANES).min(rl - LANES);
+                vcur = cur0;
+                strip_rows::<LV>(plan, &row_of, j0, &mut vcur, i1, o0, blk, &mut vstate[s * sl..(s + 1) * sl]);
+                transpose_in(LV, &blk[..rows], &mut bt[j0..j0 + LANES]);
+            }
+        }
+        // Horizontal cascade, all channels, with the output written 8 columns at a time.
+        let band = &mut sb[o0 * stride..];
+        hstate.iter_mut().for_each(|l| *l = [0; LANES]);
+        let mut cur = Cursor::new(plan).to_dn(plan);
         for i in 0..w + r2 {
-            let mut v = bt[mirror(i as isize - r, w) * ch + c];
-            if push_all::<LV>(&cur, state, &mut v) {
-                descale::<LV>(&mut v, s);
-                ot[(i - r2) * ch + c] = v;
+            let x = mirror(i as isize - r as isize, w);
+            for c in 0..ch {
+                let mut v = bt[x * ch + c];
+                if push_all::<LV>(&cur, &mut hstate[c * sl..(c + 1) * sl], &mut v) {
+                    let j = (i - r2) * ch + c;
+                    ring[j % 8] = v;
+                    if j % 8 == 7 {
+                        flush8(LV, ring, band, stride, rows, j - 7, 8);
+                    }
+                }
             }
             cur.advance();
         }
+        if !rl.is_multiple_of(8) {
+            flush8(LV, ring, band, stride, rows, rl / 8 * 8, rl % 8);
+        }
+        y0 += rows;
     }
 }
 
@@ -366,13 +498,8 @@ mod simd {
 
     #[inline]
     #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2")]
-    pub unsafe fn stage512(acc: &mut Lane, slot: &mut Lane, v: &mut Lane, w: u16, m: u16) {
-        let (wv, mv, hv, one) = (
-            _mm512_set1_epi16(w as i16),
-            _mm512_set1_epi16(m as i16),
-            _mm512_set1_epi16((w / 2) as i16),
-            _mm512_set1_epi16(1),
-        );
+    pub unsafe fn stage512(acc: &mut Lane, slot: &mut Lane, v: &mut Lane, add: u16, m: u16, sh: u32) {
+        let (av, mv, shv) = (_mm512_set1_epi16(add as i16), _mm512_set1_epi16(m as i16), _mm_cvtsi32_si128(sh as i32));
         for k in 0..LANES / 32 {
             // SAFETY: 32 u16 at offset 32k of 64-lane arrays.
             unsafe {
@@ -386,20 +513,16 @@ mod simd {
                 );
                 _mm512_storeu_si512(pa, a);
                 _mm512_storeu_si512(ps, x);
-                let t = _mm512_add_epi16(a, hv);
-                let q = _mm512_mulhi_epu16(t, mv);
-                let rem = _mm512_sub_epi16(t, _mm512_mullo_epi16(q, wv));
-                let ge = _mm512_cmpge_epu16_mask(rem, wv);
-                _mm512_storeu_si512(pv, _mm512_mask_add_epi16(q, ge, q, one));
+                let q = _mm512_mulhi_epu16(_mm512_add_epi16(a, av), mv);
+                _mm512_storeu_si512(pv, _mm512_srl_epi16(q, shv));
             }
         }
     }
 
     #[inline]
     #[target_feature(enable = "avx2")]
-    pub unsafe fn stage256(acc: &mut Lane, slot: &mut Lane, v: &mut Lane, w: u16, m: u16) {
-        let (wv, mv, hv) =
-            (_mm256_set1_epi16(w as i16), _mm256_set1_epi16(m as i16), _mm256_set1_epi16((w / 2) as i16));
+    pub unsafe fn stage256(acc: &mut Lane, slot: &mut Lane, v: &mut Lane, add: u16, m: u16, sh: u32) {
+        let (av, mv, shv) = (_mm256_set1_epi16(add as i16), _mm256_set1_epi16(m as i16), _mm_cvtsi32_si128(sh as i32));
         for k in 0..LANES / 16 {
             // SAFETY: 16 u16 at offset 16k of 64-lane arrays.
             unsafe {
@@ -410,12 +533,8 @@ mod simd {
                 let a = _mm256_sub_epi16(_mm256_add_epi16(_mm256_loadu_si256(pa), x), _mm256_loadu_si256(ps));
                 _mm256_storeu_si256(pa, a);
                 _mm256_storeu_si256(ps, x);
-                let t = _mm256_add_epi16(a, hv);
-                let q = _mm256_mulhi_epu16(t, mv);
-                let rem = _mm256_sub_epi16(t, _mm256_mullo_epi16(q, wv));
-                // rem >= w (unsigned) <=> max(rem, w) == rem: all ones, i.e. -1.
-                let ge = _mm256_cmpeq_epi16(_mm256_max_epu16(rem, wv), rem);
-                _mm256_storeu_si256(pv, _mm256_sub_epi16(q, ge));
+                let q = _mm256_mulhi_epu16(_mm256_add_epi16(a, av), mv);
+                _mm256_storeu_si256(pv, _mm256_srl_epi16(q, shv));
             }
         }
     }
@@ -459,8 +578,7 @@ macro_rules! dispatch {
     };
 }
 
-dispatch!(column_block_d, column_block, (plan: &BoxPlan, src: &[u8], stride: usize, rl: usize, h: usize, s0: usize, out: &mut [Lane], state: &mut [Lane]));
-dispatch!(row_band_d, row_band, (plan: &BoxPlan, w: usize, ch: usize, bt: &[Lane], ot: &mut [Lane], state: &mut [Lane]));
+dispatch!(super_band_d, super_band, (plan: &BoxPlan, w: usize, ch: usize, stride: usize, y_start: usize, y_end: usize, sb: &mut [u8], halo: &[u8], scratch: &mut [Lane]));
 
 /// `dst[j][l] = src[l][j]` for `l < src.len()` (<= LANES) and `j < LANES`.
 fn transpose_in(lv: u8, src: &[Lane], dst: &mut [Lane]) {
@@ -497,56 +615,16 @@ fn transpose_in(lv: u8, src: &[Lane], dst: &mut [Lane]) {
     }
 }
 
-/// `band[l * stride + j] = ot[j][l]` (as bytes, values <= 255) for `l < rows`, `j < ot.len()`.
-fn transpose_out(lv: u8, ot: &[Lane], band: &mut [u8], stride: usize, rows: usize) {
-    let rl = ot.len();
-    let (fr, fj) = (rows / 8 * 8, rl / 8 * 8);
-    #[cfg(target_arch = "x86_64")]
-    if lv > 0 {
-        for lb in (0..fr).step_by(8) {
-            assert!(band.len() >= (lb + 7) * stride + rl);
-            for jb in (0..fj).step_by(8) {
-                // SAFETY: reads ot[jb..jb + 8][lb..lb + 8] (in bounds), writes 8 bytes at
-                // band[(lb + r) * stride + jb..] for r < 8 (asserted above).
-                unsafe {
-                    simd::t8x8_u8(
-                        ot.as_ptr().add(jb).cast::<u16>().add(lb),
-                        LANES,
-                        band.as_mut_ptr().add(lb * stride + jb),
-                        stride,
-                    )
-                };
-            }
-            for l in lb..lb + 8 {
-                for j in fj..rl {
-                    band[l * stride + j] = ot[j][l] as u8;
-                }
-            }
-        }
-        for l in fr..rows {
-            for j in 0..rl {
-                band[l * stride + j] = ot[j][l] as u8;
-            }
-        }
-        return;
-    }
-    for l in 0..rows {
-        for j in 0..rl {
-            band[l * stride + j] = ot[j][l] as u8;
-        }
-    }
-}
-
-/// Scratch of [`blur_u8`]; grows only (allocation when the frame size or the widths grow).
+/// Scratch of [`blur_u8`]; grows only (allocation when the frame size, the widths or the
+/// thread count grow).
 #[derive(Default)]
 pub struct Scratch {
-    // allocation: per frame size: pass-1 output, strip-major (strip, row, lane)
-    cols: Vec<Lane>,
-    // allocation: per frame size and thread count: per band slot the transposed band (input and
-    // output) and the line state
-    bands: Vec<Lane>,
-    // allocation: per width change: per strip the line state
-    state: Vec<Lane>,
+    // allocation: per frame size and thread count: per super-band the source rows it reads but
+    // does not own (copied before any is written)
+    halo: Vec<u8>,
+    // allocation: per frame size, widths and thread count: per super-band the line states, a
+    // block, the transposed band and the output ring (see `slot_lanes`)
+    slots: Vec<Lane>,
 }
 
 /// Separable box-cascade blur of an 8-bit frame (`ch` interleaved channels, rows of `stride`
@@ -558,6 +636,11 @@ pub fn blur_u8(d: &mut [u8], stride: usize, w: usize, h: usize, ch: usize, plan:
 }
 
 /// [`blur_u8`] with the kernels of level `lv` at most (see [`cpu_level`]; tests compare them).
+///
+/// The rows are cut into one super-band per thread (whole bands of [`LANES`] rows). Every box
+/// average is the exact rounded mean of its window (the running sums are exact), so a
+/// super-band that starts its cascades `2 radius` rows early gives the same values as one pass
+/// over the whole frame: the bytes do not depend on the thread count.
 #[allow(clippy::too_many_arguments)]
 pub fn blur_u8_at(
     lv: u8,
@@ -573,62 +656,44 @@ pub fn blur_u8_at(
     assert!(rl >= LANES, "box blur needs rows of at least {LANES} samples");
     let ns = rl.div_ceil(LANES);
     let sl = plan.state_lanes();
-    if sc.cols.len() < ns * h {
-        sc.cols.resize(ns * h, [0; LANES]);
+    let rl8 = rl.div_ceil(8) * 8;
+    let r = plan.radius;
+    let nb = h.div_ceil(LANES);
+    // Super-bands of `bps` whole bands, one per thread.
+    let bps = nb.max(1).div_ceil(rayon::current_num_threads().max(1));
+    let nsb = nb.max(1).div_ceil(bps);
+    let per = slot_lanes(ns, sl, ch, rl8);
+    if sc.slots.len() < nsb * per {
+        sc.slots.resize(nsb * per, [0; LANES]);
     }
-    let nblk = ns.div_ceil(STRIPS_PER_BLOCK);
-    if sc.state.len() < nblk * STRIPS_PER_BLOCK * sl {
-        sc.state.resize(nblk * STRIPS_PER_BLOCK * sl, [0; LANES]);
+    let per_halo = (2 * r * rl).max(1);
+    if sc.halo.len() < nsb * per_halo {
+        sc.halo.resize(nsb * per_halo, 0);
     }
-    // Pass 1: columns, in blocks of strips. The last strip overlaps the previous one (same
-    // values for the shared columns).
+    let bounds = |k: usize| (k * bps * LANES, ((k + 1) * bps * LANES).min(h));
+    // The rows each super-band reads but does not own (r above, r below, mirrored at the frame's
+    // edges), copied while the frame is still unmodified.
     {
         let src: &[u8] = d;
-        sc.cols[..ns * h]
-            .par_chunks_mut(h * STRIPS_PER_BLOCK)
-            .zip(sc.state.par_chunks_mut(STRIPS_PER_BLOCK * sl))
-            .enumerate()
-            .for_each(|(b, (out, state))| {
-                column_block_d(lv, plan, src, stride, rl, h, b * STRIPS_PER_BLOCK, out, state);
-            });
+        sc.halo[..nsb * per_halo].par_chunks_mut(per_halo).enumerate().for_each(|(k, hb)| {
+            let (y0, y1) = bounds(k);
+            let rows = (y0 as isize - r as isize..y0 as isize).chain(y1 as isize..(y1 + r) as isize);
+            for (j, yv) in rows.enumerate() {
+                let s = mirror(yv, h);
+                hb[j * rl..(j + 1) * rl].copy_from_slice(&src[s * stride..s * stride + rl]);
+            }
+        });
     }
-    // Pass 2: bands of LANES rows, in groups of as many bands as there are threads (one
-    // scratch slot each).
-    let rl8 = rl.div_ceil(8) * 8;
-    let per = 2 * rl8 + sl;
-    let slots = rayon::current_num_threads().max(1);
-    if sc.bands.len() < slots * per {
-        sc.bands.resize(slots * per, [0; LANES]);
-    }
-    let nb = h.div_ceil(LANES);
-    let cols = &sc.cols;
     let used = d.len().min(stride * h);
-    let mut b0 = 0;
-    while b0 < nb {
-        let n = slots.min(nb - b0);
-        d[..used]
-            .par_chunks_mut(stride * LANES)
-            .skip(b0)
-            .take(n)
-            .zip(sc.bands.par_chunks_mut(per).take(n))
-            .enumerate()
-            .for_each(|(k, (band, slot))| {
-                let y0 = (b0 + k) * LANES;
-                let rows = LANES.min(h - y0);
-                let (bt, rest) = slot.split_at_mut(rl8);
-                let (ot, state) = rest.split_at_mut(rl8);
-                // Transpose: bt[j][l] = cols[strip(j)][y0 + l][j - j0].
-                for s in 0..ns {
-                    let j0 = (s * LANES).min(rl - LANES);
-                    let strip = &cols[s * h + y0..s * h + y0 + rows];
-                    transpose_in(lv, strip, &mut bt[j0..j0 + LANES]);
-                }
-                row_band_d(lv, plan, w, ch, &bt[..rl], &mut ot[..rl], state);
-                // Transpose back and store bytes.
-                transpose_out(lv, &ot[..rl], band, stride, rows);
-            });
-        b0 += n;
-    }
+    d[..used]
+        .par_chunks_mut(stride * LANES * bps)
+        .enumerate()
+        .zip(sc.halo[..nsb * per_halo].par_chunks(per_halo))
+        .zip(sc.slots[..nsb * per].par_chunks_mut(per))
+        .for_each(|(((k, sb), hb), slot)| {
+            let (y0, y1) = bounds(k);
+            super_band_d(lv, plan, w, ch, stride, y0, y1, sb, hb, slot);
+        });
 }
 
 #[cfg(test)]
@@ -637,12 +702,22 @@ mod tests {
 
     #[test]
     fn division_is_exact_rounding() {
-        for w in 2u16..=255 {
-            let m = (65536 / w as u32) as u16;
-            for a in (0u32..65536 - w as u32 / 2).step_by(7).chain([65535 - w as u32 / 2]) {
-                let want = (a + w as u32 / 2) / w as u32;
-                assert_eq!(div_round(a as u16, w, m) as u32, want, "{a} / {w}");
+        // Every divisor a plan can use, over the whole 16-bit range it allows.
+        for d in 2u32..=256 {
+            let amax = 65535 - d / 2 - 1;
+            let div = Div::exact(d, amax).unwrap_or_else(|| panic!("no exact division by {d}"));
+            for a in (0..=amax).step_by(3).chain([amax]) {
+                assert_eq!(div.apply(a as u16) as u32, (a + d / 2) / d, "{a} / {d}");
             }
+        }
+        // Plans for every sigma of the box path keep the scale of the exact reference (the
+        // largest odd one that fits), so their bytes are those of an exact rounded division.
+        for i in 0..=170 {
+            let sigma = 3.0 + 0.1 * i as f64 + 0.01;
+            let plan = BoxPlan::for_sigma(sigma);
+            let wmax = *plan.widths.iter().max().unwrap();
+            let s = ((65535 - wmax / 2) / (255 * wmax)).min(127) as u16;
+            assert_eq!(plan.scale, if s.is_multiple_of(2) { s - 1 } else { s }, "sigma {sigma}: {plan:?}");
         }
     }
 
@@ -661,7 +736,10 @@ mod tests {
                 let ot: Vec<Lane> = (0..rl).map(|j| std::array::from_fn(|l| ((j * 7 + l * 3) % 256) as u16)).collect();
                 let stride = rl + 3;
                 let mut band = vec![9u8; stride * rows];
-                transpose_out(cpu_level(), &ot, &mut band, stride, rows);
+                for jb in (0..rl).step_by(8) {
+                    let n = 8.min(rl - jb);
+                    flush8(cpu_level(), &ot[jb..jb + n], &mut band, stride, rows, jb, n);
+                }
                 for l in 0..rows {
                     for j in 0..rl {
                         assert_eq!(band[l * stride + j] as u16, ot[j][l]);
@@ -736,6 +814,75 @@ pub(crate) mod reference_tests {
             }
         }
         let _ = Frame::new(1, 1, PixelFormat::Mono8);
+    }
+
+    /// The integer cascade written plainly, whole lines at a time: each line mirrored by
+    /// `radius`, then per stage the rounded (half up) mean of every full window; samples times
+    /// `scale`, and the last stage of the second axis divides by `w * scale` (straight to DN).
+    fn plain_integer_cascade(src: &[u8], w: usize, h: usize, ch: usize, plan: &BoxPlan) -> Vec<u8> {
+        let r = plan.radius as isize;
+        let s = plan.scale as u32;
+        let stages: Vec<u32> = plan.widths.iter().filter(|&&w| w > 1).map(|&w| w as u32).collect();
+        let line = |vals: &dyn Fn(usize) -> u32, n: usize, to_dn: bool| -> Vec<u32> {
+            let mut l: Vec<u32> = (-r..n as isize + r).map(|i| vals(mirror(i, n))).collect();
+            for (k, &bw) in stages.iter().enumerate() {
+                let d = if to_dn && k + 1 == stages.len() { bw * s } else { bw };
+                l = l.windows(bw as usize).map(|win| (win.iter().sum::<u32>() + d / 2) / d).collect();
+            }
+            l
+        };
+        let rl = w * ch;
+        let mut cols = vec![0u32; rl * h];
+        for j in 0..rl {
+            let out = line(&|y| src[y * rl + j] as u32 * s, h, false);
+            for y in 0..h {
+                cols[y * rl + j] = out[y];
+            }
+        }
+        let mut dst = vec![0u8; rl * h];
+        for y in 0..h {
+            for c in 0..ch {
+                let out = line(&|x| cols[y * rl + x * ch + c], w, true);
+                for x in 0..w {
+                    dst[y * rl + x * ch + c] = out[x] as u8;
+                }
+            }
+        }
+        dst
+    }
+
+    #[test]
+    fn same_bytes_as_the_plain_integer_cascade_on_any_thread_count() {
+        for (w, h, format) in [
+            (203usize, 131usize, PixelFormat::Rgb8),
+            (97, 200, PixelFormat::Mono8),
+            (64, 9, PixelFormat::Mono8),
+            (70, 330, PixelFormat::Rgb8),
+        ] {
+            let f = crate::faults::kit::bench_scene(w as u32, h as u32, format, 5).unwrap();
+            let ch = format.channels();
+            for sigma in [3.2, 9.0, 20.0] {
+                let plan = BoxPlan::for_sigma(sigma);
+                let want = plain_integer_cascade(f.to_packed().as_u8().unwrap(), w, h, ch, &plan);
+                for threads in [1, 2, 3, 5] {
+                    for lv in [0, cpu_level().min(1), cpu_level()] {
+                        let mut g = f.clone();
+                        let stride = g.stride;
+                        let FrameData::U8(d) = &mut g.data else { unreachable!() };
+                        rayon::ThreadPoolBuilder::new()
+                            .num_threads(threads)
+                            .build()
+                            .unwrap()
+                            .install(|| blur_u8_at(lv, d, stride, w, h, ch, &plan, &mut Scratch::default()));
+                        let got = g.to_packed();
+                        assert!(
+                            got.as_u8().unwrap() == want.as_slice(),
+                            "{format} {w}x{h} sigma {sigma}, {threads} threads, level {lv}"
+                        );
+                    }
+                }
+            }
+        }
     }
 
     #[test]
