@@ -38,7 +38,18 @@ pub fn censored_mean_known_sigma(vals: &[f32], sigma: f64, q: f64) -> (f64, f64)
     (mu, sigma * sigma / (n * frac_obs))
 }
 
-/// Blooming: plateau level inside saturated regions and the halo around them.
+/// Depth (px, chamfer distance to the nearest unsaturated sim pixel) of the saturated "cores"
+/// on which the plateau is read when no saturated region has an interior: 1.3 keeps the pixels
+/// whose four neighbours are saturated too (a pixel on the rim may be partly covered).
+pub const CORE_DEPTH_PX: f32 = 1.3;
+/// Largest blur (σ, px, from the defocus signature) at which cores are trusted: a wider PSF
+/// mixes the surroundings into a core pixel and lowers it.
+pub const CORE_MAX_BLUR_PX: f64 = 0.5;
+
+/// Blooming: plateau level inside saturated regions and the halo around them. The choice
+/// `well_basis` says where the plateau was read: `interior` (saturated regions deeper than the
+/// blur), `cores` (no interior, no measurable blur: pixels of small saturated regions whose four neighbours are saturated)
+/// or `untestable` (neither: the full well is not constrained by the data).
 pub fn blooming(
     pairs: &[Pair],
     masks: &[Masks],
@@ -49,34 +60,52 @@ pub fn blooming(
 ) -> Signature {
     let mut sig = Signature::new("blooming");
     let interior = (3.0 * blur_sigma).max(3.0) as f32 + 1.0;
-    let mut per_frame: Vec<(f64, f64, usize)> = Vec::new(); // (deficit, plateau, n)
-    let mut all_r: Vec<f64> = Vec::new();
-    let mut all_p: Vec<f64> = Vec::new();
-    for (k, p) in pairs.iter().enumerate() {
-        let m = &masks[k];
-        let mut rv = Vec::new();
-        let mut pv = Vec::new();
-        for c in 0..p.channels() {
-            let s = &p.sim[c].data;
-            for i in 0..s.len() {
-                if s[i] >= 254.5 && m.dist_in[i] >= interior {
-                    rv.push(p.real[c].data[i] as f64);
-                    pv.push((q[k][c].data[i] as f64).min(FS as f64));
+    let collect = |depth: f32, min_n: usize| {
+        let mut per_frame: Vec<(f64, f64, usize)> = Vec::new(); // (deficit, plateau, n)
+        let mut all_r: Vec<f64> = Vec::new();
+        let mut all_p: Vec<f64> = Vec::new();
+        for (k, p) in pairs.iter().enumerate() {
+            let m = &masks[k];
+            let mut rv = Vec::new();
+            let mut pv = Vec::new();
+            for c in 0..p.channels() {
+                let s = &p.sim[c].data;
+                for i in 0..s.len() {
+                    if s[i] >= 254.5 && m.dist_in[i] >= depth {
+                        rv.push(p.real[c].data[i] as f64);
+                        pv.push((q[k][c].data[i] as f64).min(FS as f64));
+                    }
                 }
             }
+            if rv.len() >= min_n {
+                let rm = stats::median(&rv);
+                let pm = stats::median(&pv);
+                per_frame.push((pm - rm, rm, rv.len()));
+                all_r.extend(&rv);
+                all_p.extend(&pv);
+            }
         }
-        if rv.len() >= 20 {
-            let rm = stats::median(&rv);
-            let pm = stats::median(&pv);
-            per_frame.push((pm - rm, rm, rv.len()));
-            all_r.extend(&rv);
-            all_p.extend(&pv);
+        (per_frame, all_r, all_p)
+    };
+    let (mut per_frame, mut all_r, mut all_p) = collect(interior, 20);
+    let mut basis = "interior";
+    if all_r.is_empty() && blur_sigma < CORE_MAX_BLUR_PX {
+        // Small saturated regions (glints, stars, reflectors): without a measurable blur, a pixel
+        // whose four neighbours are saturated too collects nothing from outside it, so it reads the
+        // well as an interior pixel does.
+        // Cores: a few pixels per frame, at least 20 in all.
+        (per_frame, all_r, all_p) = collect(CORE_DEPTH_PX, 3);
+        if all_r.len() < 20 {
+            all_r.clear();
         }
+        basis = "cores";
     }
     if all_r.is_empty() {
-        sig.evidence = "no saturated regions with an interior in the sim: blooming cannot be tested".into();
+        sig.evidence = "no saturated regions with an interior in the sim: the full well cannot be tested (no plateau to read it on)".into();
+        sig.choices.push(("well_basis".into(), "untestable".into()));
         return sig;
     }
+    sig.choices.push(("well_basis".into(), basis.into()));
     let rm = stats::median(&all_r);
     let pm = stats::median(&all_p);
     let deficit = pm - rm;
@@ -136,7 +165,7 @@ pub fn blooming(
     sig.set_param("spread_px", spread.clamp(0.3, 20.0));
     sig.stderr = vec![("full_well_fraction".into(), se / FS as f64)];
     sig.where_ = format!(
-        "{} saturated sim pixels (interior) in {} of {} frames and their surroundings",
+        "{} saturated sim pixels ({basis}) in {} of {} frames and their surroundings",
         all_r.len(),
         per_frame.len(),
         pairs.len()
