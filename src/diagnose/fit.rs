@@ -440,12 +440,32 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         step.dither = Some(loc.noise.clone());
         start.push(step);
     }
+    // Over-exposed sources (blooming signature): the ring their spilled charge lights is left out
+    // of the loss, with the hot pixels.
+    let halo_px = loc.signature("blooming").and_then(|s| s.param("halo_px"));
+    let skip: Vec<Vec<bool>> = fidx
+        .iter()
+        .map(|&k| {
+            let (hot, m) = (&loc.hot[k], &loc.masks[k]);
+            match halo_px {
+                Some(r) => {
+                    (0..hot.len()).map(|i| hot[i] || (m.dist_sat[i] > 0.5 && m.dist_sat[i] <= r as f32)).collect()
+                }
+                None => hot.clone(),
+            }
+        })
+        .collect();
+    if let Some(r) = halo_px {
+        notes.push(format!(
+            "over-exposed sources: pixels within {r:.0} px of saturated regions are left out of the forward-model fit (their halo is fed by charge the clipped sim does not hold)"
+        ));
+    }
     let mut ctx = FitCtx {
         inputs,
         seqs: fidx.iter().map(|&k| k as u64).collect(),
         loss: LossData::new(
             fidx.iter().map(|&k| &pairs[k]).collect(),
-            fidx.iter().map(|&k| loc.hot[k].as_slice()).collect(),
+            skip.iter().map(|v| v.as_slice()).collect(),
             fidx.iter()
                 .map(|&k| {
                     let m = &loc.masks[k];
@@ -596,6 +616,13 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             }
         }
         let mut canonical = canonical_of(&params);
+        if s.name == "blooming" && halo_px.is_some() {
+            for (n, v) in canonical.iter_mut() {
+                if n == "spread_px" {
+                    *v = serde_json::Value::Null;
+                }
+            }
+        }
         if s.name == "blooming" && well_basis(loc) == WellBasis::Untestable {
             // No saturated plateau: the fitted well only shapes the halo (it trades against the
             // unknown excess of clipped sources), so no number is reported for it.

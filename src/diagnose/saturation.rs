@@ -45,6 +45,9 @@ pub const CORE_DEPTH_PX: f32 = 1.3;
 /// Largest blur (σ, px, from the defocus signature) at which cores are trusted: a wider PSF
 /// mixes the surroundings into a core pixel and lowers it.
 pub const CORE_MAX_BLUR_PX: f64 = 0.5;
+/// Margin (DN) by which the halo at 1 px must exceed the sim's excess over the well to be read
+/// as over-exposure.
+pub const OVEREXPOSED_MARGIN_DN: f64 = 3.0;
 
 /// Blooming: plateau level inside saturated regions and the halo around them. The choice
 /// `well_basis` says where the plateau was read: `interior` (saturated regions deeper than the
@@ -160,6 +163,17 @@ pub fn blooming(
         }
     }
     let spread = if m0 > 0.0 { ((m1 / m0) - 0.5).max(0.3) / (2.0 / std::f64::consts::PI).sqrt() } else { 1.0 };
+    // Over-exposure: one pixel's spilled excess cannot raise a neighbour by more than the excess
+    // itself. The sim, clipped at FS, holds at most FS - plateau above the well; a halo at 1 px
+    // well above that is fed by sources brighter than FS, which no effect applied to the sim can
+    // reproduce (blooming_overexposed_mono: 79 DN at 1 px for 20 DN). The halo's extent is then reported (`halo_px`: where it falls below 1 DN) so
+    // that the fit leaves that ring out instead of explaining it by something else.
+    let sim_excess = (FS as f64 - rm).max(0.0);
+    // Only with charge overflow shown by the plateau itself (a well measurably below FS).
+    if sig.z >= 5.0 && sim_excess >= 1.0 && prof[0].is_finite() && prof[0] > sim_excess + OVEREXPOSED_MARGIN_DN {
+        let r = prof.iter().position(|v| v.is_finite() && *v < 1.0).map(|i| i + 1).unwrap_or(D);
+        sig.set_param("halo_px", r as f64);
+    }
     let fwf = (rm / FS as f64).clamp(0.05, 1.0);
     sig.set_param("full_well_fraction", fwf);
     sig.set_param("spread_px", spread.clamp(0.3, 20.0));
@@ -174,6 +188,11 @@ pub fn blooming(
         "saturated plateau reads {rm:.1} DN where {pm:.1} DN is expected (deficit {deficit:.2} ± {se:.2} DN, z = {:.1}); halo {:.2} DN at 1 px, {:.2} DN at 3 px above the far field",
         sig.z, prof[0], prof[2]
     );
+    if let Some(r) = sig.param("halo_px") {
+        sig.evidence.push_str(&format!(
+            "; the halo exceeds the {sim_excess:.1} DN the clipped sim holds above the well: over-exposed sources (ring to {r:.0} px left out of the fit, spread_px untestable)"
+        ));
+    }
     sig.profiles.push(Profile {
         title: "blooming: residual against distance from saturated regions".into(),
         x_label: "distance from the saturated region (px)".into(),
