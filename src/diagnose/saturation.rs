@@ -169,8 +169,13 @@ pub fn blooming(
     // reproduce (blooming_overexposed_mono: 79 DN at 1 px for 20 DN). The halo's extent is then reported (`halo_px`: where it falls below 1 DN) so
     // that the fit leaves that ring out instead of explaining it by something else.
     let sim_excess = (FS as f64 - rm).max(0.0);
-    // Only with charge overflow shown by the plateau itself (a well measurably below FS).
-    if sig.z >= 5.0 && sim_excess >= 1.0 && prof[0].is_finite() && prof[0] > sim_excess + OVEREXPOSED_MARGIN_DN {
+    // Only with charge overflow shown by the plateau itself (a well measurably below FS; not the
+    // deficit against the model's prediction, which a gain fitted on the halo may pull down).
+    if sim_excess >= 1.0
+        && sim_excess / se >= 5.0
+        && prof[0].is_finite()
+        && prof[0] > sim_excess + OVEREXPOSED_MARGIN_DN
+    {
         let r = prof.iter().position(|v| v.is_finite() && *v < 1.0).map(|i| i + 1).unwrap_or(D);
         sig.set_param("halo_px", r as f64);
     }
