@@ -51,8 +51,9 @@ pub const OVEREXPOSED_MARGIN_DN: f64 = 3.0;
 
 /// Blooming: plateau level inside saturated regions and the halo around them. The choice
 /// `well_basis` says where the plateau was read: `interior` (saturated regions deeper than the
-/// blur), `cores` (no interior, no measurable blur: pixels of small saturated regions whose four neighbours are saturated)
-/// or `untestable` (neither: the full well is not constrained by the data).
+/// blur), `cores` (no interior, no measurable blur: pixels of small saturated regions whose four
+/// neighbours are saturated) or `untestable` (neither: the full well is not constrained by the
+/// data). The parameter `halo_px` is set when the sources are over-exposed (see below).
 pub fn blooming(
     pairs: &[Pair],
     masks: &[Masks],
@@ -95,8 +96,7 @@ pub fn blooming(
     if all_r.is_empty() && blur_sigma < CORE_MAX_BLUR_PX {
         // Small saturated regions (glints, stars, reflectors): without a measurable blur, a pixel
         // whose four neighbours are saturated too collects nothing from outside it, so it reads the
-        // well as an interior pixel does.
-        // Cores: a few pixels per frame, at least 20 in all.
+        // well as an interior pixel does. A few pixels per frame, at least 20 in all.
         (per_frame, all_r, all_p) = collect(CORE_DEPTH_PX, 3);
         if all_r.len() < 20 {
             all_r.clear();
