@@ -182,7 +182,13 @@ pub fn candidates(pairs: &[Pair], loc: &Located) -> Vec<Candidate> {
         if let Some(mut p) = init("blooming") {
             let f = p.get("full_well_fraction");
             set(&mut p, "full_well_fraction", f.clamp(0.5, 0.995));
-            out.push(cand("blooming", "blooming", p, &["full_well_fraction", "spread_px"]));
+            // Read on small saturated cores, the plateau is the well itself: it is held there and
+            // only the spread is fitted, so that a halo the clipped sim cannot feed (over-exposed
+            // sources spill more than the sim's excess over the well) is not bought by lowering
+            // the well. From interiors the plateau only starts the fit (as before).
+            let fit: &[&'static str] =
+                if well_basis(loc) == WellBasis::Cores { &["spread_px"] } else { &["full_well_fraction", "spread_px"] };
+            out.push(cand("blooming", "blooming", p, fit));
         }
         if let Some(mut p) = init("lens_flare") {
             let i = p.get("intensity");
@@ -192,6 +198,29 @@ pub fn candidates(pairs: &[Pair], loc: &Located) -> Vec<Candidate> {
         }
     }
     out
+}
+
+/// Where the blooming signature read the saturated plateau (its `well_basis` choice).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WellBasis {
+    /// Saturated regions deeper than the blur: the plateau initialises a free fit of the well.
+    Interior,
+    /// Only the cores of small saturated regions (pixels whose four neighbours are saturated),
+    /// no measurable blur: the well is held at their plateau.
+    Cores,
+    /// No saturated plateau at all: the data do not constrain the well.
+    Untestable,
+}
+
+pub fn well_basis(loc: &Located) -> WellBasis {
+    let basis = loc
+        .signature("blooming")
+        .and_then(|s| s.choices.iter().find(|(n, _)| n == "well_basis").map(|(_, v)| v.as_str()));
+    match basis {
+        Some("interior") => WellBasis::Interior,
+        Some("cores") => WellBasis::Cores,
+        _ => WellBasis::Untestable,
+    }
 }
 
 /// Pick up to `n` pairs evenly.
@@ -411,12 +440,32 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         step.dither = Some(loc.noise.clone());
         start.push(step);
     }
+    // Over-exposed sources (blooming signature): the ring their spilled charge lights is left out
+    // of the loss, with the hot pixels.
+    let halo_px = loc.signature("blooming").and_then(|s| s.param("halo_px"));
+    let skip: Vec<Vec<bool>> = fidx
+        .iter()
+        .map(|&k| {
+            let (hot, m) = (&loc.hot[k], &loc.masks[k]);
+            match halo_px {
+                Some(r) => {
+                    (0..hot.len()).map(|i| hot[i] || (m.dist_sat[i] > 0.5 && m.dist_sat[i] <= r as f32)).collect()
+                }
+                None => hot.clone(),
+            }
+        })
+        .collect();
+    if let Some(r) = halo_px {
+        notes.push(format!(
+            "over-exposed sources: pixels within {r:.0} px of saturated regions are left out of the forward-model fit (their halo is fed by charge the clipped sim does not hold)"
+        ));
+    }
     let mut ctx = FitCtx {
         inputs,
         seqs: fidx.iter().map(|&k| k as u64).collect(),
         loss: LossData::new(
             fidx.iter().map(|&k| &pairs[k]).collect(),
-            fidx.iter().map(|&k| loc.hot[k].as_slice()).collect(),
+            skip.iter().map(|v| v.as_slice()).collect(),
             fidx.iter()
                 .map(|&k| {
                     let m = &loc.masks[k];
@@ -480,6 +529,45 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             model_planes.push(select::apply_steps(&mut sel.steps, &p.sim_frame, k as u64, seed)?);
         }
     }
+    // The fitted model must not fit the images worse than the sim did: while the RMSE of the
+    // deterministic model against the real images is above that of the sim, the effect whose
+    // removal lowers it most is dropped (a significant robust-loss drop can come from a few
+    // pixels while every other pixel gets worse, e.g. a well lowered to feed a halo).
+    let rmse_before =
+        pairs.iter().map(|p| metrics_of(&p.sim_frame, &p.real_frame).rmse).sum::<f64>() / pairs.len().max(1) as f64;
+    let rmse_model = |planes: &[Vec<Plane>]| -> f64 {
+        pairs
+            .iter()
+            .zip(planes)
+            .map(|(p, m)| metrics_of(&frame_from_planes(m, &p.real_frame), &p.real_frame).rmse)
+            .sum::<f64>()
+            / pairs.len().max(1) as f64
+    };
+    let mut rmse_after = rmse_model(&model_planes);
+    while rmse_after > rmse_before && sel.steps.iter().any(|s| !s.fixed) {
+        let mut best: Option<(usize, f64, Vec<Vec<Plane>>)> = None;
+        for j in (0..sel.steps.len()).filter(|&j| !sel.steps[j].fixed) {
+            let mut trial: Vec<select::Step> =
+                sel.steps.iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s.boxed_clone()).collect();
+            let mut planes = Vec::with_capacity(pairs.len());
+            for (k, p) in pairs.iter().enumerate() {
+                planes.push(select::apply_steps(&mut trial, &p.sim_frame, k as u64, seed)?);
+            }
+            let r = rmse_model(&planes);
+            if best.as_ref().is_none_or(|b| r < b.1) {
+                best = Some((j, r, planes));
+            }
+        }
+        let Some((j, r, planes)) = best else { break };
+        let s = sel.steps.remove(j);
+        sel.evidence.remove(j);
+        sel.notes.push(format!(
+            "{}: dropped because the fitted model fitted the images worse than the sim (RMSE {rmse_after:.3} against {rmse_before:.3} DN; without it {r:.3} DN)",
+            s.label
+        ));
+        model_planes = planes;
+        rmse_after = r;
+    }
     notes.push(format!(
         "forward-model selection: {} candidates, {} loss evaluations on {} of {} pairs{}",
         cands.len(),
@@ -527,10 +615,31 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
                 sig_evidence = format!("{sig_evidence}; {}", t.evidence);
             }
         }
+        let mut canonical = canonical_of(&params);
+        if s.name == "blooming" && halo_px.is_some() {
+            for (n, v) in canonical.iter_mut() {
+                if n == "spread_px" {
+                    *v = serde_json::Value::Null;
+                }
+            }
+        }
+        if s.name == "blooming" && well_basis(loc) == WellBasis::Untestable {
+            // No saturated plateau: the fitted well only shapes the halo (it trades against the
+            // unknown excess of clipped sources), so no number is reported for it.
+            for (n, v) in canonical.iter_mut() {
+                if n == "full_well_fraction" {
+                    *v = serde_json::Value::Null;
+                }
+            }
+            sig_evidence = format!(
+                "{sig_evidence}; full_well_fraction untestable (null): no saturated plateau in the data, so the well is not constrained (fitted.toml keeps the value that shapes the halo, {:.3})",
+                params.get("full_well_fraction")
+            );
+        }
         results.push(FittedEffect {
             name: s.name,
             params: Some(params),
-            canonical: canonical_of(&params),
+            canonical,
             stderr,
             loss_before: ev.loss_without,
             loss_after: ev.loss_with,

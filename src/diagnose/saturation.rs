@@ -38,7 +38,22 @@ pub fn censored_mean_known_sigma(vals: &[f32], sigma: f64, q: f64) -> (f64, f64)
     (mu, sigma * sigma / (n * frac_obs))
 }
 
-/// Blooming: plateau level inside saturated regions and the halo around them.
+/// Depth (px, chamfer distance to the nearest unsaturated sim pixel) of the saturated "cores"
+/// on which the plateau is read when no saturated region has an interior: 1.3 keeps the pixels
+/// whose four neighbours are saturated too (a pixel on the rim may be partly covered).
+pub const CORE_DEPTH_PX: f32 = 1.3;
+/// Largest blur (σ, px, from the defocus signature) at which cores are trusted: a wider PSF
+/// mixes the surroundings into a core pixel and lowers it.
+pub const CORE_MAX_BLUR_PX: f64 = 0.5;
+/// Margin (DN) by which the halo at 1 px must exceed the sim's excess over the well to be read
+/// as over-exposure.
+pub const OVEREXPOSED_MARGIN_DN: f64 = 3.0;
+
+/// Blooming: plateau level inside saturated regions and the halo around them. The choice
+/// `well_basis` says where the plateau was read: `interior` (saturated regions deeper than the
+/// blur), `cores` (no interior, no measurable blur: pixels of small saturated regions whose four
+/// neighbours are saturated) or `untestable` (neither: the full well is not constrained by the
+/// data). The parameter `halo_px` is set when the sources are over-exposed (see below).
 pub fn blooming(
     pairs: &[Pair],
     masks: &[Masks],
@@ -49,34 +64,51 @@ pub fn blooming(
 ) -> Signature {
     let mut sig = Signature::new("blooming");
     let interior = (3.0 * blur_sigma).max(3.0) as f32 + 1.0;
-    let mut per_frame: Vec<(f64, f64, usize)> = Vec::new(); // (deficit, plateau, n)
-    let mut all_r: Vec<f64> = Vec::new();
-    let mut all_p: Vec<f64> = Vec::new();
-    for (k, p) in pairs.iter().enumerate() {
-        let m = &masks[k];
-        let mut rv = Vec::new();
-        let mut pv = Vec::new();
-        for c in 0..p.channels() {
-            let s = &p.sim[c].data;
-            for i in 0..s.len() {
-                if s[i] >= 254.5 && m.dist_in[i] >= interior {
-                    rv.push(p.real[c].data[i] as f64);
-                    pv.push((q[k][c].data[i] as f64).min(FS as f64));
+    let collect = |depth: f32, min_n: usize| {
+        let mut per_frame: Vec<(f64, f64, usize)> = Vec::new(); // (deficit, plateau, n)
+        let mut all_r: Vec<f64> = Vec::new();
+        let mut all_p: Vec<f64> = Vec::new();
+        for (k, p) in pairs.iter().enumerate() {
+            let m = &masks[k];
+            let mut rv = Vec::new();
+            let mut pv = Vec::new();
+            for c in 0..p.channels() {
+                let s = &p.sim[c].data;
+                for i in 0..s.len() {
+                    if s[i] >= 254.5 && m.dist_in[i] >= depth {
+                        rv.push(p.real[c].data[i] as f64);
+                        pv.push((q[k][c].data[i] as f64).min(FS as f64));
+                    }
                 }
             }
+            if rv.len() >= min_n {
+                let rm = stats::median(&rv);
+                let pm = stats::median(&pv);
+                per_frame.push((pm - rm, rm, rv.len()));
+                all_r.extend(&rv);
+                all_p.extend(&pv);
+            }
         }
-        if rv.len() >= 20 {
-            let rm = stats::median(&rv);
-            let pm = stats::median(&pv);
-            per_frame.push((pm - rm, rm, rv.len()));
-            all_r.extend(&rv);
-            all_p.extend(&pv);
+        (per_frame, all_r, all_p)
+    };
+    let (mut per_frame, mut all_r, mut all_p) = collect(interior, 20);
+    let mut basis = "interior";
+    if all_r.is_empty() && blur_sigma < CORE_MAX_BLUR_PX {
+        // Small saturated regions (glints, stars, reflectors): without a measurable blur, a pixel
+        // whose four neighbours are saturated too collects nothing from outside it, so it reads the
+        // well as an interior pixel does. A few pixels per frame, at least 20 in all.
+        (per_frame, all_r, all_p) = collect(CORE_DEPTH_PX, 3);
+        if all_r.len() < 20 {
+            all_r.clear();
         }
+        basis = "cores";
     }
     if all_r.is_empty() {
-        sig.evidence = "no saturated regions with an interior in the sim: blooming cannot be tested".into();
+        sig.evidence = "no saturated regions with an interior in the sim: the full well cannot be tested (no plateau to read it on)".into();
+        sig.choices.push(("well_basis".into(), "untestable".into()));
         return sig;
     }
+    sig.choices.push(("well_basis".into(), basis.into()));
     let rm = stats::median(&all_r);
     let pm = stats::median(&all_p);
     let deficit = pm - rm;
@@ -131,12 +163,28 @@ pub fn blooming(
         }
     }
     let spread = if m0 > 0.0 { ((m1 / m0) - 0.5).max(0.3) / (2.0 / std::f64::consts::PI).sqrt() } else { 1.0 };
+    // Over-exposure: one pixel's spilled excess cannot raise a neighbour by more than the excess
+    // itself. The sim, clipped at FS, holds at most FS - plateau above the well; a halo at 1 px
+    // well above that is fed by sources brighter than FS, which no effect applied to the sim can
+    // reproduce (blooming_overexposed_mono: 79 DN at 1 px for 20 DN). The halo's extent is then reported (`halo_px`: where it falls below 1 DN) so
+    // that the fit leaves that ring out instead of explaining it by something else.
+    let sim_excess = (FS as f64 - rm).max(0.0);
+    // Only with charge overflow shown by the plateau itself (a well measurably below FS; not the
+    // deficit against the model's prediction, which a gain fitted on the halo may pull down).
+    if sim_excess >= 1.0
+        && sim_excess / se >= 5.0
+        && prof[0].is_finite()
+        && prof[0] > sim_excess + OVEREXPOSED_MARGIN_DN
+    {
+        let r = prof.iter().position(|v| v.is_finite() && *v < 1.0).map(|i| i + 1).unwrap_or(D);
+        sig.set_param("halo_px", r as f64);
+    }
     let fwf = (rm / FS as f64).clamp(0.05, 1.0);
     sig.set_param("full_well_fraction", fwf);
     sig.set_param("spread_px", spread.clamp(0.3, 20.0));
     sig.stderr = vec![("full_well_fraction".into(), se / FS as f64)];
     sig.where_ = format!(
-        "{} saturated sim pixels (interior) in {} of {} frames and their surroundings",
+        "{} saturated sim pixels ({basis}) in {} of {} frames and their surroundings",
         all_r.len(),
         per_frame.len(),
         pairs.len()
@@ -145,6 +193,11 @@ pub fn blooming(
         "saturated plateau reads {rm:.1} DN where {pm:.1} DN is expected (deficit {deficit:.2} ± {se:.2} DN, z = {:.1}); halo {:.2} DN at 1 px, {:.2} DN at 3 px above the far field",
         sig.z, prof[0], prof[2]
     );
+    if let Some(r) = sig.param("halo_px") {
+        sig.evidence.push_str(&format!(
+            "; the halo exceeds the {sim_excess:.1} DN the clipped sim holds above the well: over-exposed sources (ring to {r:.0} px left out of the fit, spread_px untestable)"
+        ));
+    }
     sig.profiles.push(Profile {
         title: "blooming: residual against distance from saturated regions".into(),
         x_label: "distance from the saturated region (px)".into(),

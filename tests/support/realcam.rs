@@ -276,6 +276,10 @@ pub struct Scene {
     lab: Option<(f64, f64, f64)>,
     stars: Vec<(usize, usize, f64)>,
     pub glints: Vec<Glint>,
+    /// Irradiance of the glint cores in DN (FS by default; above FS they are over-exposed: the
+    /// sim, clipped at FS, cannot say by how much, but charge overflow in the real camera
+    /// spills what lies above the well).
+    pub glint_level: f64,
 }
 
 /// Per-frame pose: screen position of the body centre, rotation (rad), scale.
@@ -322,6 +326,7 @@ impl Scene {
             lab: None,
             stars,
             glints,
+            glint_level: FS,
         }
     }
 
@@ -433,7 +438,7 @@ impl Scene {
         for &(gx, gy, a, b) in glints {
             let e = ((x - gx) / a).powi(2) + ((y - gy) / b).powi(2);
             if e <= 1.0 {
-                col = [FS, FS, FS];
+                col = [self.glint_level; 3];
             } else {
                 let halo = 170.0 * (-(e.sqrt() - 1.0) * 1.6).exp();
                 for c in col.iter_mut() {
@@ -446,6 +451,16 @@ impl Scene {
 
     /// Render frame `i` of `n` in `fmt`: 3x3 supersampled, rounded and clipped to 8 bits.
     pub fn render(&self, i: usize, n: usize, fmt: Fmt) -> Img {
+        let mut img = self.render_irradiance(i, n, fmt);
+        for v in img.v.iter_mut() {
+            *v = v.clamp(0.0, FS);
+        }
+        img
+    }
+
+    /// Frame `i` of `n` as irradiance in DN: rounded like [`Self::render`] but not clipped at
+    /// FS (over-exposed glint cores keep their level; everything else is the rendered frame).
+    pub fn render_irradiance(&self, i: usize, n: usize, fmt: Fmt) -> Img {
         let p = self.pose(i, n);
         let glints: Vec<(f64, f64, f64, f64)> = self
             .glints
@@ -489,7 +504,7 @@ impl Scene {
             }
         }
         for v in img.v.iter_mut() {
-            *v = v.round().clamp(0.0, FS);
+            *v = v.round().max(0.0);
         }
         img
     }
@@ -1263,6 +1278,9 @@ pub struct Case {
     pub hidden: Vec<Hidden>,
     /// Unpaired case: the real frames show another scene (this seed) at other poses.
     pub real_scene_seed: Option<u64>,
+    /// Irradiance of the glint cores as a multiple of FS (1: just at full scale). Above 1 the
+    /// real camera sees the over-exposure the clipped sim hides.
+    pub glint_exposure: f64,
 }
 
 impl Case {
@@ -1272,7 +1290,16 @@ impl Case {
 
     /// The scene of this case with a given seed.
     pub fn scene(&self, seed: u64) -> Scene {
-        if self.lab { Scene::lab(self.w, self.h, seed) } else { Scene::new(self.w, self.h, seed, self.earth) }
+        let mut s =
+            if self.lab { Scene::lab(self.w, self.h, seed) } else { Scene::new(self.w, self.h, seed, self.earth) };
+        s.glint_level = FS * self.glint_exposure;
+        s
+    }
+
+    /// Same case with glint cores at `k`·FS in the real camera (the sim still clips them at FS).
+    pub fn overexposed(mut self, k: f64) -> Self {
+        self.glint_exposure = k;
+        self
     }
 
     /// Same case at another size and frame count.
@@ -1318,6 +1345,7 @@ impl Case {
             "seed": self.seed,
             "backdrop": if self.lab { "lab" } else if self.earth { "earth" } else { "space" },
             "unpaired_real_scene_seed": self.real_scene_seed,
+            "glint_exposure_fs": self.glint_exposure,
             "camera": {
                 "shot_noise": {"gain_e_per_dn": self.camera.gain_e_per_dn},
                 "gaussian_noise": {"sigma_dn": self.camera.read_sigma_dn},
@@ -1343,8 +1371,8 @@ impl Case {
             let mut rng = base.fork(i as u64);
             // Unpaired: the real camera looks at another scene, in reverse pose order.
             let real_in = match &real_scene {
-                Some(rs) => rs.render(self.frames - 1 - i, self.frames, self.fmt),
-                None => sim.clone(),
+                Some(rs) => rs.render_irradiance(self.frames - 1 - i, self.frames, self.fmt),
+                None => scene.render_irradiance(i, self.frames, self.fmt),
             };
             let real = expose(&real_in, &self.camera, &self.hidden, &fp, &mut rng);
             let name = format!("frame_{i:02}.png");
@@ -1369,6 +1397,7 @@ fn case(name: &str, fmt: Fmt, seed: u64, earth: bool, gain: f64, read: f64, hidd
         camera: Camera { gain_e_per_dn: gain, read_sigma_dn: read },
         hidden,
         real_scene_seed: None,
+        glint_exposure: 1.0,
     }
 }
 
@@ -1430,6 +1459,18 @@ pub fn corpus() -> Vec<Case> {
         case("smear_rgb", Rgb8, 210, false, 6.0, 1.5, vec![Smear { strength: 0.004, vertical: true }]),
         case("smear_horizontal_mono", Mono8, 225, false, 6.0, 1.5, vec![Smear { strength: 0.01, vertical: false }]),
         case("blooming_mono", Mono8, 226, false, 6.0, 1.5, vec![Blooming { full_well: 0.94, decay_px: 1.0 }]),
+        // Glint cores at 2x full scale: the sim clips them, so the spilled charge is not the sim's
+        // excess over the well, and the glints (2-4 px) have no saturated interior.
+        case(
+            "blooming_overexposed_mono",
+            Mono8,
+            232,
+            false,
+            6.0,
+            1.5,
+            vec![Blooming { full_well: 0.92, decay_px: 1.0 }],
+        )
+        .overexposed(2.0),
         case("prnu_mono", Mono8, 211, true, 10.0, 1.2, vec![Prnu { sigma: 0.02 }]),
         case("prnu_rgb", Rgb8, 212, true, 8.0, 1.5, vec![Prnu { sigma: 0.025 }]),
         case(
@@ -1530,6 +1571,16 @@ pub fn corpus() -> Vec<Case> {
             1.5,
             vec![Blooming { full_well: 0.94, decay_px: 1.0 }, Smear { strength: 0.005, vertical: true }],
         ),
+        case(
+            "blooming_smear_overexposed_mono",
+            Mono8,
+            310,
+            false,
+            6.0,
+            1.5,
+            vec![Blooming { full_well: 0.93, decay_px: 1.2 }, Smear { strength: 0.003, vertical: true }],
+        )
+        .overexposed(2.0),
     ]
 }
 
