@@ -12,7 +12,8 @@
 //! 3. the pixels are copied into a reused faultcam frame (BGR is swapped to RGB and back, so
 //!    colour effects keep their meaning), the chain runs, and the result is copied back;
 //! 4. a frame dropped by an effect (`frame_drop`, a held `reorder`/`frame_freeze` frame) is
-//!    dropped from the stream; a temporal delay (`frame_delay`, `jitter`) is added to the PTS;
+//!    dropped from the stream (frames `reorder` still holds at EOS are pushed before the EOS);
+//!    a temporal delay (`frame_delay`, `jitter`) is added to the PTS;
 //! 5. the ground-truth log (`log`) gets the frame's record and the controller's events, masks
 //!    (`masks`) are written as `frame_NNNNNN.*`, and an element message named
 //!    [`MESSAGE_NAME`] is posted on the bus with what was applied (`post-messages`).
