@@ -469,6 +469,43 @@ fn scalar_avx2_and_avx512_kernels_give_the_same_bytes() {
     assert_eq!(fast, scalar, "{fast_k} vs {scalar_k}");
 }
 
+/// Blooming where saturation covers every tile (`--scene ramp`: diagonal ramps, about a fifth
+/// of the samples over the well, the breadth-first fill busy across the frame): the same bytes
+/// with the fastest kernels, `FAULTCAM_NO_AVX512` and `FAULTCAM_NO_SIMD`, on 1 and 2 threads.
+#[test]
+fn blooming_on_dense_saturation_gives_the_same_bytes_on_every_path_and_thread_count() {
+    let digests = |env: Option<&str>| -> Vec<String> {
+        let mut cmd = faultcam();
+        cmd.env_remove("FAULTCAM_NO_AVX512").env_remove("FAULTCAM_NO_SIMD");
+        if let Some(var) = env {
+            cmd.env(var, "1");
+        }
+        let out = cmd
+            .args(["bench", "--effect", "blooming", "--set", "blooming.full_well_fraction=0.95"])
+            .args(["--set", "blooming.exposure_gain=1.2", "--set", "blooming.spread_px=2", "--scene", "ramp"])
+            .args(["--size", "333x203", "--format", "mono8,rgb8,mono16", "--threads", "1,2"])
+            .args(["--frames", "2", "--warmup", "0"])
+            .assert()
+            .success()
+            .get_output()
+            .stdout
+            .clone();
+        String::from_utf8(out)
+            .unwrap()
+            .lines()
+            .filter(|l| l.trim_start().starts_with("blooming"))
+            .map(|l| l.split_whitespace().last().unwrap().to_string())
+            .collect()
+    };
+    let fast = digests(None);
+    // 3 formats x 2 thread counts, each with a digest; the formats differ.
+    assert_eq!(fast.len(), 6, "{fast:?}");
+    assert!(fast.iter().all(|d| d.len() == 16 && d.bytes().all(|b| b.is_ascii_hexdigit())), "{fast:?}");
+    assert!(fast[0] == fast[1] && fast[0] != fast[2], "{fast:?}");
+    assert_eq!(fast, digests(Some("FAULTCAM_NO_AVX512")));
+    assert_eq!(fast, digests(Some("FAULTCAM_NO_SIMD")));
+}
+
 /// The blurs at strengths that take the sigma-independent paths (defocus box cascade) and the
 /// FIR paths: the same bytes with the fastest kernels, `FAULTCAM_NO_AVX512` and `FAULTCAM_NO_SIMD`.
 #[test]

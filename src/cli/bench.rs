@@ -44,8 +44,9 @@ pub struct Args {
     #[arg(long, value_delimiter = ',', default_value = "1")]
     pub threads: Vec<usize>,
     /// Input scene: spacecraft (the `synth:` source's procedural spacecraft, small saturated
-    /// glints: representative) or stress (a large bright body that overflows the well over wide
-    /// areas when over-exposed).
+    /// glints: representative), stress (a large bright body that overflows the well over wide
+    /// areas when over-exposed) or ramp (diagonal ramps: bands of saturation across every tile,
+    /// blooming's worst case).
     #[arg(long, default_value = "spacecraft")]
     pub scene: String,
     /// Measured frames per case.
@@ -285,7 +286,7 @@ pub fn run(a: Args) -> anyhow::Result<u8> {
         bail!("--threads must be at least 1");
     }
     let scene = Scene::parse(&a.scene)
-        .with_context(|| format!("--scene {} is not accepted; expected spacecraft or stress", a.scene))?;
+        .with_context(|| format!("--scene {} is not accepted; expected spacecraft, stress or ramp", a.scene))?;
     let host = std::thread::available_parallelism().map_or(1, |n| n.get());
     println!(
         "faultcam bench: {} scene, {} measured frames (+{} warm-up) per case; wall ms per frame; {} cores on this host{}",

@@ -611,6 +611,11 @@ pub enum Scene {
     /// [`bench_scene`]: a large bright textured body that overflows the full well over wide areas
     /// when over-exposed (a stress case for blooming).
     Stress,
+    /// Diagonal ramps, `v = (x + y) mod 256` (x 257 for 16-bit; RGB channels shifted by 85):
+    /// bands of saturation across every part of the frame (about a fifth of the samples over
+    /// the original chain's blooming well): the worst case for blooming's sparse tiles, the
+    /// frames `scripts/soak/feeder.py` falls back to.
+    Ramp,
 }
 
 impl Scene {
@@ -618,6 +623,7 @@ impl Scene {
         match s {
             "spacecraft" | "synth" => Some(Scene::Spacecraft),
             "stress" | "bench" => Some(Scene::Stress),
+            "ramp" => Some(Scene::Ramp),
             _ => None,
         }
     }
@@ -625,12 +631,25 @@ impl Scene {
         match self {
             Scene::Spacecraft => "spacecraft",
             Scene::Stress => "stress",
+            Scene::Ramp => "ramp",
         }
     }
     /// Render the scene (deterministic in size and format).
     pub fn render(self, width: u32, height: u32, format: PixelFormat) -> Result<Frame, crate::frame::FrameError> {
         match self {
             Scene::Stress => bench_scene(width, height, format, 1),
+            Scene::Ramp => {
+                let mut f = Frame::new(width, height, format)?;
+                let ch = format.channels();
+                for y in 0..height as usize {
+                    for x in 0..width as usize {
+                        for c in 0..ch {
+                            f.set(x, y, c, ((x + y + 85 * c) % 256) as f32 * format.full_scale() / 255.0);
+                        }
+                    }
+                }
+                Ok(f)
+            }
             // The synth source needs at least 16x16 pixels.
             Scene::Spacecraft if width < 16 || height < 16 => bench_scene(width, height, format, 1),
             Scene::Spacecraft => {
