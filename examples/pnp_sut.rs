@@ -42,12 +42,16 @@
 use faultcam::frame::{Frame, FrameData, PixelFormat};
 use faultcam::pose::quat_from_matrix;
 use faultcam::source::synth::{Pose as SynthPose, SynthConfig, SynthSource};
+use faultcam::sweep::live::sut;
 use opencv::calib3d;
 use opencv::core::{self, Mat, Point2d, Point3d, TermCriteria, Vector};
 use opencv::imgproc;
 use opencv::prelude::*;
-use rayon::prelude::*;
-use std::path::{Path, PathBuf};
+use std::path::Path;
+
+#[path = "support/blur.rs"]
+mod blur;
+use blur::box_blur;
 
 /// Pinhole intrinsics in pixels (OpenCV convention).
 #[derive(Clone, Copy, Debug)]
@@ -298,22 +302,6 @@ fn synth_angles(r: &[[f64; 3]; 3]) -> (f64, f64, f64) {
     (yaw.to_degrees(), pitch.to_degrees(), roll.to_degrees())
 }
 
-fn box_blur(img: &mut [f32], tmp: &mut Vec<f32>, w: usize, h: usize, r: usize) {
-    tmp.resize(w * h, 0.0);
-    for y in 0..h {
-        for x in 0..w {
-            let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
-            tmp[y * w + x] = img[y * w + a..=y * w + b].iter().sum::<f32>() / (b - a + 1) as f32;
-        }
-    }
-    for y in 0..h {
-        let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
-        for x in 0..w {
-            img[y * w + x] = (a..=b).map(|yy| tmp[yy * w + x]).sum::<f32>() / (b - a + 1) as f32;
-        }
-    }
-}
-
 /// Step 4: renders candidates with the spacecraft model and correlates them with the image.
 struct Verifier {
     w: usize,
@@ -443,75 +431,14 @@ fn estimate(path: &Path, cam: Option<Camera>) -> Option<([f64; 4], [f64; 3])> {
 }
 
 /// Intrinsics from a `{camera}` JSON file (empty path or unreadable: none).
-fn camera_of(path: Option<&String>) -> Option<Camera> {
-    let p = path.filter(|s| !s.is_empty())?;
-    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(p).ok()?).ok()?;
+fn camera_of(path: Option<&str>) -> Option<Camera> {
+    let v = sut::camera_json(path)?;
     let g = |k: &str| v.get(k).and_then(|x| x.as_f64());
     Some(Camera { fx: g("fx")?, fy: g("fy")?, cx: g("cx")?, cy: g("cy")? })
-}
-
-/// Live mode: one report per new frame file, until stdin closes.
-fn live(in_dir: &str, report: &str, cam: Option<Camera>) -> Result<(), String> {
-    use faultcam::sweep::live::sut::{FolderWatch, Reporter, seq_of_name, stdin_closed};
-    let mut out = Reporter::open(report)?;
-    let done = stdin_closed();
-    let mut watch = FolderWatch::new(in_dir);
-    loop {
-        let last = done.load(std::sync::atomic::Ordering::Relaxed);
-        for p in watch.poll() {
-            let Some(seq) = p.file_name().and_then(|n| n.to_str()).and_then(seq_of_name) else { continue };
-            out.send(seq, estimate(&p, cam))?;
-        }
-        if last {
-            return Ok(());
-        }
-        std::thread::sleep(std::time::Duration::from_millis(2));
-    }
 }
 
 fn main() -> std::process::ExitCode {
     // OpenCV's own threads add nothing here (small calls; batch mode is parallel over files).
     let _ = core::set_num_threads(1);
-    let args: Vec<String> = std::env::args().collect();
-    if args.get(1).map(String::as_str) == Some("--live") && (4..=5).contains(&args.len()) {
-        return match live(&args[2], &args[3], camera_of(args.get(4))) {
-            Ok(()) => std::process::ExitCode::SUCCESS,
-            Err(e) => {
-                eprintln!("pnp_sut: {e}");
-                std::process::ExitCode::from(2)
-            }
-        };
-    }
-    if !(3..=4).contains(&args.len()) {
-        eprintln!("usage: pnp_sut IN_DIR OUT_FILE [CAMERA_JSON] | pnp_sut --live IN_DIR REPORT [CAMERA_JSON]");
-        return std::process::ExitCode::from(2);
-    }
-    let (in_dir, out_file) = (PathBuf::from(&args[1]), PathBuf::from(&args[2]));
-    let cam = camera_of(args.get(3));
-    let mut files: Vec<PathBuf> = match std::fs::read_dir(&in_dir) {
-        Ok(rd) => rd.filter_map(|e| e.ok().map(|e| e.path())).collect(),
-        Err(e) => {
-            eprintln!("pnp_sut: {}: {e}", in_dir.display());
-            return std::process::ExitCode::from(2);
-        }
-    };
-    files.retain(|p| {
-        p.extension()
-            .and_then(|e| e.to_str())
-            .is_some_and(|e| ["png", "jpg", "jpeg", "pgm", "ppm", "tif", "tiff"].contains(&e))
-    });
-    files.sort();
-    let poses: Vec<_> = files.par_iter().map(|p| estimate(p, cam)).collect();
-    let mut out = String::new();
-    for (p, pose) in files.iter().zip(&poses) {
-        let Some((q, t)) = pose else { continue };
-        let name = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
-        out += &serde_json::json!({"file": name, "q": q, "t": t}).to_string();
-        out.push('\n');
-    }
-    if let Err(e) = std::fs::write(&out_file, out) {
-        eprintln!("pnp_sut: {}: {e}", out_file.display());
-        return std::process::ExitCode::from(2);
-    }
-    std::process::ExitCode::SUCCESS
+    sut::main("pnp_sut", camera_of, estimate)
 }

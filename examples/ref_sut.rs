@@ -32,8 +32,12 @@
 use faultcam::frame::{Frame, FrameData, PixelFormat};
 use faultcam::pose::quat_from_matrix;
 use faultcam::source::synth::{Pose, SynthConfig, SynthSource};
-use rayon::prelude::*;
-use std::path::{Path, PathBuf};
+use faultcam::sweep::live::sut;
+use std::path::Path;
+
+#[path = "support/blur.rs"]
+mod blur;
+use blur::box_blur;
 
 const FG_DN: f32 = 8.0;
 
@@ -47,25 +51,6 @@ struct Level {
     frame: Frame,
     tmp: Vec<f32>,
     tmp2: Vec<f32>,
-}
-
-fn box_blur(img: &mut [f32], tmp: &mut Vec<f32>, w: usize, h: usize, r: usize) {
-    if r == 0 {
-        return;
-    }
-    tmp.resize(w * h, 0.0);
-    for y in 0..h {
-        for x in 0..w {
-            let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
-            tmp[y * w + x] = img[y * w + a..=y * w + b].iter().sum::<f32>() / (b - a + 1) as f32;
-        }
-    }
-    for y in 0..h {
-        let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
-        for x in 0..w {
-            img[y * w + x] = (a..=b).map(|yy| tmp[yy * w + x]).sum::<f32>() / (b - a + 1) as f32;
-        }
-    }
 }
 
 impl Level {
@@ -222,10 +207,8 @@ fn estimate(path: &Path, fov_deg: f64) -> Option<Pose> {
 }
 
 /// The camera's fx from a `{camera}` JSON file (empty path or unreadable: none).
-fn camera_fx(path: Option<&String>) -> Option<f64> {
-    let p = path.filter(|s| !s.is_empty())?;
-    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(p).ok()?).ok()?;
-    v.get("fx")?.as_f64()
+fn camera_fx(path: Option<&str>) -> Option<f64> {
+    sut::camera_json(path)?.get("fx")?.as_f64()
 }
 
 /// Estimate one image: field of view from fx and the image width (synth default without fx).
@@ -235,70 +218,8 @@ fn estimate_file(p: &Path, fx: Option<f64>) -> Option<Pose> {
     estimate(p, fov)
 }
 
-/// Live mode: one report per new frame file, until stdin closes.
-fn live(in_dir: &str, report: &str, fx: Option<f64>) -> Result<(), String> {
-    use faultcam::sweep::live::sut::{FolderWatch, Reporter, seq_of_name, stdin_closed};
-    let mut out = Reporter::open(report)?;
-    let done = stdin_closed();
-    let mut watch = FolderWatch::new(in_dir);
-    loop {
-        let last = done.load(std::sync::atomic::Ordering::Relaxed);
-        for p in watch.poll() {
-            let Some(seq) = p.file_name().and_then(|n| n.to_str()).and_then(seq_of_name) else { continue };
-            let pose =
-                estimate_file(&p, fx).map(|pose| (quat_from_matrix(&pose.rotation()), [0.0, 0.0, pose.distance_m]));
-            out.send(seq, pose)?;
-        }
-        if last {
-            return Ok(());
-        }
-        std::thread::sleep(std::time::Duration::from_millis(2));
-    }
-}
-
 fn main() -> std::process::ExitCode {
-    let args: Vec<String> = std::env::args().collect();
-    if args.get(1).map(String::as_str) == Some("--live") && (4..=5).contains(&args.len()) {
-        return match live(&args[2], &args[3], camera_fx(args.get(4))) {
-            Ok(()) => std::process::ExitCode::SUCCESS,
-            Err(e) => {
-                eprintln!("ref_sut: {e}");
-                std::process::ExitCode::from(2)
-            }
-        };
-    }
-    if args.len() < 3 {
-        eprintln!("usage: ref_sut IN_DIR OUT_FILE [CAMERA_JSON] | ref_sut --live IN_DIR REPORT [CAMERA_JSON]");
-        return std::process::ExitCode::from(2);
-    }
-    let (in_dir, out_file) = (PathBuf::from(&args[1]), PathBuf::from(&args[2]));
-    // Field of view from the camera's fx and the image width (fixed per folder).
-    let fx = camera_fx(args.get(3));
-    let mut files: Vec<PathBuf> = match std::fs::read_dir(&in_dir) {
-        Ok(rd) => rd.filter_map(|e| e.ok().map(|e| e.path())).collect(),
-        Err(e) => {
-            eprintln!("ref_sut: {}: {e}", in_dir.display());
-            return std::process::ExitCode::from(2);
-        }
-    };
-    files.retain(|p| {
-        p.extension()
-            .and_then(|e| e.to_str())
-            .is_some_and(|e| ["png", "jpg", "jpeg", "pgm", "ppm", "tif", "tiff"].contains(&e))
-    });
-    files.sort();
-    let poses: Vec<Option<Pose>> = files.par_iter().map(|p| estimate_file(p, fx)).collect();
-    let mut out = String::new();
-    for (p, pose) in files.iter().zip(&poses) {
-        let Some(pose) = pose else { continue };
-        let q = quat_from_matrix(&pose.rotation());
-        let name = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
-        out += &serde_json::json!({"file": name, "q": q, "t": [0.0, 0.0, pose.distance_m]}).to_string();
-        out.push('\n');
-    }
-    if let Err(e) = std::fs::write(&out_file, out) {
-        eprintln!("ref_sut: {}: {e}", out_file.display());
-        return std::process::ExitCode::from(2);
-    }
-    std::process::ExitCode::SUCCESS
+    sut::main("ref_sut", camera_fx, |p, fx| {
+        estimate_file(p, fx).map(|pose| (quat_from_matrix(&pose.rotation()), [0.0, 0.0, pose.distance_m]))
+    })
 }

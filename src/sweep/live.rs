@@ -728,6 +728,93 @@ pub mod sut {
             }
         }
     }
+
+    /// A pose estimate: `(q, t)` in the sweep's convention, or `None` (no pose found).
+    pub type Estimate = Option<([f64; 4], [f64; 3])>;
+
+    /// Extensions of the images a SUT reads from a sink folder.
+    const IMAGE_EXTS: [&str; 7] = ["png", "jpg", "jpeg", "pgm", "ppm", "tif", "tiff"];
+
+    /// The `{camera}` JSON file a sweep passes (`{"fx","fy","cx","cy"}`; an empty path or an
+    /// unreadable file: none).
+    pub fn camera_json(path: Option<&str>) -> Option<serde_json::Value> {
+        let p = path.filter(|s| !s.is_empty())?;
+        serde_json::from_slice(&std::fs::read(p).ok()?).ok()
+    }
+
+    /// Batch mode: estimate every image of `in_dir` (sorted by name, in parallel) and write one
+    /// `{"file":..,"q":..,"t":..}` line per image with a pose to `out_file`.
+    pub fn run_batch(
+        in_dir: &std::path::Path,
+        out_file: &std::path::Path,
+        estimate: impl Fn(&std::path::Path) -> Estimate + Sync,
+    ) -> Result<(), String> {
+        use rayon::prelude::*;
+        let rd = std::fs::read_dir(in_dir).map_err(|e| format!("{}: {e}", in_dir.display()))?;
+        let mut files: Vec<PathBuf> = rd.filter_map(|e| e.ok().map(|e| e.path())).collect();
+        files.retain(|p| p.extension().and_then(|e| e.to_str()).is_some_and(|e| IMAGE_EXTS.contains(&e)));
+        files.sort();
+        let poses: Vec<Estimate> = files.par_iter().map(|p| estimate(p)).collect();
+        let mut out = String::new();
+        for (p, pose) in files.iter().zip(&poses) {
+            let Some((q, t)) = pose else { continue };
+            let name = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
+            out += &serde_json::json!({"file": name, "q": q, "t": t}).to_string();
+            out.push('\n');
+        }
+        std::fs::write(out_file, out).map_err(|e| format!("{}: {e}", out_file.display()))
+    }
+
+    /// Live mode: one report per new `frame_NNNNNN` file of `in_dir` to `report` (see
+    /// [`Reporter::open`]), until standard input closes.
+    pub fn run_live(in_dir: &str, report: &str, estimate: impl Fn(&std::path::Path) -> Estimate) -> Result<(), String> {
+        let mut out = Reporter::open(report)?;
+        let done = stdin_closed();
+        let mut watch = FolderWatch::new(in_dir);
+        loop {
+            let last = done.load(Ordering::Relaxed);
+            for p in watch.poll() {
+                let Some(seq) = p.file_name().and_then(|n| n.to_str()).and_then(seq_of_name) else { continue };
+                out.send(seq, estimate(&p))?;
+            }
+            if last {
+                return Ok(());
+            }
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+    }
+
+    /// The command line of an image-based SUT: `NAME IN_DIR OUT_FILE [CAMERA_JSON]` (batch) or
+    /// `NAME --live IN_DIR REPORT [CAMERA_JSON]`; `camera` turns the camera file into what
+    /// `estimate` needs. Exit code 2 with a message on a usage or I/O error.
+    pub fn main<C: Copy + Sync>(
+        name: &str,
+        camera: impl Fn(Option<&str>) -> C,
+        estimate: impl Fn(&std::path::Path, C) -> Estimate + Sync,
+    ) -> std::process::ExitCode {
+        let args: Vec<String> = std::env::args().collect();
+        let live = args.get(1).map(String::as_str) == Some("--live");
+        let result = match (live, args.len()) {
+            (true, 4..=5) => {
+                let cam = camera(args.get(4).map(String::as_str));
+                run_live(&args[2], &args[3], |p| estimate(p, cam))
+            }
+            (false, 3..=4) => {
+                let cam = camera(args.get(3).map(String::as_str));
+                run_batch(args[1].as_ref(), args[2].as_ref(), |p| estimate(p, cam))
+            }
+            _ => {
+                Err(format!("usage: {name} IN_DIR OUT_FILE [CAMERA_JSON] | {name} --live IN_DIR REPORT [CAMERA_JSON]"))
+            }
+        };
+        match result {
+            Ok(()) => std::process::ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("{name}: {e}");
+                std::process::ExitCode::from(2)
+            }
+        }
+    }
 }
 
 #[cfg(test)]
