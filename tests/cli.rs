@@ -425,6 +425,29 @@ fn bench_prints_latency_percentiles_and_the_same_digest_on_one_and_two_threads()
     faultcam().args(["bench", "--effect", "nope"]).assert().code(2);
 }
 
+/// `faultcam bench ARGS` with the kernel set `env` names (`FAULTCAM_NO_AVX512`,
+/// `FAULTCAM_NO_SIMD`, or `None`: the fastest this CPU has); its standard output.
+fn bench_on_kernels(env: Option<&str>, args: &[&str]) -> String {
+    let mut cmd = faultcam();
+    cmd.env_remove("FAULTCAM_NO_AVX512").env_remove("FAULTCAM_NO_SIMD");
+    if let Some(var) = env {
+        cmd.env(var, "1");
+    }
+    let out = cmd.arg("bench").args(args).assert().success().get_output().stdout.clone();
+    String::from_utf8(out).unwrap()
+}
+
+/// The rows of a `faultcam bench` output that end in an output digest: (first word, digest).
+fn bench_digests(text: &str) -> Vec<(String, String)> {
+    text.lines()
+        .filter_map(|l| {
+            let d = l.split_whitespace().last()?;
+            (d.len() == 16 && d.bytes().all(|b| b.is_ascii_hexdigit()))
+                .then(|| (l.split_whitespace().next().unwrap().to_string(), d.to_string()))
+        })
+        .collect()
+}
+
 /// Every kernel set gives the same bytes: the chain and every effect alone, in each format, with
 /// the fastest kernels this CPU has, with `FAULTCAM_NO_AVX512` (AVX2 on an AVX-512 machine) and
 /// with `FAULTCAM_NO_SIMD` (the scalar references), compared digest by digest. The frame size is
@@ -432,29 +455,14 @@ fn bench_prints_latency_percentiles_and_the_same_digest_on_one_and_two_threads()
 #[test]
 fn scalar_avx2_and_avx512_kernels_give_the_same_bytes() {
     let run = |env: Option<&str>| -> (String, Vec<String>) {
-        let mut cmd = faultcam();
-        cmd.env_remove("FAULTCAM_NO_AVX512").env_remove("FAULTCAM_NO_SIMD");
-        if let Some(var) = env {
-            cmd.env(var, "1");
-        }
-        let out = cmd
-            .args(["bench", "--faults", "hil/campaigns/original8.toml", "--all-effects", "--size", "333x203"])
-            .args(["--format", "mono8,rgb8,mono16", "--frames", "2", "--warmup", "0", "--scene", "stress"])
-            .assert()
-            .success()
-            .get_output()
-            .stdout
-            .clone();
-        let text = String::from_utf8(out).unwrap();
+        let args = [
+            ["--faults", "hil/campaigns/original8.toml", "--all-effects"].as_slice(),
+            &["--size", "333x203", "--format", "mono8,rgb8,mono16"],
+            &["--frames", "2", "--warmup", "0", "--scene", "stress"],
+        ];
+        let text = bench_on_kernels(env, &args.concat());
         let kernels = text.lines().find(|l| l.starts_with("CPU: ")).expect("CPU line").to_string();
-        let rows: Vec<String> = text
-            .lines()
-            .filter_map(|l| {
-                let d = l.split_whitespace().last()?;
-                (d.len() == 16 && d.bytes().all(|b| b.is_ascii_hexdigit()))
-                    .then(|| format!("{} {d}", l.split_whitespace().next().unwrap()))
-            })
-            .collect();
+        let rows = bench_digests(&text).into_iter().map(|(name, d)| format!("{name} {d}")).collect();
         (kernels, rows)
     };
     let (fast_k, fast) = run(None);
@@ -475,27 +483,14 @@ fn scalar_avx2_and_avx512_kernels_give_the_same_bytes() {
 #[test]
 fn blooming_on_dense_saturation_gives_the_same_bytes_on_every_path_and_thread_count() {
     let digests = |env: Option<&str>| -> Vec<String> {
-        let mut cmd = faultcam();
-        cmd.env_remove("FAULTCAM_NO_AVX512").env_remove("FAULTCAM_NO_SIMD");
-        if let Some(var) = env {
-            cmd.env(var, "1");
-        }
-        let out = cmd
-            .args(["bench", "--effect", "blooming", "--set", "blooming.full_well_fraction=0.95"])
-            .args(["--set", "blooming.exposure_gain=1.2", "--set", "blooming.spread_px=2", "--scene", "ramp"])
-            .args(["--size", "333x203", "--format", "mono8,rgb8,mono16", "--threads", "1,2"])
-            .args(["--frames", "2", "--warmup", "0"])
-            .assert()
-            .success()
-            .get_output()
-            .stdout
-            .clone();
-        String::from_utf8(out)
-            .unwrap()
-            .lines()
-            .filter(|l| l.trim_start().starts_with("blooming"))
-            .map(|l| l.split_whitespace().last().unwrap().to_string())
-            .collect()
+        let args = [
+            ["--effect", "blooming", "--set", "blooming.full_well_fraction=0.95"].as_slice(),
+            &["--set", "blooming.exposure_gain=1.2", "--set", "blooming.spread_px=2", "--scene", "ramp"],
+            &["--size", "333x203", "--format", "mono8,rgb8,mono16", "--threads", "1,2"],
+            &["--frames", "2", "--warmup", "0"],
+        ];
+        let text = bench_on_kernels(env, &args.concat());
+        bench_digests(&text).into_iter().filter(|(name, _)| name == "blooming").map(|(_, d)| d).collect()
     };
     let fast = digests(None);
     // 3 formats x 2 thread counts, each with a digest; the formats differ.
@@ -524,39 +519,9 @@ fn blur_kernels_give_the_same_bytes_on_every_path() {
     ];
     for case in cases {
         let run = |env: Option<&str>| -> Vec<String> {
-            let mut cmd = faultcam();
-            cmd.env_remove("FAULTCAM_NO_AVX512").env_remove("FAULTCAM_NO_SIMD");
-            if let Some(var) = env {
-                cmd.env(var, "1");
-            }
-            let out = cmd
-                .arg("bench")
-                .args(*case)
-                .args([
-                    "--size",
-                    "333x203",
-                    "--format",
-                    "mono8,rgb8",
-                    "--frames",
-                    "1",
-                    "--warmup",
-                    "0",
-                    "--scene",
-                    "stress",
-                ])
-                .assert()
-                .success()
-                .get_output()
-                .stdout
-                .clone();
-            String::from_utf8(out)
-                .unwrap()
-                .lines()
-                .filter_map(|l| {
-                    let d = l.split_whitespace().last()?;
-                    (d.len() == 16 && d.bytes().all(|b| b.is_ascii_hexdigit())).then(|| d.to_string())
-                })
-                .collect()
+            let size = ["--size", "333x203", "--format", "mono8,rgb8", "--frames", "1", "--warmup", "0"];
+            let text = bench_on_kernels(env, &[*case, &size, &["--scene", "stress"]].concat());
+            bench_digests(&text).into_iter().map(|(_, d)| d).collect()
         };
         let fast = run(None);
         assert_eq!(fast.len(), 2, "{case:?}: {fast:?}");
