@@ -108,6 +108,53 @@ fn copy_out(frame: &Frame, dst: &mut [u8], stride: usize, bgr: bool) -> Result<(
     Ok(())
 }
 
+/// Why the chain's output `frame` cannot go into a buffer of the negotiated layout (a temporal
+/// effect may hand out a frame of another size), or `None` when it fits.
+fn layout_mismatch(frame: &Frame, info: &gst_video::VideoInfo, format: PixelFormat) -> Option<String> {
+    (frame.width != info.width() || frame.height != info.height() || frame.format != format).then(|| {
+        format!(
+            "the chain returned a {}x{} {} frame for a {}x{} {} stream",
+            frame.width,
+            frame.height,
+            frame.format,
+            info.width(),
+            info.height(),
+            format
+        )
+    })
+}
+
+/// A frame's log status: failed on an error, else what the chain decided.
+fn status_of(failed: bool, outcome: Outcome) -> FrameStatus {
+    match (failed, outcome) {
+        (true, _) => FrameStatus::Failed,
+        (false, Outcome::Drop) => FrameStatus::DroppedByFault,
+        (false, Outcome::Keep) => FrameStatus::Delivered,
+    }
+}
+
+/// A new buffer holding a drained frame, laid out as the negotiated caps say.
+fn drained_buffer(
+    frame: &Frame,
+    info: &gst_video::VideoInfo,
+    bgr: bool,
+    format: PixelFormat,
+) -> Result<gst::Buffer, String> {
+    if let Some(e) = layout_mismatch(frame, info, format) {
+        return Err(e);
+    }
+    let mut buf = gst::Buffer::with_size(info.size()).map_err(|e| format!("cannot allocate a buffer: {e}"))?;
+    {
+        let b = buf.get_mut().ok_or("new buffer not writable")?;
+        let mut vf = gst_video::VideoFrameRef::from_buffer_ref_writable(b, info)
+            .map_err(|_| "cannot map the new buffer".to_string())?;
+        let stride = vf.plane_stride()[0] as usize;
+        let data = vf.plane_data_mut(0).map_err(|e| e.to_string())?;
+        copy_out(frame, data, stride, bgr).map_err(|e| e.to_string())?;
+    }
+    Ok(buf)
+}
+
 mod imp {
     use super::*;
 
@@ -335,7 +382,7 @@ mod imp {
                 let mut out = None;
                 if outcome == Outcome::Keep && error.is_none() {
                     // allocation: end of stream only (one buffer per held frame).
-                    match self.drained_buffer(&frame, &info, st.bgr, st.format) {
+                    match drained_buffer(&frame, &info, st.bgr, st.format) {
                         Ok(mut b) => {
                             if let Some(b) = b.get_mut() {
                                 b.set_pts(pts.map(gst::ClockTime::from_nseconds));
@@ -353,11 +400,7 @@ mod imp {
                 {
                     error = Some(format!("downstream refused the held frame at EOS: {flow:?}"));
                 }
-                let status = match (&error, outcome) {
-                    (Some(_), _) => FrameStatus::Failed,
-                    (None, Outcome::Drop) => FrameStatus::DroppedByFault,
-                    (None, Outcome::Keep) => FrameStatus::Delivered,
-                };
+                let status = status_of(error.is_some(), outcome);
                 let mut guard = self.state.lock().unwrap();
                 let Some(st) = guard.as_mut() else { return };
                 let (log_error, msg) =
@@ -371,37 +414,6 @@ mod imp {
                     return;
                 }
             }
-        }
-
-        /// A new buffer holding a drained frame, laid out as the negotiated caps say.
-        fn drained_buffer(
-            &self,
-            frame: &Frame,
-            info: &gst_video::VideoInfo,
-            bgr: bool,
-            format: PixelFormat,
-        ) -> Result<gst::Buffer, String> {
-            if frame.width != info.width() || frame.height != info.height() || frame.format != format {
-                return Err(format!(
-                    "the held frame is {}x{} {}, the stream {}x{} {}",
-                    frame.width,
-                    frame.height,
-                    frame.format,
-                    info.width(),
-                    info.height(),
-                    format
-                ));
-            }
-            let mut buf = gst::Buffer::with_size(info.size()).map_err(|e| format!("cannot allocate a buffer: {e}"))?;
-            {
-                let b = buf.get_mut().ok_or("new buffer not writable")?;
-                let mut vf = gst_video::VideoFrameRef::from_buffer_ref_writable(b, info)
-                    .map_err(|_| "cannot map the new buffer".to_string())?;
-                let stride = vf.plane_stride()[0] as usize;
-                let data = vf.plane_data_mut(0).map_err(|e| e.to_string())?;
-                copy_out(frame, data, stride, bgr).map_err(|e| e.to_string())?;
-            }
-            Ok(buf)
         }
     }
 
@@ -647,16 +659,8 @@ mod imp {
             if outcome == Outcome::Keep {
                 // 3. Back into the buffer (a temporal effect may have handed out another frame of
                 // the same size: its bytes go out under this buffer's timestamps).
-                if frame.width != info.width() || frame.height != info.height() || frame.format != st.format {
-                    error = Some(format!(
-                        "the chain returned a {}x{} {} frame for a {}x{} {} stream",
-                        frame.width,
-                        frame.height,
-                        frame.format,
-                        info.width(),
-                        info.height(),
-                        st.format
-                    ));
+                if let Some(e) = layout_mismatch(frame, info, st.format) {
+                    error = Some(e);
                 } else {
                     let mut vf = gst_video::VideoFrameRef::from_buffer_ref_writable(buf, info).map_err(|_| {
                         gst::element_imp_error!(
@@ -686,11 +690,7 @@ mod imp {
             {
                 buf.set_pts(p + gst::ClockTime::from_nseconds(delay));
             }
-            let status = match (&error, outcome) {
-                (Some(_), _) => FrameStatus::Failed,
-                (None, Outcome::Drop) => FrameStatus::DroppedByFault,
-                (None, Outcome::Keep) => FrameStatus::Delivered,
-            };
+            let status = status_of(error.is_some(), outcome);
             for c in &mut st.controllers {
                 c.after_frame(seq, t_ns, status, &mut st.events);
             }
