@@ -11,7 +11,7 @@ use faultcam::control::{Controller, LogEvent};
 use faultcam::faults::{ParamKind, Scale, registry};
 use faultcam::gtlog::{FrameRecord, FrameStatus};
 use faultcam::schedule::{TriggerOptions, controllers_from_config};
-use faultcam::{Chain, FaultConfig, Frame, FrameData, FrameReport, Outcome, PixelFormat};
+use faultcam::{Chain, FaultConfig, FaultError, Frame, FrameData, FrameReport, Outcome, PixelFormat};
 use numpy::{PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyUntypedArray, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyRuntimeError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
@@ -135,6 +135,15 @@ enum SamplesMut<'a> {
     U16(&'a mut [u16]),
 }
 
+/// A frame's log status from the chain's result, with the error text when it failed.
+fn status_of(result: &Result<Outcome, FaultError>) -> (FrameStatus, Option<String>) {
+    match result {
+        Ok(Outcome::Keep) => (FrameStatus::Delivered, None),
+        Ok(Outcome::Drop) => (FrameStatus::DroppedByFault, None),
+        Err(e) => (FrameStatus::Failed, Some(e.to_string())),
+    }
+}
+
 impl Inner {
     /// Copy in, run the chain, copy out. Runs without the GIL.
     fn run(
@@ -169,11 +178,8 @@ impl Inner {
             }
         }
         let result = self.chain.apply(frame, &mut self.report);
-        let (kept, status, error) = match result {
-            Ok(Outcome::Keep) => (true, FrameStatus::Delivered, None),
-            Ok(Outcome::Drop) => (false, FrameStatus::DroppedByFault, None),
-            Err(e) => (false, FrameStatus::Failed, Some(e.to_string())),
-        };
+        let (status, error) = status_of(&result);
+        let kept = status == FrameStatus::Delivered;
         let pts_ns = frame.pts_ns;
         let mut events = Vec::new();
         if let Some(tl) = self.timeline.as_mut() {
@@ -304,11 +310,7 @@ impl PyChain {
                 let mut g = self.inner.lock().map_err(|_| PyRuntimeError::new_err("an earlier call panicked"))?;
                 let g = &mut *g;
                 g.chain.drain_next(&mut g.report).map(|(frame, result)| {
-                    let (status, error) = match &result {
-                        Ok(Outcome::Keep) => (FrameStatus::Delivered, None),
-                        Ok(Outcome::Drop) => (FrameStatus::DroppedByFault, None),
-                        Err(e) => (FrameStatus::Failed, Some(e.to_string())),
-                    };
+                    let (status, error) = status_of(&result);
                     let mut rec = FrameRecord::from_report(frame.seq, frame.pts_ns, &g.report);
                     rec.status = status;
                     rec.error = error.as_deref();
