@@ -616,21 +616,17 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             }
         }
         let mut canonical = canonical_of(&params);
+        // A parameter the data cannot test is reported as null.
+        let mut untestable = |name: &str| {
+            canonical.iter_mut().filter(|(n, _)| n == name).for_each(|(_, v)| *v = serde_json::Value::Null)
+        };
         if s.name == "blooming" && halo_px.is_some() {
-            for (n, v) in canonical.iter_mut() {
-                if n == "spread_px" {
-                    *v = serde_json::Value::Null;
-                }
-            }
+            untestable("spread_px");
         }
         if s.name == "blooming" && well_basis(loc) == WellBasis::Untestable {
             // No saturated plateau: the fitted well only shapes the halo (it trades against the
             // unknown excess of clipped sources), so no number is reported for it.
-            for (n, v) in canonical.iter_mut() {
-                if n == "full_well_fraction" {
-                    *v = serde_json::Value::Null;
-                }
-            }
+            untestable("full_well_fraction");
             sig_evidence = format!(
                 "{sig_evidence}; full_well_fraction untestable (null): no saturated plateau in the data, so the well is not constrained (fitted.toml keeps the value that shapes the halo, {:.3})",
                 params.get("full_well_fraction")
