@@ -313,12 +313,16 @@ fn uri_case(dir: &Path, raw: &[u8]) -> Result<(), TestCaseError> {
 #[test]
 fn uri_parsers_never_panic_and_name_the_uri() {
     FUZZ_LIMITS.set_current();
-    let dir = tempfile::tempdir().unwrap();
+    // DIR is a folder inside the temporary one, so a mutated sink URI such as `files:DIR?fora`
+    // (a folder named `d?fora`) is created inside it and removed with it.
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("d");
+    std::fs::create_dir(&dir).unwrap();
     let img = image::GrayImage::from_fn(8, 8, |x, y| image::Luma([(x * 9 + y) as u8]));
-    img.save(dir.path().join("a.png")).unwrap();
+    img.save(dir.join("a.png")).unwrap();
     let seeds = corpus("uri");
     for (p, b) in &seeds {
-        uri_case(dir.path(), b).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+        uri_case(&dir, b).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
     }
     let mut seeds: Vec<Vec<u8>> = seeds.into_iter().map(|(_, b)| b).collect();
     // Keys every parser knows, so mutations reach the value checks.
@@ -326,7 +330,7 @@ fn uri_parsers_never_panic_and_name_the_uri() {
         seeds.push(format!("synth:?{k}=1").into_bytes());
         seeds.push(format!("files:DIR?{k}=2").into_bytes());
     }
-    runner(600).run(&input(seeds), |b| uri_case(dir.path(), &b)).unwrap();
+    runner(600).run(&input(seeds), |b| uri_case(&dir, &b)).unwrap();
 }
 
 // ---------------------------------------------------------------------------------------------
