@@ -200,6 +200,12 @@ fn diagnose_unpaired_reads_a_black_sim_sky_as_zero() {
         .unwrap_or_else(|| panic!("no dark_current finding: {}", rep["findings"]));
     let mean = dark["params"]["mean_dn"].as_f64().expect("mean_dn");
     assert!((mean - 12.0).abs() <= 1.5, "dark level {mean} DN, expected about 12: {dark}");
+    // Unpaired, a uniform level is also a black-level offset or light from outside the frame:
+    // the report lists both readings with why the data cannot tell them apart.
+    let alts: Vec<&str> =
+        dark["alternatives"].as_array().expect("alternatives").iter().filter_map(|a| a["effect"].as_str()).collect();
+    assert_eq!(alts, ["gain_offset", "stray_light"], "{dark}");
+    assert!(dark["alternatives"][0]["evidence"].as_str().is_some_and(|e| e.contains("dark frames")), "{dark}");
     // The sim's own level, as the dark test reports it ("... DN, sim X DN (gap ..."): 0 DN, not
     // a censored fit run far below it.
     let ev = rep["tests"]

@@ -25,7 +25,7 @@
 use super::fit::{FitMetrics, canonical_of, mean_metrics, round_sig};
 use super::img::{FS, Plane, distance_transform, luma, planes_of};
 use super::noise::{NoiseBin, NoiseModel};
-use super::report::{Finding, FitSummary, Report, TestRow, UnpairedReport};
+use super::report::{Alternative, Finding, FitSummary, Report, TestRow, UnpairedReport};
 use super::{DiagnoseError, Options, Profile, Signature, jpeg, stats};
 use crate::config::FaultConfig;
 use crate::faults::{Params, registry};
@@ -625,7 +625,13 @@ fn params_of(name: &str, vals: &[(&str, f64)]) -> Option<Params> {
 /// A finding for `sig` with the parameters `vals` of the library effect `name` (see
 /// [`params_of`]).
 fn finding(sig: &Signature, name: &str, vals: &[(&str, f64)], stat: &'static str, method: &str) -> Option<UFinding> {
-    params_of(name, vals).map(|params| UFinding { sig: sig.clone(), params, stat, method: method.into() })
+    params_of(name, vals).map(|params| UFinding {
+        sig: sig.clone(),
+        params,
+        stat,
+        method: method.into(),
+        alternatives: Vec::new(),
+    })
 }
 
 /// One unpaired finding before it goes into the report.
@@ -635,6 +641,8 @@ struct UFinding {
     /// Name of the gap statistic that measures it (for loss before/after).
     stat: &'static str,
     method: String,
+    /// Readings the unpaired data cannot tell from this one (same signature).
+    alternatives: Vec<Alternative>,
 }
 
 fn pooled_hist(frames: &[Frame]) -> Vec<f64> {
@@ -677,6 +685,89 @@ fn set_metrics(model: &[Frame], real: &[Frame]) -> FitMetrics {
     }
     let f = mean_metrics(&fq);
     FitMetrics { rmse, fqi: f.fqi, hist_corr: crate::metrics::hist_correlation_hist(&hm, &hr) }
+}
+
+/// RMS difference of the pooled quantile functions over the darker (q1–q49) and the brighter
+/// (q50–q99) half of the levels, DN.
+fn quantile_halves(model: &[Frame], real: &[Frame]) -> (f64, f64) {
+    let (qm, qr) = (quantiles(&pooled_hist(model)), quantiles(&pooled_hist(real)));
+    let rms = |r: std::ops::Range<usize>| {
+        let n = r.len() as f64;
+        (r.map(|i| (qm[i] - qr[i]).powi(2)).sum::<f64>() / n).sqrt()
+    };
+    (rms(0..49), rms(49..qm.len()))
+}
+
+/// When a fit statistic is worse after the fit than before, a note naming it and saying why, as
+/// far as the quantile functions tell: which half of the levels the fitted model brought closer
+/// and which it moved apart. `halves_*`: [`quantile_halves`] before and after.
+fn worse_note(before: &FitMetrics, after: &FitMetrics, hb: (f64, f64), ha: (f64, f64)) -> Option<String> {
+    let mut worse = Vec::new();
+    if after.rmse > before.rmse + 1e-9 {
+        worse.push(format!("quantile RMSE {:.1} → {:.1} DN", before.rmse, after.rmse));
+    }
+    if after.hist_corr < before.hist_corr - 1e-9 {
+        worse.push(format!("histogram correlation {:.3} → {:.3}", before.hist_corr, after.hist_corr));
+    }
+    if let (Some(b), Some(a)) = (before.fqi, after.fqi)
+        && a < b - 1e-9
+    {
+        worse.push(format!("FQI {b:.3} → {a:.3}"));
+    }
+    if worse.is_empty() {
+        return None;
+    }
+    let half = |name: &str, b: f64, a: f64| {
+        format!("{name} {} (RMS {b:.1} → {a:.1} DN)", if a < b { "closer" } else { "further apart" })
+    };
+    let why = if (ha.0 < hb.0) != (ha.1 < hb.1) {
+        " The fitted camera effects move every level of the sims alike, but the two sets differ in scene content \
+         (different scenes, unpaired), so one half of the levels gets closer while the other moves apart: \
+         no camera effect of the model explains that difference."
+    } else {
+        ""
+    };
+    Some(format!(
+        "worse after the fit: {}; pooled quantiles: {}, {}.{why}",
+        worse.join(", "),
+        half("darker half (q1–q49)", hb.0, ha.0),
+        half("brighter half (q50–q99)", hb.1, ha.1),
+    ))
+}
+
+/// A uniform additive level in the darkest regions has three physical readings that unpaired
+/// images without dark frames cannot tell apart: a thermal level (`dark_current`, the one
+/// reported), an electronic black-level offset (`gain_offset.offset_dn`) and uniform light from
+/// a source outside the frame (`stray_light`). In-frame veiling glare is tested on its own
+/// (`glare` = its test's z and whether it was found).
+fn uniform_level_alternatives(level: f64, z: f64, glare: (f64, bool)) -> Vec<Alternative> {
+    let glare_text = if glare.0.is_finite() {
+        format!(
+            "in-frame veiling glare was tested on its own (z = {:.1}, {}), so the level left is the part no source inside the frame predicts",
+            glare.0,
+            if glare.1 { "fitted before this level" } else { "not established" }
+        )
+    } else {
+        "in-frame veiling glare could not be tested".into()
+    };
+    let alt = |effect: &str, label: String, what: &str| Alternative {
+        effect: effect.into(),
+        label,
+        bic_gap: 0.0,
+        z: round_sig(z, 4),
+        evidence: format!(
+            "{what} adds the same uniform {level:.1} DN over the darkest regions: without dark frames (or pairs of \
+             the same scene) a thermal level cannot be told from it; {glare_text}"
+        ),
+    };
+    vec![
+        alt("gain_offset", format!("gain_offset.offset_dn = {level:.1}"), "an electronic black-level offset"),
+        alt(
+            "stray_light",
+            "stray_light (uniform, from outside the frame)".into(),
+            "light scattered from a source outside the frame",
+        ),
+    ]
 }
 
 /// Unpaired diagnosis.
@@ -782,6 +873,7 @@ pub fn run(
                     params: p,
                     stat: if s.effect == "gaussian_noise" { "noise_a" } else { "noise_b" },
                     method,
+                    alternatives: Vec::new(),
                 });
             }
             tests.push(s);
@@ -858,6 +950,7 @@ pub fn run(
     let mut glare_p: Option<Params> = None;
     let mut dark_gap = gap_of(&g0, "dark");
     let mut after_glare = "";
+    let glare_test: (f64, bool);
     {
         let base = noise_cfg(&found);
         let mut apply = |p: Params| {
@@ -875,8 +968,15 @@ pub fn run(
             after_glare = " after the fitted veiling glare";
             g_halo = g;
             glare_p = Some(p);
-            found.push(UFinding { sig: gl.sig.clone(), params: p, stat: "", method: gl.method });
+            found.push(UFinding {
+                sig: gl.sig.clone(),
+                params: p,
+                stat: "",
+                method: gl.method,
+                alternatives: Vec::new(),
+            });
         }
+        glare_test = (gl.sig.z, gl.sig.detected);
         tests.push(gl.sig);
     }
     // ---- halo and saturation → blooming ----
@@ -974,13 +1074,19 @@ pub fn run(
                 .map(|f| f.params.get("gain_e_per_dn"))
                 .unwrap_or(1e3);
             dk.set_param("mean_dn", gd.value);
-            found.extend(finding(
-                &dk,
-                "dark_current",
-                &[("mean_dn", gd.value), ("hot_pixel_rate", 0.0), ("gain_e_per_dn", gain)],
-                "dark",
-                "level difference of the darkest regions (censored fits)",
-            ));
+            found.extend(
+                finding(
+                    &dk,
+                    "dark_current",
+                    &[("mean_dn", gd.value), ("hot_pixel_rate", 0.0), ("gain_e_per_dn", gain)],
+                    "dark",
+                    "level difference of the darkest regions (censored fits)",
+                )
+                .map(|mut f| {
+                    f.alternatives = uniform_level_alternatives(gd.value, dk.z, glare_test);
+                    f
+                }),
+            );
         }
     } else {
         dk.evidence = "no dark region (10 % of the pixels below 40 DN) in one of the sets".into();
@@ -1017,6 +1123,7 @@ pub fn run(
                     params: p,
                     stat: if dir == "vertical" { "smear_v" } else { "smear_h" },
                     method: "regression of line levels on saturated counts (real minus sim)".into(),
+                    alternatives: Vec::new(),
                 });
             }
         }
@@ -1153,13 +1260,21 @@ pub fn run(
             z: round_sig(f.sig.z, 4),
             stderr: f.sig.stderr.iter().map(|(n, v)| (n.clone(), serde_json::Value::from(round_sig(*v, 4)))).collect(),
             method: f.method.clone(),
-            alternatives: Vec::new(),
+            alternatives: f.alternatives.clone(),
         });
     }
     // Most significant first.
     findings.sort_by(|a, b| b.z.total_cmp(&a.z));
     let before = set_metrics(&sim_frames, &real_frames);
     let after = set_metrics(&model_frames, &real_frames);
+    if let Some(n) = worse_note(
+        &before,
+        &after,
+        quantile_halves(&sim_frames, &real_frames),
+        quantile_halves(&model_frames, &real_frames),
+    ) {
+        notes.push(n);
+    }
     let report = Report {
         findings,
         fit: FitSummary { before: rounded(before), after: rounded(after) },
@@ -1248,4 +1363,43 @@ fn profiles(
         ],
     });
     out
+}
+
+#[cfg(test)]
+mod note_tests {
+    use super::*;
+
+    fn m(rmse: f64, hist_corr: f64, fqi: f64) -> FitMetrics {
+        FitMetrics { rmse, fqi: Some(fqi), hist_corr }
+    }
+
+    #[test]
+    fn a_statistic_worse_after_the_fit_is_named_with_the_half_that_moved_apart() {
+        // Darker half closer, brighter half further: the RMSE got worse, the correlation better.
+        let n = worse_note(&m(52.2, -0.01, 0.765), &m(63.6, 0.68, 0.764), (40.0, 60.0), (5.0, 90.0))
+            .expect("a note when the RMSE is worse");
+        assert!(n.contains("quantile RMSE 52.2 → 63.6 DN"), "{n}");
+        assert!(n.contains("FQI 0.765 → 0.764"), "{n}");
+        assert!(!n.contains("histogram correlation"), "{n}");
+        assert!(n.contains("darker half (q1–q49) closer (RMS 40.0 → 5.0 DN)"), "{n}");
+        assert!(n.contains("brighter half (q50–q99) further apart (RMS 60.0 → 90.0 DN)"), "{n}");
+        assert!(n.contains("scene content"), "{n}");
+        // Everything better: no note.
+        assert!(worse_note(&m(52.2, 0.1, 0.70), &m(12.0, 0.9, 0.71), (40.0, 60.0), (5.0, 8.0)).is_none());
+        // Worse in both halves: named, but not blamed on the scenes.
+        let n = worse_note(&m(10.0, 0.9, 0.8), &m(20.0, 0.9, 0.8), (5.0, 5.0), (9.0, 9.0)).expect("note");
+        assert!(!n.contains("scene content"), "{n}");
+    }
+
+    #[test]
+    fn a_uniform_level_lists_the_readings_unpaired_data_cannot_tell_apart() {
+        let a = uniform_level_alternatives(32.0, 9.5, (2.3, false));
+        let effects: Vec<&str> = a.iter().map(|a| a.effect.as_str()).collect();
+        assert_eq!(effects, ["gain_offset", "stray_light"]);
+        for x in &a {
+            assert!(x.evidence.contains("32.0 DN") && x.evidence.contains("dark frames"), "{}", x.evidence);
+            assert!(x.evidence.contains("z = 2.3, not established"), "{}", x.evidence);
+            assert_eq!(x.bic_gap, 0.0);
+        }
+    }
 }
