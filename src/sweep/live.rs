@@ -8,8 +8,9 @@
 //!
 //! (one JSON line per frame, the [`crate::pose`] convention; `seq` is the frame's `seq` in the
 //! ground-truth log: `frame_NNNNNN` in a `files:` sink's names, the buffer's `offset` through a
-//! `gst:` sink when no frame is dropped; `{"seq":N}` says "no pose in frame N": it fails at once
-//! instead of at its time-out) over:
+//! `gst:` sink when no frame is dropped, the buffer timestamp through a `v4l2:` sink (see
+//! below); `{"seq":N}` says "no pose in frame N": it fails at once instead of at its time-out)
+//! over:
 //! - `stdout`: the SUT's standard output;
 //! - `udp:HOST:PORT`: datagrams to a socket faultcam binds (loopback; port 0 = any free port,
 //!   the SUT gets the address as `{report}`), one or more lines per datagram;
@@ -27,8 +28,28 @@
 //! a report fail; the sweep goes on. Over UDP or a serial line a SUT command that exits with
 //! status 0 mid-stream is taken for a launcher (the SUT runs elsewhere): reports may still come.
 //!
-//! [`sut`] has the SUT side for Rust SUTs (the examples `truth_sut` and `ref_sut` use it):
-//! watching a `files:` sink folder, the seq of a frame file, reporting over stdout or UDP.
+//! **`v4l2:` sink (a v4l2loopback device).** The device is the SUT's camera. A frame's seq
+//! travels in its V4L2 buffer timestamp: faultcam opens the sink with `stamp=seq`, so frame
+//! `seq` is stamped exactly `(seq + 1)` ms ([`seq_stamp_ns`]: `tv_sec = (seq + 1) / 1000`,
+//! `tv_usec = ((seq + 1) % 1000) · 1000`; never 0, which v4l2loopback would replace with the
+//! queue time), and a reader maps a timestamp back with `seq = round(t / 1 ms) − 1`
+//! ([`seq_of_stamp_ns`]). v4l2loopback 0.12.7 gives readers no advancing sequence numbers
+//! and restamps every buffer with the current `CLOCK_MONOTONIC` time when a reader requests
+//! buffers (`VIDIOC_REQBUFS`): a reader takes only buffers stamped before the time it
+//! started opening the device (frame stamps are far below the clock: a cell of S frames needs
+//! an uptime above S ms). While it waits for frame N's report, faultcam keeps the device fed
+//! like a camera: it writes frame N again, same bytes and stamp, every 1/`fps` s
+//! (default [`DEFAULT_REFEED_FPS`]), so a reader that opened late (with `exclusive_caps=1` it can
+//! open the device only once the first frame is written), skipped a restamped buffer or missed
+//! one still gets it; the reader reports each seq once. A sink that cannot be opened (no such
+//! device, held by another writer: retried for [`V4L2_OPEN_RETRY_S`] s) or that refuses the
+//! format makes every frame not shown an incident naming the device; a SUT that never reads
+//! the device leaves its frames without reports (per-frame time-outs). One cell at a time
+//! (`--jobs 1`): the cells share the device.
+//!
+//! [`sut`] has the SUT side for Rust SUTs (the examples `truth_sut`, `ref_sut` and `pnp_sut` use
+//! it): watching a `files:` sink folder or reading a `v4l2:` device, the seq of a frame file or
+//! buffer, reporting over stdout or UDP.
 
 use super::{FrameResult, FrameStatus, SutOutcome, shell_quote};
 use crate::pose::{Pose, check_pose};
@@ -51,6 +72,37 @@ pub const DEFAULT_STARTUP_S: f64 = 10.0;
 pub const MAX_LINE_BYTES: usize = 4096;
 /// Sink schemes a live sweep accepts.
 pub const SINK_SCHEMES: &[&str] = &["files", "gst", "v4l2"];
+/// Rate at which a `v4l2:` sink is fed the awaited frame again when the plan has no `fps`.
+pub const DEFAULT_REFEED_FPS: f64 = 30.0;
+/// How long a live cell tries to open a `v4l2:` sink that exists but is held (by the previous
+/// cell's reader, closing), seconds.
+pub const V4L2_OPEN_RETRY_S: f64 = 3.0;
+/// Period of the seq stamp: frame `seq` through a `v4l2:` sink is stamped `(seq + 1)` periods.
+pub const SEQ_STAMP_PERIOD_NS: u64 = 1_000_000;
+
+/// The V4L2 buffer timestamp of frame `seq` in a live sweep, ns: `(seq + 1)` ms, a whole number
+/// of µs (the V4L2 timestamp's resolution), never 0. None when it overflows.
+pub fn seq_stamp_ns(seq: u64) -> Option<u64> {
+    seq.checked_add(1)?.checked_mul(SEQ_STAMP_PERIOD_NS)
+}
+
+/// The seq a buffer timestamp (ns) stands for: the nearest `(seq + 1)` ms; None below 0.5 ms
+/// (no frame's stamp).
+pub fn seq_of_stamp_ns(ts_ns: u64) -> Option<u64> {
+    (ts_ns / SEQ_STAMP_PERIOD_NS + u64::from(ts_ns % SEQ_STAMP_PERIOD_NS >= SEQ_STAMP_PERIOD_NS / 2)).checked_sub(1)
+}
+
+/// A live `v4l2:` sink's URI as faultcam opens it: `stamp=seq` added (see the module notes).
+pub fn v4l2_sink_uri(uri: &str) -> String {
+    let (_, _, opts) = crate::source::split_uri(uri);
+    if opts.iter().any(|(k, _)| k == "stamp") {
+        uri.to_string()
+    } else if opts.is_empty() {
+        format!("{uri}?stamp=seq")
+    } else {
+        format!("{uri}&stamp=seq")
+    }
+}
 
 /// The live settings of a plan.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -125,9 +177,18 @@ pub fn check_sink(uri: &str) -> Result<(), String> {
             SINK_SCHEMES.iter().map(|s| format!("{s}:")).collect::<Vec<_>>().join(", ")
         )));
     }
+    let (_, _, opts) = crate::source::split_uri(uri);
+    let opt = |k: &str| opts.iter().find(|(key, _)| key == k).map(|(_, v)| v.as_str());
     match scheme {
         "files" if path.is_empty() => Err(bad("expected files:DIR (e.g. files:{in_dir})")),
         "v4l2" if !path.starts_with('/') => Err(bad("expected v4l2:/dev/videoN (a v4l2loopback device)")),
+        "v4l2" if opt("stamp").is_some_and(|v| v != "seq") => {
+            Err(bad("a live v4l2 sink stamps each frame with its seq (stamp=seq, the default here)"))
+        }
+        "v4l2" if opt("io") == Some("write") => {
+            Err(bad("a live v4l2 sink needs io=mmap (the frame's seq travels in the buffer timestamp)"))
+        }
+        "v4l2" if !cfg!(feature = "v4l2") => Err(bad("this faultcam was built without V4L2 (feature v4l2)")),
         "gst" if !cfg!(feature = "gst") => Err(bad("this faultcam was built without GStreamer (feature gst)")),
         "gst" if !uri.contains("appsrc") => Err(bad("the pipeline must start with an appsrc")),
         _ => Ok(()),
@@ -428,9 +489,23 @@ impl Session<'_> {
         }
     }
 
-    /// Wait for frame `i`'s report until `deadline`; true when it came.
-    fn await_frame(&mut self, i: usize, deadline: Instant, timeout_s: f64) -> bool {
+    /// Wait for frame `i`'s report until `deadline`; true when it came. `refeed` is called
+    /// every [`POLL`] at most (a `v4l2:` sink shows the frame again when due); its error is an
+    /// incident of the frame and ends the re-feeding.
+    fn await_frame(
+        &mut self,
+        i: usize,
+        deadline: Instant,
+        timeout_s: f64,
+        mut refeed: Option<&mut dyn FnMut() -> Result<(), String>>,
+    ) -> bool {
         loop {
+            if let Some(r) = refeed.as_mut()
+                && let Err(e) = r()
+            {
+                note(&mut self.frames[i], e);
+                refeed = None;
+            }
             if self.poses[i].is_some() {
                 return true;
             }
@@ -450,6 +525,24 @@ impl Session<'_> {
                 Err(RecvTimeoutError::Timeout) => self.check_exit(),
                 Err(RecvTimeoutError::Disconnected) => self.gone = true,
             }
+        }
+    }
+}
+
+/// Open a live `v4l2:` sink (with `stamp=seq`): a device that exists but cannot be opened as
+/// an output (the previous cell's reader still closing) is tried again for
+/// [`V4L2_OPEN_RETRY_S`] s.
+fn open_v4l2_sink(uri: &str) -> Result<Box<dyn crate::sink::Sink>, String> {
+    let uri = v4l2_sink_uri(uri);
+    let path = crate::source::split_uri(&uri).1.to_string();
+    let end = Instant::now() + Duration::from_secs_f64(V4L2_OPEN_RETRY_S);
+    loop {
+        match crate::sink::open(&uri) {
+            Ok(s) => return Ok(s),
+            Err(_) if Path::new(&path).exists() && Instant::now() < end => {
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            Err(e) => return Err(format!("sink: {e}")),
         }
     }
 }
@@ -492,7 +585,17 @@ pub(super) fn run(
     };
     let sink_uri =
         live.sink.replace("{in_dir}", &in_dir.display().to_string()).replace("{cell_dir}", &dir.display().to_string());
-    let mut sink = crate::sink::open(&sink_uri).map_err(|e| format!("sink: {e}"))?;
+    let v4l2 = crate::source::split_uri(&sink_uri).0 == "v4l2";
+    // A v4l2: sink that cannot be opened fails the frames (incidents naming the device), as a
+    // device lost mid-stream would; the SUT still runs (it may be waiting for the device).
+    let (mut sink, sink_error) = if v4l2 {
+        match open_v4l2_sink(&sink_uri) {
+            Ok(s) => (Some(s), None),
+            Err(e) => (None, Some(e)),
+        }
+    } else {
+        (Some(crate::sink::open(&sink_uri).map_err(|e| format!("sink: {e}"))?), None)
+    };
 
     use std::os::unix::process::CommandExt;
     let cam = cam_path.as_deref().map(shell_quote).unwrap_or_else(|| "''".into());
@@ -548,7 +651,8 @@ pub(super) fn run(
     let mut first_shown = true;
     let mut last_shown = None;
     let mut first = true;
-    let mut stop_why: Option<String> = None;
+    let mut stop_why: Option<String> = sink_error;
+    let refeed_every = Duration::from_secs_f64(1.0 / live.fps.unwrap_or(DEFAULT_REFEED_FPS));
     while let Some(mut f) = pending.take() {
         let truth = if first { truth0 } else { src.truth() };
         first = false;
@@ -593,9 +697,12 @@ pub(super) fn run(
                     }
                 }
             }
-            match &stop_why {
-                Some(why) => note(&mut s.frames[i], format!("not shown: {why}")),
-                None => match sink.write_frame(&f, src.item_name()) {
+            // The frame carries the seq its report must have (a v4l2: sink stamps it).
+            f.seq = seq;
+            match (&stop_why, sink.as_mut()) {
+                (Some(why), _) => note(&mut s.frames[i], format!("not shown: {why}")),
+                (None, None) => note(&mut s.frames[i], "not shown: no sink".into()),
+                (None, Some(sink)) => match sink.write_frame(&f, src.item_name()) {
                     Ok(()) => {
                         s.shown.insert(seq, i);
                         last_shown = Some(i);
@@ -605,7 +712,22 @@ pub(super) fn run(
                             first_shown = false;
                         }
                         let deadline = (Instant::now() + Duration::from_secs_f64(wait)).min(cell_deadline);
-                        s.await_frame(i, deadline, wait);
+                        if v4l2 {
+                            // Feed the device like a camera while the report is awaited: the
+                            // same frame, bytes and stamp again every `refeed_every`.
+                            let mut due = Instant::now() + refeed_every;
+                            let name = src.item_name();
+                            let mut again = || {
+                                if Instant::now() < due {
+                                    return Ok(());
+                                }
+                                due += refeed_every;
+                                sink.write_frame(&f, name).map_err(|e| format!("sink (frame shown again): {e}"))
+                            };
+                            s.await_frame(i, deadline, wait, Some(&mut again));
+                        } else {
+                            s.await_frame(i, deadline, wait, None);
+                        }
                     }
                     Err(e) => {
                         let why = format!("sink: {e}");
@@ -618,7 +740,7 @@ pub(super) fn run(
         src.recycle(f);
         pending = next_frame(&mut src)?;
     }
-    if let Err(e) = sink.finish()
+    if let Some(Err(e)) = sink.as_mut().map(|s| s.finish())
         && let Some(i) = last_shown
     {
         note(&mut s.frames[i], format!("sink: {e}"));
@@ -635,6 +757,8 @@ pub(super) fn run(
         kill_group(&s.child);
     }
     let _ = s.child.wait();
+    // The device is closed after its reader: the next cell's writer finds it free sooner.
+    drop(sink);
     s.sut.status = match (timed_out, &s.exited) {
         (true, _) => format!("timeout after {} s", super::report::g(plan.timeout_s)),
         (false, Some(t)) if t != "ok" => match &stop_why {
