@@ -802,6 +802,213 @@ pub mod sut {
         }
     }
 
+    /// Where a live SUT gets its frames: a `files:` sink folder (or a `multifilesink` folder)
+    /// or a `v4l2:` device.
+    pub enum Input {
+        Folder(FolderWatch),
+        #[cfg(feature = "v4l2")]
+        Device(Box<DeviceWatch>),
+    }
+
+    impl Input {
+        /// `v4l2:/dev/videoN[?OPTIONS]` (a v4l2loopback device a live sweep writes; OPTIONS as
+        /// the `v4l2:` source's) or a folder.
+        pub fn open(spec: &str) -> Result<Input, String> {
+            if spec.starts_with("v4l2:") {
+                #[cfg(feature = "v4l2")]
+                return Ok(Input::Device(Box::new(DeviceWatch::new(spec)?)));
+                #[cfg(not(feature = "v4l2"))]
+                return Err(format!("{spec}: this faultcam was built without V4L2 (feature v4l2)"));
+            }
+            Ok(Input::Folder(FolderWatch::new(spec)))
+        }
+
+        /// New frames: the seq when known and the image file. A folder: the files that appeared
+        /// since the last call, in name order, seq from a `frame_NNNNNN` name (None for other
+        /// names); does not wait. A device: at most one frame not reported before (waits up to
+        /// [`DEVICE_POLL_MS`] ms), its seq from the buffer timestamp, written as a PNG file
+        /// (valid until the next call).
+        pub fn poll(&mut self) -> Vec<(Option<u64>, PathBuf)> {
+            match self {
+                Input::Folder(w) => w
+                    .poll()
+                    .into_iter()
+                    .map(|p| (p.file_name().and_then(|n| n.to_str()).and_then(seq_of_name), p))
+                    .collect(),
+                #[cfg(feature = "v4l2")]
+                Input::Device(d) => d.poll().into_iter().map(|(s, p)| (Some(s), p)).collect(),
+            }
+        }
+
+        /// At the end of the stream: an error when a device never gave a frame (why it could not
+        /// be read).
+        pub fn finish(&self) -> Result<(), String> {
+            match self {
+                Input::Folder(_) => Ok(()),
+                #[cfg(feature = "v4l2")]
+                Input::Device(d) => d.finish(),
+            }
+        }
+
+        fn waits(&self) -> bool {
+            !matches!(self, Input::Folder(_))
+        }
+    }
+
+    /// Longest wait of [`Input::poll`] on a device, ms.
+    pub const DEVICE_POLL_MS: u64 = 50;
+
+    /// `CLOCK_MONOTONIC` now, ns (the clock of V4L2 timestamps).
+    pub fn monotonic_ns() -> u64 {
+        // SAFETY: all-zero is a valid timespec; clock_gettime fills it.
+        let mut t: libc::timespec = unsafe { std::mem::zeroed() };
+        // SAFETY: `t` outlives the call; CLOCK_MONOTONIC always exists on Linux.
+        unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut t) };
+        t.tv_sec as u64 * 1_000_000_000 + t.tv_nsec as u64
+    }
+
+    /// Whether a buffer stamped `ts_ns` carries a frame's seq stamp, for a reader that started
+    /// opening the device at `opened_ns` (`CLOCK_MONOTONIC`): v4l2loopback 0.12.7 restamps
+    /// every buffer with the current time on a reader's `VIDIOC_REQBUFS`, so a buffer stamped
+    /// at or after the open (compared at the timestamp's µs resolution) is no frame's stamp.
+    pub fn is_seq_stamp(ts_ns: u64, opened_ns: u64) -> Option<u64> {
+        if ts_ns >= opened_ns / 1000 * 1000 {
+            return None;
+        }
+        super::seq_of_stamp_ns(ts_ns)
+    }
+
+    /// Frames of a `v4l2:` device a live sweep writes (a v4l2loopback device with the
+    /// `stamp=seq` contract, see [`super`]): opened as a capture device once it is one (with
+    /// `exclusive_caps=1`, after faultcam has written the first frame; tried every
+    /// [`DEVICE_POLL_MS`] ms until then), each seq once.
+    #[cfg(feature = "v4l2")]
+    pub struct DeviceWatch {
+        spec: String,
+        uri: String,
+        src: Option<crate::source::v4l2::V4l2Source>,
+        /// When the current open started (`CLOCK_MONOTONIC`, ns).
+        opened_ns: u64,
+        next_try: std::time::Instant,
+        reported: BTreeSet<u64>,
+        scratch: PathBuf,
+        last_file: Option<PathBuf>,
+        png: Vec<u8>,
+        /// Why the device could not be opened or read, last time.
+        last_error: Option<String>,
+        frames: u64,
+    }
+
+    #[cfg(feature = "v4l2")]
+    impl DeviceWatch {
+        pub fn new(spec: &str) -> Result<DeviceWatch, String> {
+            let (_, path, opts) = crate::source::split_uri(spec);
+            if !path.starts_with('/') {
+                return Err(format!("{spec}: expected v4l2:/dev/videoN"));
+            }
+            let mut uri = spec.to_string();
+            if !opts.iter().any(|(k, _)| k == "timeout_ms") {
+                uri += if opts.is_empty() { "?" } else { "&" };
+                uri += &format!("timeout_ms={DEVICE_POLL_MS}");
+            }
+            static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+            let scratch = std::env::temp_dir().join(format!(
+                "faultcam-sut-{}-{}",
+                std::process::id(),
+                N.fetch_add(1, Ordering::Relaxed)
+            ));
+            std::fs::create_dir_all(&scratch).map_err(|e| format!("{}: {e}", scratch.display()))?;
+            Ok(DeviceWatch {
+                spec: spec.to_string(),
+                uri,
+                src: None,
+                opened_ns: 0,
+                next_try: std::time::Instant::now(),
+                reported: BTreeSet::new(),
+                scratch,
+                last_file: None,
+                png: Vec::new(),
+                last_error: None,
+                frames: 0,
+            })
+        }
+
+        /// At most one frame not reported before: (seq, PNG file).
+        pub fn poll(&mut self) -> Option<(u64, PathBuf)> {
+            use crate::source::Source;
+            let wait = std::time::Duration::from_millis(DEVICE_POLL_MS);
+            if self.src.is_none() {
+                if let Some(d) = self.next_try.checked_duration_since(std::time::Instant::now()) {
+                    std::thread::sleep(d);
+                }
+                self.next_try = std::time::Instant::now() + wait;
+                self.opened_ns = monotonic_ns();
+                match crate::source::v4l2::V4l2Source::open(&self.uri) {
+                    Ok(s) => {
+                        eprintln!("faultcam sut: reading {}", s.describe());
+                        self.src = Some(s);
+                    }
+                    Err(e) => {
+                        self.last_error = Some(e.to_string());
+                        return None;
+                    }
+                }
+            }
+            let src = self.src.as_mut()?;
+            let f = match src.poll_frame() {
+                Ok(Some(f)) => f,
+                Ok(None) => return None,
+                Err(e) if e.recoverable() => return None,
+                Err(e) => {
+                    // Reopen (the writer restarted, the device was reset).
+                    eprintln!("faultcam sut: {e}; opening {} again", self.spec);
+                    self.last_error = Some(e.to_string());
+                    self.src = None;
+                    return None;
+                }
+            };
+            let seq = is_seq_stamp(f.pts_ns, self.opened_ns).filter(|s| !self.reported.contains(s));
+            let out = match seq {
+                Some(seq) => {
+                    if let Some(old) = self.last_file.take() {
+                        let _ = std::fs::remove_file(old);
+                    }
+                    let p = self.scratch.join(format!("frame_{seq:06}.png"));
+                    let opts = crate::sink::files::WriteOptions::default();
+                    match crate::sink::files::write_image(&p, &f, &opts, &mut self.png) {
+                        Ok(()) => {
+                            self.reported.insert(seq);
+                            self.frames += 1;
+                            self.last_file = Some(p.clone());
+                            Some((seq, p))
+                        }
+                        Err(e) => {
+                            self.last_error = Some(e);
+                            None
+                        }
+                    }
+                }
+                None => None,
+            };
+            src.recycle(f);
+            out
+        }
+
+        pub fn finish(&self) -> Result<(), String> {
+            match (&self.last_error, self.frames) {
+                (Some(e), 0) => Err(format!("{}: no frame read: {e}", self.spec)),
+                _ => Ok(()),
+            }
+        }
+    }
+
+    #[cfg(feature = "v4l2")]
+    impl Drop for DeviceWatch {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.scratch);
+        }
+    }
+
     /// The seq of a sink file named `frame_NNNNNN.EXT` (a source without item names).
     pub fn seq_of_name(name: &str) -> Option<u64> {
         let stem = name.rsplit('/').next()?.split('.').next()?;
@@ -889,27 +1096,31 @@ pub mod sut {
         std::fs::write(out_file, out).map_err(|e| format!("{}: {e}", out_file.display()))
     }
 
-    /// Live mode: one report per new `frame_NNNNNN` file of `in_dir` to `report` (see
-    /// [`Reporter::open`]), until standard input closes.
-    pub fn run_live(in_dir: &str, report: &str, estimate: impl Fn(&std::path::Path) -> Estimate) -> Result<(), String> {
+    /// Live mode: one report per new frame of `input` to `report` (see [`Reporter::open`]),
+    /// until standard input closes. `input` is a folder (each new `frame_NNNNNN` file) or
+    /// `v4l2:/dev/videoN` (each frame read from the device, seq from its timestamp, once; see
+    /// [`Input`]).
+    pub fn run_live(input: &str, report: &str, estimate: impl Fn(&std::path::Path) -> Estimate) -> Result<(), String> {
         let mut out = Reporter::open(report)?;
         let done = stdin_closed();
-        let mut watch = FolderWatch::new(in_dir);
+        let mut input = Input::open(input)?;
         loop {
             let last = done.load(Ordering::Relaxed);
-            for p in watch.poll() {
-                let Some(seq) = p.file_name().and_then(|n| n.to_str()).and_then(seq_of_name) else { continue };
+            for (seq, p) in input.poll() {
+                let Some(seq) = seq else { continue };
                 out.send(seq, estimate(&p))?;
             }
             if last {
-                return Ok(());
+                return input.finish();
             }
-            std::thread::sleep(std::time::Duration::from_millis(2));
+            if !input.waits() {
+                std::thread::sleep(std::time::Duration::from_millis(2));
+            }
         }
     }
 
     /// The command line of an image-based SUT: `NAME IN_DIR OUT_FILE [CAMERA_JSON]` (batch) or
-    /// `NAME --live IN_DIR REPORT [CAMERA_JSON]`; `camera` turns the camera file into what
+    /// `NAME --live IN_DIR|v4l2:/dev/videoN REPORT [CAMERA_JSON]`; `camera` turns the camera file into what
     /// `estimate` needs. Exit code 2 with a message on a usage or I/O error.
     pub fn main<C: Copy + Sync>(
         name: &str,
@@ -927,9 +1138,9 @@ pub mod sut {
                 let cam = camera(args.get(3).map(String::as_str));
                 run_batch(args[1].as_ref(), args[2].as_ref(), |p| estimate(p, cam))
             }
-            _ => {
-                Err(format!("usage: {name} IN_DIR OUT_FILE [CAMERA_JSON] | {name} --live IN_DIR REPORT [CAMERA_JSON]"))
-            }
+            _ => Err(format!(
+                "usage: {name} IN_DIR OUT_FILE [CAMERA_JSON] | {name} --live IN_DIR|v4l2:/dev/videoN REPORT [CAMERA_JSON]"
+            )),
         };
         match result {
             Ok(()) => std::process::ExitCode::SUCCESS,
@@ -972,6 +1183,63 @@ mod tests {
         assert!(check_sink("v4l2:/dev/video42?format=GREY").is_ok());
         assert!(check_sink("null:").unwrap_err().contains("files:, gst:, v4l2:"));
         assert!(check_sink("v4l2:video0").unwrap_err().contains("/dev/videoN"));
+    }
+
+    #[test]
+    fn seq_stamps_round_trip_through_a_v4l2_timestamp() {
+        // Frame seq N is stamped (N + 1) ms: never 0 (v4l2loopback replaces a zero stamp).
+        assert_eq!(seq_stamp_ns(0), Some(1_000_000));
+        assert_eq!(seq_stamp_ns(41), Some(42_000_000));
+        assert_eq!(seq_stamp_ns(u64::MAX), None);
+        assert_eq!(seq_stamp_ns(u64::MAX / 1_000_000), None, "(seq + 1) ms overflows u64 ns");
+        for seq in (0..5000).chain([999, 1000, 86_399_999, 9_000_000_000]) {
+            let ts = seq_stamp_ns(seq).unwrap();
+            // Through struct timeval (what VIDIOC_QBUF takes and VIDIOC_DQBUF gives back):
+            // whole µs, so nothing is lost.
+            let (sec, usec) = (ts / 1_000_000_000, ts % 1_000_000_000 / 1000);
+            let back = sec * 1_000_000_000 + usec * 1000;
+            assert_eq!(back, ts, "seq {seq}");
+            assert_eq!(seq_of_stamp_ns(back), Some(seq), "seq {seq}");
+            // A reader's rounding takes anything within half a period (a float-seconds reader,
+            // a driver that moves stamps by some µs).
+            assert_eq!(seq_of_stamp_ns(back + 499_999), Some(seq), "seq {seq} + 0.499999 ms");
+            assert_eq!(seq_of_stamp_ns(back - 500_000), Some(seq), "seq {seq} − 0.5 ms");
+            assert_eq!(seq_of_stamp_ns(back + 500_000), Some(seq + 1), "seq {seq} + 0.5 ms is the next");
+        }
+        assert_eq!(seq_of_stamp_ns(0), None);
+        assert_eq!(seq_of_stamp_ns(499_999), None, "below half a period: no frame's stamp");
+        // In float seconds (a Python reader: tv_sec + tv_usec / 1e6), rounding recovers seq.
+        for seq in [0u64, 7, 12_345, 3_600_000] {
+            let secs = seq_stamp_ns(seq).unwrap() as f64 / 1e9;
+            assert_eq!(((secs * 1000.0).round() as u64).checked_sub(1), Some(seq));
+        }
+    }
+
+    #[test]
+    fn restamped_buffers_are_no_seq_stamps() {
+        // A reader that started opening at 35.0000005 s of uptime: buffers stamped then or
+        // later (v4l2loopback restamps at the reader's VIDIOC_REQBUFS, µs resolution) are not
+        // frames' stamps; earlier ones are.
+        let opened = 35_000_000_500;
+        assert_eq!(sut::is_seq_stamp(35_000_000_000, opened), None, "same µs as the open");
+        assert_eq!(sut::is_seq_stamp(35_000_017_000, opened), None);
+        assert_eq!(sut::is_seq_stamp(seq_stamp_ns(7).unwrap(), opened), Some(7));
+        assert_eq!(
+            sut::is_seq_stamp(34_999_999_000, opened),
+            Some(34_999),
+            "just before the open (rounded to 35 000 ms)"
+        );
+        assert!(sut::monotonic_ns() > 0);
+    }
+
+    #[test]
+    fn live_v4l2_sinks_get_seq_stamps() {
+        assert_eq!(v4l2_sink_uri("v4l2:/dev/video10"), "v4l2:/dev/video10?stamp=seq");
+        assert_eq!(v4l2_sink_uri("v4l2:/dev/video10?format=GREY"), "v4l2:/dev/video10?format=GREY&stamp=seq");
+        assert_eq!(v4l2_sink_uri("v4l2:/dev/video10?stamp=seq"), "v4l2:/dev/video10?stamp=seq");
+        assert!(check_sink("v4l2:/dev/video10?stamp=seq").is_ok());
+        assert!(check_sink("v4l2:/dev/video10?stamp=pts").unwrap_err().contains("stamp=seq"));
+        assert!(check_sink("v4l2:/dev/video10?io=write").unwrap_err().contains("io=mmap"));
     }
 
     #[test]
