@@ -12,7 +12,9 @@
 //!   from its buffer timestamp, each seq once). It reports `{"seq":N,"q":..,"t":..}` per frame,
 //!   N the seq the frame's name has in the log (or the device's seq), to REPORT:
 //!   `udp:HOST:PORT` (one datagram per report) or `-`/absent (stdout). It exits when its
-//!   standard input closes (faultcam closes it at the end of the stream).
+//!   standard input closes (faultcam closes it at the end of the stream). For each frame it
+//!   reports it prints `truth_sut: seq N WxH COLOUR pixels HASH` on stderr (FNV-1a 64 of the
+//!   decoded pixels): what it was shown, for tests comparing sinks.
 
 use serde_json::Value;
 use std::collections::BTreeMap;
@@ -51,6 +53,20 @@ fn batch(log: &str, out_file: &str) -> Result<(), String> {
     std::fs::write(out_file, out).map_err(|e| format!("{out_file}: {e}"))
 }
 
+/// `WxH COLOUR pixels HASH` of an image file: FNV-1a 64 of its decoded samples.
+fn pixels_digest(path: &std::path::Path) -> String {
+    match image::open(path) {
+        Ok(img) => {
+            let h = img
+                .as_bytes()
+                .iter()
+                .fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3));
+            format!("{}x{} {:?} pixels {h:016x}", img.width(), img.height(), img.color())
+        }
+        Err(e) => format!("unreadable: {e}"),
+    }
+}
+
 fn live(log: &str, input: &str, report: Option<&str>) -> Result<(), String> {
     use faultcam::sweep::live::sut::{Input, Reporter, stdin_closed};
     let frames = read_log(log)?;
@@ -70,6 +86,7 @@ fn live(log: &str, input: &str, report: Option<&str>) -> Result<(), String> {
                 None => seq.and_then(|s| Some((s, by_seq.get(&s)?))),
             };
             if let Some((seq, pose)) = hit {
+                eprintln!("truth_sut: seq {seq} {}", pixels_digest(&path));
                 let (q, t) = serde_json::from_value(serde_json::json!([pose["q"], pose["t"]]))
                     .map_err(|e| format!("{log}: pose of seq {seq}: {e}"))?;
                 out.send(seq, Some((q, t)))?;

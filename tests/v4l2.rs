@@ -1014,8 +1014,6 @@ fn loopback_latency_1920x1200_mono8_60fps() {
 // the example on the host.
 
 const SWEEP_SYNTH: &str = "synth:?width=320&height=240&frames=8&spin_dps=30";
-/// Baseline and two defocus levels: three cells.
-const SWEEP_ARGS: [&str; 6] = ["--effects", "defocus", "--levels", "2", "--seeds", "1"];
 
 fn truth_sut_bin() -> PathBuf {
     let p = Path::new(FAULTCAM).parent().unwrap().join("examples").join("truth_sut");
@@ -1034,7 +1032,11 @@ fn truth_log(dir: &Path, source: &str, name: &str) -> PathBuf {
     std::fs::write(&faults, "seed = 0\n").unwrap();
     let log = dir.join(name);
     let o = output_within(
-        Command::new(FAULTCAM).args(["run", "--source", source, "--sink", "null:", "--faults"]).arg(&faults).arg("--log").arg(&log),
+        Command::new(FAULTCAM)
+            .args(["run", "--source", source, "--sink", "null:", "--faults"])
+            .arg(&faults)
+            .arg("--log")
+            .arg(&log),
         Duration::from_secs(120),
         "faultcam run (the truth log)",
     );
@@ -1065,50 +1067,81 @@ fn sut_stderr(out: &Path) -> Vec<String> {
     cells.iter().map(|c| std::fs::read_to_string(c.join("sut.stderr")).unwrap_or_default()).collect()
 }
 
+/// What the truth SUT was shown in each cell: its `truth_sut: seq N WxH COLOUR pixels HASH`
+/// lines, sorted.
+fn shown(out: &Path) -> Vec<Vec<String>> {
+    sut_stderr(out)
+        .iter()
+        .map(|e| {
+            let mut l: Vec<String> =
+                e.lines().filter(|l| l.starts_with("truth_sut: seq ")).map(str::to_string).collect();
+            l.sort();
+            l
+        })
+        .collect()
+}
+
 #[test]
 fn live_sweep_through_a_loopback_device_reports_every_frame_as_the_files_sink() {
     let Some((dev, _turn)) = device("live_sweep_through_a_loopback_device", SLOT_SWEEP) else { return };
-    let dir = tempfile::tempdir().unwrap();
-    let t = Instant::now();
-    // Generous bounds (TCG on a loaded host); a frame's report comes in well under a second.
-    let timeouts = ["--startup-s", "60", "--frame-timeout-s", "30"];
-    let mut a = SWEEP_ARGS.to_vec();
-    a.extend(timeouts);
-    let log = truth_log(dir.path(), SWEEP_SYNTH, "gt.jsonl");
-    let files_out = dir.path().join("files");
-    let (files, _) = live_sweep(&files_out, SWEEP_SYNTH, &live_truth_sut(&log, "{in_dir}"), &a, Duration::from_secs(600));
-    let files_s = t.elapsed().as_secs_f64();
-    let v4l2_out = dir.path().join("v4l2");
-    let sink = format!("v4l2:{dev}");
-    a.extend(["--sink", &sink]);
-    let input = format!("v4l2:{dev}");
-    let (r, err) = live_sweep(&v4l2_out, SWEEP_SYNTH, &live_truth_sut(&log, &input), &a, Duration::from_secs(600));
-    eprintln!(
-        "live sweep: files: sink {files_s:.1} s, v4l2 sink {:.1} s\n{err}",
-        t.elapsed().as_secs_f64() - files_s
-    );
-    let sut_err = sut_stderr(&v4l2_out);
-    // The SUT read the device (the seq-stamped frames), in every cell.
-    assert_eq!(sut_err.len(), 3);
-    assert!(sut_err.iter().all(|e| e.contains(&format!("reading v4l2:{dev}"))), "{sut_err:?}");
-    assert_eq!(r["plan"]["live"]["sink"], sink.as_str());
-    assert_eq!(r["summary"]["incidents"], 0, "{}\n{sut_err:?}", r["incidents"]);
-    assert_eq!(r["summary"]["cells"], 3);
-    assert_eq!(r["summary"]["frames_scored"], 24, "every frame of the three cells");
-    assert_eq!((r["baseline"]["frames"].as_u64(), r["baseline"]["failure_rate"].as_f64()), (Some(8), Some(0.0)));
-    for l in r["effects"][0]["levels"].as_array().unwrap() {
-        assert_eq!((l["frames"].as_u64(), l["posed"].as_u64()), (Some(8), Some(8)), "{l}");
-        assert!(l["p95_score"].as_f64().unwrap() < 1e-12, "the truth scores 0: {l}");
+    // mono8 (GREY) over three cells, rgb8 (RGB3) over two.
+    for (format, levels) in [("mono8", 2usize), ("rgb8", 1)] {
+        let dir = tempfile::tempdir().unwrap();
+        let source = format!("{SWEEP_SYNTH}&format={format}");
+        let cells = levels + 1;
+        let t = Instant::now();
+        // Generous bounds (TCG on a loaded host); a frame's report comes in well under a second.
+        let levels_s = levels.to_string();
+        let mut a = vec!["--effects", "defocus", "--levels", &levels_s, "--seeds", "1"];
+        a.extend(["--startup-s", "60", "--frame-timeout-s", "30"]);
+        let log = truth_log(dir.path(), &source, "gt.jsonl");
+        let files_out = dir.path().join("files");
+        let (files, _) =
+            live_sweep(&files_out, &source, &live_truth_sut(&log, "{in_dir}"), &a, Duration::from_secs(600));
+        let files_s = t.elapsed().as_secs_f64();
+        let v4l2_out = dir.path().join("v4l2");
+        let sink = format!("v4l2:{dev}");
+        a.extend(["--sink", &sink]);
+        let input = format!("v4l2:{dev}");
+        let (r, err) = live_sweep(&v4l2_out, &source, &live_truth_sut(&log, &input), &a, Duration::from_secs(600));
+        let sut_err = sut_stderr(&v4l2_out);
+        eprintln!(
+            "live sweep {format}: files: sink {files_s:.1} s (with the truth log), v4l2 sink {:.1} s\n{err}\ncell 0 SUT: {}",
+            t.elapsed().as_secs_f64() - files_s,
+            sut_err[0]
+        );
+        // The SUT read the device (the seq-stamped frames), in every cell.
+        assert_eq!(sut_err.len(), cells);
+        let fourcc = if format == "rgb8" { "RGB3" } else { "GREY" };
+        let reading = format!("reading v4l2:{dev}");
+        assert!(
+            sut_err.iter().all(|e| e.contains(&reading) && e.contains(&format!("320x240 {fourcc}"))),
+            "{sut_err:?}"
+        );
+        assert_eq!(r["plan"]["live"]["sink"], sink.as_str());
+        assert_eq!(r["summary"]["incidents"], 0, "{format}: {}\n{sut_err:?}", r["incidents"]);
+        assert_eq!(r["summary"]["cells"], cells);
+        assert_eq!(r["summary"]["frames_scored"], 8 * cells, "every frame of every cell");
+        assert_eq!((r["baseline"]["frames"].as_u64(), r["baseline"]["failure_rate"].as_f64()), (Some(8), Some(0.0)));
+        for l in r["effects"][0]["levels"].as_array().unwrap() {
+            assert_eq!((l["frames"].as_u64(), l["posed"].as_u64()), (Some(8), Some(8)), "{l}");
+            assert!(l["p95_score"].as_f64().unwrap() < 1e-12, "the truth scores 0: {l}");
+        }
+        // One deterministic report per frame: the same results as through the files: sink.
+        for k in ["baseline", "effects", "pairs", "summary", "incidents"] {
+            assert_eq!(r[k], files[k], "{format} {k}: v4l2 and files sinks differ");
+        }
+        let read = |d: &Path| std::fs::read_to_string(d.join("frames.jsonl")).unwrap();
+        assert_eq!(read(&v4l2_out), read(&files_out), "{format} frames.jsonl: v4l2 sink == files sink");
+        // And the SUT was shown the same pixels, frame by frame: each seq once, byte-equal to the
+        // files: sink's image.
+        let (via_files, via_dev) = (shown(&files_out), shown(&v4l2_out));
+        assert!(via_files.iter().all(|c| c.len() == 8), "{via_files:?}");
+        assert_eq!(via_dev, via_files, "{format}: what the SUT saw through the device and the files");
+        // Everyone closed: the device is an output device again.
+        let caps = v4l::Device::with_path(&dev).unwrap().query_caps().unwrap().capabilities;
+        assert!(caps.contains(v4l::capability::Flags::VIDEO_OUTPUT), "after the sweep: {caps}");
     }
-    // One deterministic report per frame: the same results as through the files: sink.
-    for k in ["baseline", "effects", "pairs", "summary", "incidents"] {
-        assert_eq!(r[k], files[k], "{k}: v4l2 and files sinks differ");
-    }
-    let read = |d: &Path| std::fs::read_to_string(d.join("frames.jsonl")).unwrap();
-    assert_eq!(read(&v4l2_out), read(&files_out), "frames.jsonl: v4l2 sink == files sink");
-    // Everyone closed: the device is an output device again.
-    let caps = v4l::Device::with_path(&dev).unwrap().query_caps().unwrap().capabilities;
-    assert!(caps.contains(v4l::capability::Flags::VIDEO_OUTPUT), "after the sweep: {caps}");
 }
 
 #[test]
