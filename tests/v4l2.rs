@@ -1110,7 +1110,9 @@ fn live_sweep_through_a_loopback_device_reports_every_frame_as_the_files_sink() 
             t.elapsed().as_secs_f64() - files_s,
             sut_err[0]
         );
-        // The SUT read the device (the seq-stamped frames), in every cell.
+        // The SUT read the device (the seq-stamped frames), in every cell. It opens the device
+        // after frame 0 is written and skips the first buffer (restamped by its own
+        // VIDIOC_REQBUFS): frame 0 is reported only because faultcam shows it again.
         assert_eq!(sut_err.len(), cells);
         let fourcc = if format == "rgb8" { "RGB3" } else { "GREY" };
         let reading = format!("reading v4l2:{dev}");
