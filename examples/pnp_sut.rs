@@ -6,7 +6,8 @@
 //!   by name) it could estimate: `{"file":"frame_000000.png","q":[w,x,y,z],"t":[x,y,z]}`;
 //! - live: `pnp_sut --live IN_DIR REPORT [CAMERA_JSON]` — watches IN_DIR (a `files:` sink) and
 //!   reports each new `frame_NNNNNN` image as `{"seq":N,"q":..,"t":..}` (`{"seq":N}` when it
-//!   finds no pose) to REPORT (`-` stdout, or `udp:HOST:PORT`) until its standard input closes.
+//!   finds no pose) to REPORT (`-` stdout, or `udp:HOST:PORT`) until its standard input closes;
+//!   IN_DIR may be `v4l2:/dev/videoN` (the live sweep's v4l2loopback sink, read as a camera).
 //!
 //! Pose convention: faultcam's (`src/pose.rs`): q scalar first, rotation body → camera; camera x
 //! right, y down, z forward; metres. CAMERA_JSON (`{"fx","fy","cx","cy"}` in pixels, OpenCV

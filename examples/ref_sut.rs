@@ -8,7 +8,9 @@
 //! Live: `ref_sut --live IN_DIR REPORT [CAMERA_JSON]` — watches IN_DIR (a `files:` sink) and
 //! reports each new `frame_NNNNNN` image as `{"seq":N,"q":..,"t":..}` (`{"seq":N}` when it
 //! finds no pose) to REPORT (`-` stdout, or `udp:HOST:PORT` / `HOST:PORT`) until its standard
-//! input closes: `faultcam sweep --live --sut 'ref_sut --live {in_dir} - {camera}'`.
+//! input closes: `faultcam sweep --live --sut 'ref_sut --live {in_dir} - {camera}'`. IN_DIR
+//! may be `v4l2:/dev/videoN` instead: the live sweep's v4l2loopback sink, read as a camera (the
+//! seq from each buffer's timestamp, see `faultcam::sweep::live`).
 //! CAMERA_JSON (`{"fx","fy","cx","cy"}`, what `faultcam sweep` passes as `{camera}`) gives the
 //! focal length; without it the synth default (30° horizontal field of view) is assumed.
 //!

@@ -6,11 +6,15 @@
 //! Usage:
 //! - batch: `truth_sut LOG OUT_FILE`: one line `{"file":..,"q":..,"t":..}` per frame, named
 //!   as the sweep names frames (`frame_NNNNNN.png`, or the input's stem with `.png`);
-//! - live: `truth_sut --live LOG DIR [REPORT]`: watches DIR (a `files:` sink, or a GStreamer
-//!   `multifilesink location=DIR/frame_%06d.png`) for new image files and reports
-//!   `{"seq":N,"q":..,"t":..}` for each, N the seq its name has in the log, to REPORT:
+//! - live: `truth_sut --live LOG INPUT [REPORT]`: INPUT is a folder (a `files:` sink, or a
+//!   GStreamer `multifilesink location=DIR/frame_%06d.png`), watched for new image files, or
+//!   `v4l2:/dev/videoN` (a live sweep's v4l2loopback sink), read as a camera (each frame's seq
+//!   from its buffer timestamp, each seq once). It reports `{"seq":N,"q":..,"t":..}` per frame,
+//!   N the seq the frame's name has in the log (or the device's seq), to REPORT:
 //!   `udp:HOST:PORT` (one datagram per report) or `-`/absent (stdout). It exits when its
-//!   standard input closes (faultcam closes it at the end of the stream).
+//!   standard input closes (faultcam closes it at the end of the stream). For each frame it
+//!   reports it prints `truth_sut: seq N WxH COLOUR pixels HASH` on stderr (FNV-1a 64 of the
+//!   decoded pixels): what it was shown, for tests comparing sinks.
 
 use serde_json::Value;
 use std::collections::BTreeMap;
@@ -49,25 +53,47 @@ fn batch(log: &str, out_file: &str) -> Result<(), String> {
     std::fs::write(out_file, out).map_err(|e| format!("{out_file}: {e}"))
 }
 
-fn live(log: &str, dir: &str, report: Option<&str>) -> Result<(), String> {
-    use faultcam::sweep::live::sut::{FolderWatch, Reporter, stdin_closed};
-    let by_name: BTreeMap<String, (u64, Value)> = read_log(log)?.into_iter().map(|(f, s, p)| (f, (s, p))).collect();
+/// `WxH COLOUR pixels HASH` of an image file: FNV-1a 64 of its decoded samples.
+fn pixels_digest(path: &std::path::Path) -> String {
+    match image::open(path) {
+        Ok(img) => {
+            let h = img
+                .as_bytes()
+                .iter()
+                .fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3));
+            format!("{}x{} {:?} pixels {h:016x}", img.width(), img.height(), img.color())
+        }
+        Err(e) => format!("unreadable: {e}"),
+    }
+}
+
+fn live(log: &str, input: &str, report: Option<&str>) -> Result<(), String> {
+    use faultcam::sweep::live::sut::{Input, Reporter, stdin_closed};
+    let frames = read_log(log)?;
+    let by_seq: BTreeMap<u64, Value> = frames.iter().map(|(_, s, p)| (*s, p.clone())).collect();
+    let by_name: BTreeMap<String, (u64, Value)> = frames.into_iter().map(|(f, s, p)| (f, (s, p))).collect();
     let mut out = Reporter::open(report.unwrap_or("-"))?;
     let done = stdin_closed();
-    let mut watch = FolderWatch::new(dir);
+    let mut input = Input::open(input)?;
     loop {
         let last = done.load(Ordering::Relaxed);
-        for path in watch.poll() {
-            // The sweep names frames with .png; a sink may write another image format.
+        for (seq, path) in input.poll() {
+            // The sweep names frames with .png; a sink may write another image format. A frame
+            // read from a device has its seq (and a frame_NNNNNN name).
             let Some(stem) = path.file_stem().and_then(|s| s.to_str()) else { continue };
-            if let Some((seq, pose)) = by_name.get(&format!("{stem}.png")) {
+            let hit = match by_name.get(&format!("{stem}.png")) {
+                Some((s, p)) => Some((*s, p)),
+                None => seq.and_then(|s| Some((s, by_seq.get(&s)?))),
+            };
+            if let Some((seq, pose)) = hit {
+                eprintln!("truth_sut: seq {seq} {}", pixels_digest(&path));
                 let (q, t) = serde_json::from_value(serde_json::json!([pose["q"], pose["t"]]))
                     .map_err(|e| format!("{log}: pose of seq {seq}: {e}"))?;
-                out.send(*seq, Some((q, t)))?;
+                out.send(seq, Some((q, t)))?;
             }
         }
         if last {
-            return Ok(());
+            return input.finish();
         }
         std::thread::sleep(std::time::Duration::from_millis(2));
     }
@@ -79,7 +105,7 @@ fn main() -> ExitCode {
         Some("--live") if (4..=5).contains(&args.len()) => live(&args[2], &args[3], args.get(4).map(String::as_str)),
         Some(_) if args.len() == 3 => batch(&args[1], &args[2]),
         _ => {
-            eprintln!("usage: truth_sut LOG OUT_FILE | truth_sut --live LOG DIR [udp:HOST:PORT|-]");
+            eprintln!("usage: truth_sut LOG OUT_FILE | truth_sut --live LOG DIR|v4l2:/dev/videoN [udp:HOST:PORT|-]");
             return ExitCode::from(2);
         }
     };

@@ -42,6 +42,13 @@ const SLOT_READERS: usize = 4;
 const SLOT_MODULE: usize = 5;
 const SLOT_REFUSED: usize = 6;
 const SLOT_LATENCY: usize = 7;
+/// The live sweep tests (run one at a time, as every device test in the VM: `--test-threads=1`)
+/// share devices with other tests: v4l2loopback 0.12.7 has at most eight. Each device is back to
+/// an output device once its users close it.
+const SLOT_SWEEP: usize = SLOT_ROUND_TRIP;
+const SLOT_SWEEP_FAIL: usize = SLOT_RUN;
+/// The device nobody writes, read by the failing SUT.
+const SLOT_SWEEP_SILENT: usize = SLOT_GST;
 const SLOTS: usize = 8;
 
 /// A test's hold on its device (released when the test ends, pass or fail).
@@ -999,4 +1006,196 @@ fn loopback_latency_1920x1200_mono8_60fps() {
         q(0.99),
         lat[lat.len() - 1]
     );
+}
+
+// ---------------------------------------------------------------------------------------------
+// Live sweep through a loopback device: faultcam sweep --live --sink v4l2:/dev/video1X, the
+// truth SUT (examples/truth_sut.rs) reading the device as a camera. scripts/v4l2-e2e.sh builds
+// the example on the host.
+
+const SWEEP_SYNTH: &str = "synth:?width=320&height=240&frames=8&spin_dps=30";
+
+fn truth_sut_bin() -> PathBuf {
+    let p = Path::new(FAULTCAM).parent().unwrap().join("examples").join("truth_sut");
+    assert!(
+        p.exists(),
+        "{} is missing: build it first (cargo build --example truth_sut; scripts/v4l2-e2e.sh does)",
+        p.display()
+    );
+    p
+}
+
+/// The truth for `source`: `faultcam run` logs it once (no faults; every cell renders the same
+/// frames, so one log serves all).
+fn truth_log(dir: &Path, source: &str, name: &str) -> PathBuf {
+    let faults = dir.join("empty.toml");
+    std::fs::write(&faults, "seed = 0\n").unwrap();
+    let log = dir.join(name);
+    let o = output_within(
+        Command::new(FAULTCAM)
+            .args(["run", "--source", source, "--sink", "null:", "--faults"])
+            .arg(&faults)
+            .arg("--log")
+            .arg(&log),
+        Duration::from_secs(120),
+        "faultcam run (the truth log)",
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    log
+}
+
+/// The truth SUT in live mode: reads INPUT (`{in_dir}` or `v4l2:/dev/videoN`), reports the
+/// truth from `log` on stdout.
+fn live_truth_sut(log: &Path, input: &str) -> String {
+    format!("exec '{}' --live '{}' {input} -", truth_sut_bin().display(), log.display())
+}
+
+/// `faultcam sweep --live` (at most `within`); the report and the sweep's stderr.
+fn live_sweep(out: &Path, source: &str, sut: &str, extra: &[&str], within: Duration) -> (serde_json::Value, String) {
+    let mut c = Command::new(FAULTCAM);
+    c.args(["sweep", "--live", "--source", source, "--sut", sut, "--keep-work", "--out"]).arg(out).args(extra);
+    let o = output_within(&mut c, within, "faultcam sweep --live");
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(o.status.success(), "faultcam sweep failed: {err}");
+    (serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap(), err)
+}
+
+/// Each cell's `sut.stderr` (kept with --keep-work), in cell order.
+fn sut_stderr(out: &Path) -> Vec<String> {
+    let mut cells: Vec<PathBuf> = std::fs::read_dir(out.join("work")).unwrap().map(|e| e.unwrap().path()).collect();
+    cells.sort();
+    cells.iter().map(|c| std::fs::read_to_string(c.join("sut.stderr")).unwrap_or_default()).collect()
+}
+
+/// What the truth SUT was shown in each cell: its `truth_sut: seq N WxH COLOUR pixels HASH`
+/// lines, sorted.
+fn shown(out: &Path) -> Vec<Vec<String>> {
+    sut_stderr(out)
+        .iter()
+        .map(|e| {
+            let mut l: Vec<String> =
+                e.lines().filter(|l| l.starts_with("truth_sut: seq ")).map(str::to_string).collect();
+            l.sort();
+            l
+        })
+        .collect()
+}
+
+#[test]
+fn live_sweep_through_a_loopback_device_reports_every_frame_as_the_files_sink() {
+    let Some((dev, _turn)) = device("live_sweep_through_a_loopback_device", SLOT_SWEEP) else { return };
+    // mono8 (GREY) over three cells, rgb8 (RGB3) over two.
+    for (format, levels) in [("mono8", 2usize), ("rgb8", 1)] {
+        let dir = tempfile::tempdir().unwrap();
+        let source = format!("{SWEEP_SYNTH}&format={format}");
+        let cells = levels + 1;
+        let t = Instant::now();
+        // Generous bounds (TCG on a loaded host); a frame's report comes in well under a second.
+        let levels_s = levels.to_string();
+        let mut a = vec!["--effects", "defocus", "--levels", &levels_s, "--seeds", "1"];
+        a.extend(["--startup-s", "60", "--frame-timeout-s", "30"]);
+        let log = truth_log(dir.path(), &source, "gt.jsonl");
+        let files_out = dir.path().join("files");
+        let (files, _) =
+            live_sweep(&files_out, &source, &live_truth_sut(&log, "{in_dir}"), &a, Duration::from_secs(600));
+        let files_s = t.elapsed().as_secs_f64();
+        let v4l2_out = dir.path().join("v4l2");
+        let sink = format!("v4l2:{dev}");
+        a.extend(["--sink", &sink]);
+        let input = format!("v4l2:{dev}");
+        let (r, err) = live_sweep(&v4l2_out, &source, &live_truth_sut(&log, &input), &a, Duration::from_secs(600));
+        let sut_err = sut_stderr(&v4l2_out);
+        eprintln!(
+            "live sweep {format}: files: sink {files_s:.1} s (with the truth log), v4l2 sink {:.1} s\n{err}\ncell 0 SUT: {}",
+            t.elapsed().as_secs_f64() - files_s,
+            sut_err[0]
+        );
+        // The SUT read the device (the seq-stamped frames), in every cell. It opens the device
+        // after frame 0 is written and skips the first buffer (restamped by its own
+        // VIDIOC_REQBUFS): frame 0 is reported only because faultcam shows it again.
+        assert_eq!(sut_err.len(), cells);
+        let fourcc = if format == "rgb8" { "RGB3" } else { "GREY" };
+        let reading = format!("reading v4l2:{dev}");
+        assert!(
+            sut_err.iter().all(|e| e.contains(&reading) && e.contains(&format!("320x240 {fourcc}"))),
+            "{sut_err:?}"
+        );
+        assert_eq!(r["plan"]["live"]["sink"], sink.as_str());
+        assert_eq!(r["summary"]["incidents"], 0, "{format}: {}\n{sut_err:?}", r["incidents"]);
+        assert_eq!(r["summary"]["cells"], cells);
+        assert_eq!(r["summary"]["frames_scored"], 8 * cells, "every frame of every cell");
+        assert_eq!((r["baseline"]["frames"].as_u64(), r["baseline"]["failure_rate"].as_f64()), (Some(8), Some(0.0)));
+        for l in r["effects"][0]["levels"].as_array().unwrap() {
+            assert_eq!((l["frames"].as_u64(), l["posed"].as_u64()), (Some(8), Some(8)), "{l}");
+            assert!(l["p95_score"].as_f64().unwrap() < 1e-12, "the truth scores 0: {l}");
+        }
+        // One deterministic report per frame: the same results as through the files: sink.
+        for k in ["baseline", "effects", "pairs", "summary", "incidents"] {
+            assert_eq!(r[k], files[k], "{format} {k}: v4l2 and files sinks differ");
+        }
+        let read = |d: &Path| std::fs::read_to_string(d.join("frames.jsonl")).unwrap();
+        assert_eq!(read(&v4l2_out), read(&files_out), "{format} frames.jsonl: v4l2 sink == files sink");
+        // And the SUT was shown the same pixels, frame by frame: each seq once, byte-equal to the
+        // files: sink's image.
+        let (via_files, via_dev) = (shown(&files_out), shown(&v4l2_out));
+        assert!(via_files.iter().all(|c| c.len() == 8), "{via_files:?}");
+        assert_eq!(via_dev, via_files, "{format}: what the SUT saw through the device and the files");
+        // Everyone closed: the device is an output device again.
+        let caps = v4l::Device::with_path(&dev).unwrap().query_caps().unwrap().capabilities;
+        assert!(caps.contains(v4l::capability::Flags::VIDEO_OUTPUT), "after the sweep: {caps}");
+    }
+}
+
+#[test]
+fn live_sweep_v4l2_failures_are_incidents_and_the_sweep_completes() {
+    let Some((dev, _turn)) = device("live_sweep_v4l2_failures", SLOT_SWEEP_FAIL) else { return };
+    let list = device_list();
+    let dir = tempfile::tempdir().unwrap();
+    let source = "synth:?width=320&height=240&frames=3&spin_dps=30";
+    let log = truth_log(dir.path(), source, "gt.jsonl");
+    let mut a = vec!["--effects", "defocus", "--levels", "1", "--seeds", "1", "--frame-timeout-s", "1"];
+    // Time for the SUT to start (and find the device never becomes a camera).
+    a.extend(["--startup-s", "5"]);
+
+    // 1. The SUT reads a device nobody writes (faultcam writes another): it never opens it as a
+    //    camera; every frame times out, the SUT says why (exit status 2), the sweep completes.
+    if let Some(silent) = list.get(SLOT_SWEEP_SILENT).filter(|_| list.len() >= SLOTS) {
+        let out = dir.path().join("silent");
+        let sink = format!("v4l2:{dev}");
+        let mut a1 = a.clone();
+        a1.extend(["--sink", &sink]);
+        let sut = live_truth_sut(&log, &format!("v4l2:{silent}"));
+        let (r, _) = live_sweep(&out, source, &sut, &a1, Duration::from_secs(300));
+        let inc = r["incidents"].as_array().unwrap();
+        let frames: Vec<&serde_json::Value> = inc.iter().filter(|i| i["frame"].is_string()).collect();
+        assert_eq!(frames.len(), 6, "each frame of the two cells: {inc:?}");
+        assert!(frames.iter().all(|i| i["what"].as_str().unwrap().contains("no report within")), "{inc:?}");
+        let cells: Vec<&serde_json::Value> = inc.iter().filter(|i| i["frame"].is_null()).collect();
+        assert_eq!(cells.len(), 2, "{inc:?}");
+        assert!(cells.iter().all(|i| i["what"] == "sut exit status 2"), "{inc:?}");
+        assert_eq!(r["baseline"]["failure_rate"], 1.0);
+        for e in sut_stderr(&out) {
+            assert!(e.contains(&format!("v4l2:{silent}: no frame read")) && e.contains("not a capture device"), "{e}");
+        }
+    } else {
+        eprintln!("live_sweep_v4l2_failures: one device only, the silent-device case needs FAULTCAM_V4L2_DEVICES");
+    }
+
+    // 2. The sink device does not exist: every frame is an incident naming it, not shown.
+    let out = dir.path().join("missing");
+    let missing = "/dev/video-faultcam-missing";
+    let sink = format!("v4l2:{missing}");
+    let mut a2 = a.clone();
+    a2.extend(["--sink", &sink]);
+    let sut = live_truth_sut(&log, &sink);
+    let (r, _) = live_sweep(&out, source, &sut, &a2, Duration::from_secs(300));
+    let inc = r["incidents"].as_array().unwrap();
+    let frames: Vec<&serde_json::Value> = inc.iter().filter(|i| i["frame"].is_string()).collect();
+    assert_eq!(frames.len(), 6, "{inc:?}");
+    for i in &frames {
+        let w = i["what"].as_str().unwrap();
+        assert!(w.starts_with("not shown: sink: ") && w.contains(missing), "{w}");
+    }
+    assert_eq!(r["baseline"]["failure_rate"], 1.0);
+    assert_eq!(r["summary"]["frames_scored"], 6);
 }

@@ -28,7 +28,8 @@ pub struct Args {
     #[arg(long)]
     pub live: bool,
     /// Live: sink the SUT reads, files:DIR (default files:{in_dir}, written frame by frame),
-    /// gst:appsrc ! ... or v4l2:/dev/videoN; {in_dir} and {cell_dir} are replaced per cell.
+    /// gst:appsrc ! ... or v4l2:/dev/videoN (frame seq N stamped (N+1) ms, shown again while
+    /// its report is awaited); {in_dir} and {cell_dir} are replaced per cell.
     #[arg(long, value_name = "URI")]
     pub sink: Option<String>,
     /// Live: where poses come back: stdout (default), udp:HOST:PORT (faultcam binds; port 0 =

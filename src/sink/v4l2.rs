@@ -2,7 +2,8 @@
 //! faulted frames appear as a camera that any V4L2 application (the vision stack under
 //! test, GStreamer `v4l2src`, ffplay, a browser) can open.
 //!
-//! URI: `v4l2:/dev/videoN[?format=GREY|Y16|RGB3|YUYV&fps=30&io=mmap|write&buffers=4&timeout_ms=2000]`.
+//! URI: `v4l2:/dev/videoN[?format=GREY|Y16|RGB3|YUYV&fps=30&io=mmap|write&buffers=4&timeout_ms=2000&
+//! stamp=pts|seq]`.
 //!
 //! * The output format is negotiated on the first frame (`VIDIOC_S_FMT` on the output queue):
 //!   by default the frame's own layout (mono8 → `GREY`, mono16 → `Y16`, rgb8 → `RGB3`,
@@ -22,7 +23,11 @@
 //!   timestamps in the future), unless the pts already are
 //!   monotonic-clock times (within 10 s of now, as from a live `v4l2:` camera), which pass
 //!   unchanged (a pts under 1 s is always taken as a stream origin). (A zero timestamp would be replaced by v4l2loopback with the queue time, so a
-//!   stream starting at pts 0 would read back non-monotone.) Buffers the
+//!   stream starting at pts 0 would read back non-monotone.) With `stamp=seq` (what a live
+//!   `faultcam sweep` uses) the timestamp is instead the frame's identity: exactly
+//!   `(seq + 1)` ms ([`crate::sweep::live::seq_stamp_ns`]; a reader recovers `seq` with
+//!   [`crate::sweep::live::seq_of_stamp_ns`]), the same for every write of the same frame;
+//!   it needs `io=mmap` (with `write(2)` the driver stamps the buffer itself). Buffers the
 //!   driver has consumed come back with `VIDIOC_DQBUF` (waiting up to `timeout_ms` when all
 //!   are queued). Streaming starts (`VIDIOC_STREAMON`) with the first frame.
 //! * `io=write`: each frame is written with `write(2)` (v4l2loopback's read/write I/O, as
@@ -77,6 +82,15 @@ struct MmapOut {
     streaming: bool,
     /// Added to `pts_ns` to get a `CLOCK_MONOTONIC` timestamp; set on the first frame.
     ts_offset: Option<i128>,
+}
+
+/// What a queued buffer's timestamp says.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Stamp {
+    /// The frame's pts on `CLOCK_MONOTONIC` (see the module notes).
+    Pts,
+    /// The frame's seq: `(seq + 1)` ms exactly (the live sweep's contract).
+    Seq,
 }
 
 /// `CLOCK_MONOTONIC` now, in ns.
@@ -191,11 +205,8 @@ impl MmapOut {
         unsafe { std::slice::from_raw_parts_mut(m.ptr as *mut u8, m.len) }
     }
 
-    /// Hand buffer `i` (with `bytesused` bytes of frame) to the driver; start streaming.
-    fn queue(&mut self, i: usize, bytesused: usize, pts_ns: u64) -> std::io::Result<()> {
-        let mut b = v4l2_buffer(i as u32);
-        b.bytesused = bytesused as u32;
-        b.field = v4l::v4l_sys::v4l2_field_V4L2_FIELD_NONE;
+    /// The `CLOCK_MONOTONIC` timestamp of a frame with `pts_ns` (see the module notes).
+    fn pts_stamp(&mut self, pts_ns: u64) -> u64 {
         let now = monotonic_ns();
         let offset = match self.ts_offset {
             // pts that are monotonic-clock times already (a live camera) pass unchanged.
@@ -215,7 +226,15 @@ impl MmapOut {
         };
         self.ts_offset = Some(offset);
         // Never 0 (v4l2loopback would stamp it itself) and never before the clock's origin.
-        let ts = (pts_ns as i128 + offset).max(1000) as u64;
+        (pts_ns as i128 + offset).max(1000) as u64
+    }
+
+    /// Hand buffer `i` (with `bytesused` bytes of frame) to the driver, stamped `ts` ns (µs
+    /// resolution); start streaming.
+    fn queue(&mut self, i: usize, bytesused: usize, ts: u64) -> std::io::Result<()> {
+        let mut b = v4l2_buffer(i as u32);
+        b.bytesused = bytesused as u32;
+        b.field = v4l::v4l_sys::v4l2_field_V4L2_FIELD_NONE;
         b.timestamp.tv_sec = (ts / 1_000_000_000) as _;
         b.timestamp.tv_usec = ((ts % 1_000_000_000) / 1000) as _;
         let fd = self.handle.fd();
@@ -268,6 +287,7 @@ pub struct V4l2Sink {
     want: Option<[u8; 4]>,
     fps: Option<u64>,
     io: Io,
+    stamp: Stamp,
     /// The driver is v4l2loopback (its quirks are worked around, see `MmapOut::acquire`).
     loopback: bool,
     buffers: u32,
@@ -362,6 +382,14 @@ impl V4l2Sink {
         };
         let buffers = o.int("buffers", 2, 32).map_err(bad)?.unwrap_or(4) as u32;
         let timeout_ms = o.int("timeout_ms", 10, 600_000).map_err(bad)?.unwrap_or(2000) as i32;
+        let stamp = match o.raw("stamp").as_deref() {
+            None | Some("pts") => Stamp::Pts,
+            Some("seq") if io == Io::Mmap => Stamp::Seq,
+            Some("seq") => {
+                return Err(bad("stamp=seq needs io=mmap (with write(2) the driver stamps buffers itself)".into()));
+            }
+            Some(v) => return Err(bad(format!("stamp={v} is not accepted; expected pts or seq"))),
+        };
         o.finish().map_err(bad)?;
         let failed = |reason: String| SinkError::Failed { uri: uri.to_string(), reason };
         let device = Device::with_path(path).map_err(|e| failed(format!("cannot open {path}: {e}")))?;
@@ -384,6 +412,7 @@ impl V4l2Sink {
             want,
             fps,
             io,
+            stamp,
             loopback: caps.driver == "v4l2 loopback",
             buffers,
             timeout_ms,
@@ -492,8 +521,9 @@ impl V4l2Sink {
         };
         self.fourcc = fourcc;
         self.shape = Some(shape);
+        let stamps = if self.stamp == Stamp::Seq { ", timestamps (seq + 1) ms" } else { "" };
         self.chosen = format!(
-            "{}: driver chose {}x{} {}, bytesperline {}, sizeimage {}, io {io}",
+            "{}: driver chose {}x{} {}, bytesperline {}, sizeimage {}, io {io}{stamps}",
             self.chosen, got.width, got.height, got.fourcc, self.bytesperline, got.size
         );
         Ok(())
@@ -532,8 +562,15 @@ impl Sink for V4l2Sink {
                     });
                 }
             };
-            let r = fill(frame, &fourcc, bpl, &mut m.buffer(i)[..n])
-                .and_then(|()| m.queue(i, n, frame.pts_ns).map_err(|e| format!("VIDIOC_QBUF: {e}")));
+            let ts = match self.stamp {
+                Stamp::Pts => Some(m.pts_stamp(frame.pts_ns)),
+                Stamp::Seq => crate::sweep::live::seq_stamp_ns(frame.seq),
+            };
+            let r = match ts {
+                Some(ts) => fill(frame, &fourcc, bpl, &mut m.buffer(i)[..n])
+                    .and_then(|()| m.queue(i, n, ts).map_err(|e| format!("VIDIOC_QBUF: {e}"))),
+                None => Err(format!("frame {}: seq too large for a timestamp (stamp=seq)", frame.seq)),
+            };
             return r.map_err(|e| SinkError::Failed { uri: self.uri.clone(), reason: format!("{}: {e}", self.path) });
         }
         fill(frame, &fourcc, bpl, &mut self.buf).map_err(|e| self.failed(e))?;
@@ -592,6 +629,10 @@ mod tests {
         assert!(e.contains("GREY, Y16, RGB3 or YUYV"), "{e}");
         let e = V4l2Sink::open("v4l2:/dev/null?io=userptr").err().unwrap().to_string();
         assert!(e.contains("io=userptr") && e.contains("mmap or write"), "{e}");
+        let e = V4l2Sink::open("v4l2:/dev/null?io=write&stamp=seq").err().unwrap().to_string();
+        assert!(e.contains("stamp=seq needs io=mmap"), "{e}");
+        let e = V4l2Sink::open("v4l2:/dev/null?stamp=now").err().unwrap().to_string();
+        assert!(e.contains("stamp=now") && e.contains("pts or seq"), "{e}");
         let e = V4l2Sink::open("v4l2:/dev/null?buffers=1").err().unwrap().to_string();
         assert!(e.contains("buffers") && e.contains("2..=32"), "{e}");
         // /dev/null is no V4L2 device: the error names it.

@@ -288,14 +288,16 @@ impl V4l2Source {
     pub fn device(&self) -> &Device {
         &self.device
     }
-}
 
-impl Source for V4l2Source {
-    fn describe(&self) -> String {
-        format!("{} ({})", self.uri, self.chosen)
+    /// The next frame, or `Ok(None)` when none came within `timeout_ms` (the stream stays
+    /// usable: call again). Errors as [`Source::next_frame`]'s.
+    pub fn poll_frame(&mut self) -> Result<Option<Frame>, SourceError> {
+        self.read(true)
     }
 
-    fn next_frame(&mut self) -> Result<Option<Frame>, SourceError> {
+    /// [`Source::next_frame`]; with `poll`, no buffer within the timeout is `Ok(None)` instead
+    /// of an error ending the stream.
+    fn read(&mut self, poll: bool) -> Result<Option<Frame>, SourceError> {
         if let Some(seq) = self.gaps.pop_front() {
             return Err(SourceError::BadInput {
                 item: format!("{} frame {seq}", self.path),
@@ -313,6 +315,10 @@ impl Source for V4l2Source {
         };
         let (buf, meta) = match CaptureStream::next(stream) {
             Ok(x) => x,
+            Err(e) if e.kind() == std::io::ErrorKind::TimedOut && poll => {
+                self.pool.give(frame);
+                return Ok(None);
+            }
             Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {
                 return Err(SourceError::Fatal {
                     uri: self.uri.clone(),
@@ -378,8 +384,18 @@ impl Source for V4l2Source {
             Ok(Some(frame))
         } else {
             self.ready = Some(frame);
-            self.next_frame()
+            self.read(poll)
         }
+    }
+}
+
+impl Source for V4l2Source {
+    fn describe(&self) -> String {
+        format!("{} ({})", self.uri, self.chosen)
+    }
+
+    fn next_frame(&mut self) -> Result<Option<Frame>, SourceError> {
+        self.read(false)
     }
 
     fn recycle(&mut self, frame: Frame) {

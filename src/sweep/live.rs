@@ -8,8 +8,9 @@
 //!
 //! (one JSON line per frame, the [`crate::pose`] convention; `seq` is the frame's `seq` in the
 //! ground-truth log: `frame_NNNNNN` in a `files:` sink's names, the buffer's `offset` through a
-//! `gst:` sink when no frame is dropped; `{"seq":N}` says "no pose in frame N": it fails at once
-//! instead of at its time-out) over:
+//! `gst:` sink when no frame is dropped, the buffer timestamp through a `v4l2:` sink (see
+//! below); `{"seq":N}` says "no pose in frame N": it fails at once instead of at its time-out)
+//! over:
 //! - `stdout`: the SUT's standard output;
 //! - `udp:HOST:PORT`: datagrams to a socket faultcam binds (loopback; port 0 = any free port,
 //!   the SUT gets the address as `{report}`), one or more lines per datagram;
@@ -27,8 +28,28 @@
 //! a report fail; the sweep goes on. Over UDP or a serial line a SUT command that exits with
 //! status 0 mid-stream is taken for a launcher (the SUT runs elsewhere): reports may still come.
 //!
-//! [`sut`] has the SUT side for Rust SUTs (the examples `truth_sut` and `ref_sut` use it):
-//! watching a `files:` sink folder, the seq of a frame file, reporting over stdout or UDP.
+//! **`v4l2:` sink (a v4l2loopback device).** The device is the SUT's camera. A frame's seq
+//! travels in its V4L2 buffer timestamp: faultcam opens the sink with `stamp=seq`, so frame
+//! `seq` is stamped exactly `(seq + 1)` ms ([`seq_stamp_ns`]: `tv_sec = (seq + 1) / 1000`,
+//! `tv_usec = ((seq + 1) % 1000) · 1000`; never 0, which v4l2loopback would replace with the
+//! queue time), and a reader maps a timestamp back with `seq = round(t / 1 ms) − 1`
+//! ([`seq_of_stamp_ns`]). v4l2loopback 0.12.7 gives readers no advancing sequence numbers
+//! and restamps every buffer with the current `CLOCK_MONOTONIC` time when a reader requests
+//! buffers (`VIDIOC_REQBUFS`): a reader takes only buffers stamped before the time it
+//! started opening the device (frame stamps are far below the clock: a cell of S frames needs
+//! an uptime above S ms). While it waits for frame N's report, faultcam keeps the device fed
+//! like a camera: it writes frame N again, same bytes and stamp, every 1/`fps` s
+//! (default [`DEFAULT_REFEED_FPS`]), so a reader that opened late (with `exclusive_caps=1` it can
+//! open the device only once the first frame is written), skipped a restamped buffer or missed
+//! one still gets it; the reader reports each seq once. A sink that cannot be opened (no such
+//! device, held by another writer: retried for [`V4L2_OPEN_RETRY_S`] s) or that refuses the
+//! format makes every frame not shown an incident naming the device; a SUT that never reads
+//! the device leaves its frames without reports (per-frame time-outs). One cell at a time
+//! (`--jobs 1`): the cells share the device.
+//!
+//! [`sut`] has the SUT side for Rust SUTs (the examples `truth_sut`, `ref_sut` and `pnp_sut` use
+//! it): watching a `files:` sink folder or reading a `v4l2:` device, the seq of a frame file or
+//! buffer, reporting over stdout or UDP.
 
 use super::{FrameResult, FrameStatus, SutOutcome, shell_quote};
 use crate::pose::{Pose, check_pose};
@@ -51,6 +72,37 @@ pub const DEFAULT_STARTUP_S: f64 = 10.0;
 pub const MAX_LINE_BYTES: usize = 4096;
 /// Sink schemes a live sweep accepts.
 pub const SINK_SCHEMES: &[&str] = &["files", "gst", "v4l2"];
+/// Rate at which a `v4l2:` sink is fed the awaited frame again when the plan has no `fps`.
+pub const DEFAULT_REFEED_FPS: f64 = 30.0;
+/// How long a live cell tries to open a `v4l2:` sink that exists but is held (by the previous
+/// cell's reader, closing), seconds.
+pub const V4L2_OPEN_RETRY_S: f64 = 3.0;
+/// Period of the seq stamp: frame `seq` through a `v4l2:` sink is stamped `(seq + 1)` periods.
+pub const SEQ_STAMP_PERIOD_NS: u64 = 1_000_000;
+
+/// The V4L2 buffer timestamp of frame `seq` in a live sweep, ns: `(seq + 1)` ms, a whole number
+/// of µs (the V4L2 timestamp's resolution), never 0. None when it overflows.
+pub fn seq_stamp_ns(seq: u64) -> Option<u64> {
+    seq.checked_add(1)?.checked_mul(SEQ_STAMP_PERIOD_NS)
+}
+
+/// The seq a buffer timestamp (ns) stands for: the nearest `(seq + 1)` ms; None below 0.5 ms
+/// (no frame's stamp).
+pub fn seq_of_stamp_ns(ts_ns: u64) -> Option<u64> {
+    (ts_ns / SEQ_STAMP_PERIOD_NS + u64::from(ts_ns % SEQ_STAMP_PERIOD_NS >= SEQ_STAMP_PERIOD_NS / 2)).checked_sub(1)
+}
+
+/// A live `v4l2:` sink's URI as faultcam opens it: `stamp=seq` added (see the module notes).
+pub fn v4l2_sink_uri(uri: &str) -> String {
+    let (_, _, opts) = crate::source::split_uri(uri);
+    if opts.iter().any(|(k, _)| k == "stamp") {
+        uri.to_string()
+    } else if opts.is_empty() {
+        format!("{uri}?stamp=seq")
+    } else {
+        format!("{uri}&stamp=seq")
+    }
+}
 
 /// The live settings of a plan.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -125,9 +177,18 @@ pub fn check_sink(uri: &str) -> Result<(), String> {
             SINK_SCHEMES.iter().map(|s| format!("{s}:")).collect::<Vec<_>>().join(", ")
         )));
     }
+    let (_, _, opts) = crate::source::split_uri(uri);
+    let opt = |k: &str| opts.iter().find(|(key, _)| key == k).map(|(_, v)| v.as_str());
     match scheme {
         "files" if path.is_empty() => Err(bad("expected files:DIR (e.g. files:{in_dir})")),
         "v4l2" if !path.starts_with('/') => Err(bad("expected v4l2:/dev/videoN (a v4l2loopback device)")),
+        "v4l2" if opt("stamp").is_some_and(|v| v != "seq") => {
+            Err(bad("a live v4l2 sink stamps each frame with its seq (stamp=seq, the default here)"))
+        }
+        "v4l2" if opt("io") == Some("write") => {
+            Err(bad("a live v4l2 sink needs io=mmap (the frame's seq travels in the buffer timestamp)"))
+        }
+        "v4l2" if !cfg!(feature = "v4l2") => Err(bad("this faultcam was built without V4L2 (feature v4l2)")),
         "gst" if !cfg!(feature = "gst") => Err(bad("this faultcam was built without GStreamer (feature gst)")),
         "gst" if !uri.contains("appsrc") => Err(bad("the pipeline must start with an appsrc")),
         _ => Ok(()),
@@ -428,9 +489,23 @@ impl Session<'_> {
         }
     }
 
-    /// Wait for frame `i`'s report until `deadline`; true when it came.
-    fn await_frame(&mut self, i: usize, deadline: Instant, timeout_s: f64) -> bool {
+    /// Wait for frame `i`'s report until `deadline`; true when it came. `refeed` is called
+    /// every [`POLL`] at most (a `v4l2:` sink shows the frame again when due); its error is an
+    /// incident of the frame and ends the re-feeding.
+    fn await_frame(
+        &mut self,
+        i: usize,
+        deadline: Instant,
+        timeout_s: f64,
+        mut refeed: Option<&mut dyn FnMut() -> Result<(), String>>,
+    ) -> bool {
         loop {
+            if let Some(r) = refeed.as_mut()
+                && let Err(e) = r()
+            {
+                note(&mut self.frames[i], e);
+                refeed = None;
+            }
             if self.poses[i].is_some() {
                 return true;
             }
@@ -450,6 +525,24 @@ impl Session<'_> {
                 Err(RecvTimeoutError::Timeout) => self.check_exit(),
                 Err(RecvTimeoutError::Disconnected) => self.gone = true,
             }
+        }
+    }
+}
+
+/// Open a live `v4l2:` sink (with `stamp=seq`): a device that exists but cannot be opened as
+/// an output (the previous cell's reader still closing) is tried again for
+/// [`V4L2_OPEN_RETRY_S`] s.
+fn open_v4l2_sink(uri: &str) -> Result<Box<dyn crate::sink::Sink>, String> {
+    let uri = v4l2_sink_uri(uri);
+    let path = crate::source::split_uri(&uri).1.to_string();
+    let end = Instant::now() + Duration::from_secs_f64(V4L2_OPEN_RETRY_S);
+    loop {
+        match crate::sink::open(&uri) {
+            Ok(s) => return Ok(s),
+            Err(_) if Path::new(&path).exists() && Instant::now() < end => {
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            Err(e) => return Err(format!("sink: {e}")),
         }
     }
 }
@@ -492,7 +585,17 @@ pub(super) fn run(
     };
     let sink_uri =
         live.sink.replace("{in_dir}", &in_dir.display().to_string()).replace("{cell_dir}", &dir.display().to_string());
-    let mut sink = crate::sink::open(&sink_uri).map_err(|e| format!("sink: {e}"))?;
+    let v4l2 = crate::source::split_uri(&sink_uri).0 == "v4l2";
+    // A v4l2: sink that cannot be opened fails the frames (incidents naming the device), as a
+    // device lost mid-stream would; the SUT still runs (it may be waiting for the device).
+    let (mut sink, sink_error) = if v4l2 {
+        match open_v4l2_sink(&sink_uri) {
+            Ok(s) => (Some(s), None),
+            Err(e) => (None, Some(e)),
+        }
+    } else {
+        (Some(crate::sink::open(&sink_uri).map_err(|e| format!("sink: {e}"))?), None)
+    };
 
     use std::os::unix::process::CommandExt;
     let cam = cam_path.as_deref().map(shell_quote).unwrap_or_else(|| "''".into());
@@ -548,7 +651,8 @@ pub(super) fn run(
     let mut first_shown = true;
     let mut last_shown = None;
     let mut first = true;
-    let mut stop_why: Option<String> = None;
+    let mut stop_why: Option<String> = sink_error;
+    let refeed_every = Duration::from_secs_f64(1.0 / live.fps.unwrap_or(DEFAULT_REFEED_FPS));
     while let Some(mut f) = pending.take() {
         let truth = if first { truth0 } else { src.truth() };
         first = false;
@@ -593,9 +697,12 @@ pub(super) fn run(
                     }
                 }
             }
-            match &stop_why {
-                Some(why) => note(&mut s.frames[i], format!("not shown: {why}")),
-                None => match sink.write_frame(&f, src.item_name()) {
+            // The frame carries the seq its report must have (a v4l2: sink stamps it).
+            f.seq = seq;
+            match (&stop_why, sink.as_mut()) {
+                (Some(why), _) => note(&mut s.frames[i], format!("not shown: {why}")),
+                (None, None) => note(&mut s.frames[i], "not shown: no sink".into()),
+                (None, Some(sink)) => match sink.write_frame(&f, src.item_name()) {
                     Ok(()) => {
                         s.shown.insert(seq, i);
                         last_shown = Some(i);
@@ -605,7 +712,22 @@ pub(super) fn run(
                             first_shown = false;
                         }
                         let deadline = (Instant::now() + Duration::from_secs_f64(wait)).min(cell_deadline);
-                        s.await_frame(i, deadline, wait);
+                        if v4l2 {
+                            // Feed the device like a camera while the report is awaited: the
+                            // same frame, bytes and stamp again every `refeed_every`.
+                            let mut due = Instant::now() + refeed_every;
+                            let name = src.item_name();
+                            let mut again = || {
+                                if Instant::now() < due {
+                                    return Ok(());
+                                }
+                                due += refeed_every;
+                                sink.write_frame(&f, name).map_err(|e| format!("sink (frame shown again): {e}"))
+                            };
+                            s.await_frame(i, deadline, wait, Some(&mut again));
+                        } else {
+                            s.await_frame(i, deadline, wait, None);
+                        }
                     }
                     Err(e) => {
                         let why = format!("sink: {e}");
@@ -618,7 +740,7 @@ pub(super) fn run(
         src.recycle(f);
         pending = next_frame(&mut src)?;
     }
-    if let Err(e) = sink.finish()
+    if let Some(Err(e)) = sink.as_mut().map(|s| s.finish())
         && let Some(i) = last_shown
     {
         note(&mut s.frames[i], format!("sink: {e}"));
@@ -635,6 +757,8 @@ pub(super) fn run(
         kill_group(&s.child);
     }
     let _ = s.child.wait();
+    // The device is closed after its reader: the next cell's writer finds it free sooner.
+    drop(sink);
     s.sut.status = match (timed_out, &s.exited) {
         (true, _) => format!("timeout after {} s", super::report::g(plan.timeout_s)),
         (false, Some(t)) if t != "ok" => match &stop_why {
@@ -675,6 +799,213 @@ pub mod sut {
             new.sort();
             self.seen.extend(new.iter().cloned());
             new.into_iter().map(|n| self.dir.join(n)).collect()
+        }
+    }
+
+    /// Where a live SUT gets its frames: a `files:` sink folder (or a `multifilesink` folder)
+    /// or a `v4l2:` device.
+    pub enum Input {
+        Folder(FolderWatch),
+        #[cfg(feature = "v4l2")]
+        Device(Box<DeviceWatch>),
+    }
+
+    impl Input {
+        /// `v4l2:/dev/videoN[?OPTIONS]` (a v4l2loopback device a live sweep writes; OPTIONS as
+        /// the `v4l2:` source's) or a folder.
+        pub fn open(spec: &str) -> Result<Input, String> {
+            if spec.starts_with("v4l2:") {
+                #[cfg(feature = "v4l2")]
+                return Ok(Input::Device(Box::new(DeviceWatch::new(spec)?)));
+                #[cfg(not(feature = "v4l2"))]
+                return Err(format!("{spec}: this faultcam was built without V4L2 (feature v4l2)"));
+            }
+            Ok(Input::Folder(FolderWatch::new(spec)))
+        }
+
+        /// New frames: the seq when known and the image file. A folder: the files that appeared
+        /// since the last call, in name order, seq from a `frame_NNNNNN` name (None for other
+        /// names); does not wait. A device: at most one frame not reported before (waits up to
+        /// [`DEVICE_POLL_MS`] ms), its seq from the buffer timestamp, written as a PNG file
+        /// (valid until the next call).
+        pub fn poll(&mut self) -> Vec<(Option<u64>, PathBuf)> {
+            match self {
+                Input::Folder(w) => w
+                    .poll()
+                    .into_iter()
+                    .map(|p| (p.file_name().and_then(|n| n.to_str()).and_then(seq_of_name), p))
+                    .collect(),
+                #[cfg(feature = "v4l2")]
+                Input::Device(d) => d.poll().into_iter().map(|(s, p)| (Some(s), p)).collect(),
+            }
+        }
+
+        /// At the end of the stream: an error when a device never gave a frame (why it could not
+        /// be read).
+        pub fn finish(&self) -> Result<(), String> {
+            match self {
+                Input::Folder(_) => Ok(()),
+                #[cfg(feature = "v4l2")]
+                Input::Device(d) => d.finish(),
+            }
+        }
+
+        fn waits(&self) -> bool {
+            !matches!(self, Input::Folder(_))
+        }
+    }
+
+    /// Longest wait of [`Input::poll`] on a device, ms.
+    pub const DEVICE_POLL_MS: u64 = 50;
+
+    /// `CLOCK_MONOTONIC` now, ns (the clock of V4L2 timestamps).
+    pub fn monotonic_ns() -> u64 {
+        // SAFETY: all-zero is a valid timespec; clock_gettime fills it.
+        let mut t: libc::timespec = unsafe { std::mem::zeroed() };
+        // SAFETY: `t` outlives the call; CLOCK_MONOTONIC always exists on Linux.
+        unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut t) };
+        t.tv_sec as u64 * 1_000_000_000 + t.tv_nsec as u64
+    }
+
+    /// Whether a buffer stamped `ts_ns` carries a frame's seq stamp, for a reader that started
+    /// opening the device at `opened_ns` (`CLOCK_MONOTONIC`): v4l2loopback 0.12.7 restamps
+    /// every buffer with the current time on a reader's `VIDIOC_REQBUFS`, so a buffer stamped
+    /// at or after the open (compared at the timestamp's µs resolution) is no frame's stamp.
+    pub fn is_seq_stamp(ts_ns: u64, opened_ns: u64) -> Option<u64> {
+        if ts_ns >= opened_ns / 1000 * 1000 {
+            return None;
+        }
+        super::seq_of_stamp_ns(ts_ns)
+    }
+
+    /// Frames of a `v4l2:` device a live sweep writes (a v4l2loopback device with the
+    /// `stamp=seq` contract, see [`super`]): opened as a capture device once it is one (with
+    /// `exclusive_caps=1`, after faultcam has written the first frame; tried every
+    /// [`DEVICE_POLL_MS`] ms until then), each seq once.
+    #[cfg(feature = "v4l2")]
+    pub struct DeviceWatch {
+        spec: String,
+        uri: String,
+        src: Option<crate::source::v4l2::V4l2Source>,
+        /// When the current open started (`CLOCK_MONOTONIC`, ns).
+        opened_ns: u64,
+        next_try: std::time::Instant,
+        reported: BTreeSet<u64>,
+        scratch: PathBuf,
+        last_file: Option<PathBuf>,
+        png: Vec<u8>,
+        /// Why the device could not be opened or read, last time.
+        last_error: Option<String>,
+        frames: u64,
+    }
+
+    #[cfg(feature = "v4l2")]
+    impl DeviceWatch {
+        pub fn new(spec: &str) -> Result<DeviceWatch, String> {
+            let (_, path, opts) = crate::source::split_uri(spec);
+            if !path.starts_with('/') {
+                return Err(format!("{spec}: expected v4l2:/dev/videoN"));
+            }
+            let mut uri = spec.to_string();
+            if !opts.iter().any(|(k, _)| k == "timeout_ms") {
+                uri += if opts.is_empty() { "?" } else { "&" };
+                uri += &format!("timeout_ms={DEVICE_POLL_MS}");
+            }
+            static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+            let scratch = std::env::temp_dir().join(format!(
+                "faultcam-sut-{}-{}",
+                std::process::id(),
+                N.fetch_add(1, Ordering::Relaxed)
+            ));
+            std::fs::create_dir_all(&scratch).map_err(|e| format!("{}: {e}", scratch.display()))?;
+            Ok(DeviceWatch {
+                spec: spec.to_string(),
+                uri,
+                src: None,
+                opened_ns: 0,
+                next_try: std::time::Instant::now(),
+                reported: BTreeSet::new(),
+                scratch,
+                last_file: None,
+                png: Vec::new(),
+                last_error: None,
+                frames: 0,
+            })
+        }
+
+        /// At most one frame not reported before: (seq, PNG file).
+        pub fn poll(&mut self) -> Option<(u64, PathBuf)> {
+            use crate::source::Source;
+            let wait = std::time::Duration::from_millis(DEVICE_POLL_MS);
+            if self.src.is_none() {
+                if let Some(d) = self.next_try.checked_duration_since(std::time::Instant::now()) {
+                    std::thread::sleep(d);
+                }
+                self.next_try = std::time::Instant::now() + wait;
+                self.opened_ns = monotonic_ns();
+                match crate::source::v4l2::V4l2Source::open(&self.uri) {
+                    Ok(s) => {
+                        eprintln!("faultcam sut: reading {}", s.describe());
+                        self.src = Some(s);
+                    }
+                    Err(e) => {
+                        self.last_error = Some(e.to_string());
+                        return None;
+                    }
+                }
+            }
+            let src = self.src.as_mut()?;
+            let f = match src.poll_frame() {
+                Ok(Some(f)) => f,
+                Ok(None) => return None,
+                Err(e) if e.recoverable() => return None,
+                Err(e) => {
+                    // Reopen (the writer restarted, the device was reset).
+                    eprintln!("faultcam sut: {e}; opening {} again", self.spec);
+                    self.last_error = Some(e.to_string());
+                    self.src = None;
+                    return None;
+                }
+            };
+            let seq = is_seq_stamp(f.pts_ns, self.opened_ns).filter(|s| !self.reported.contains(s));
+            let out = match seq {
+                Some(seq) => {
+                    if let Some(old) = self.last_file.take() {
+                        let _ = std::fs::remove_file(old);
+                    }
+                    let p = self.scratch.join(format!("frame_{seq:06}.png"));
+                    let opts = crate::sink::files::WriteOptions::default();
+                    match crate::sink::files::write_image(&p, &f, &opts, &mut self.png) {
+                        Ok(()) => {
+                            self.reported.insert(seq);
+                            self.frames += 1;
+                            self.last_file = Some(p.clone());
+                            Some((seq, p))
+                        }
+                        Err(e) => {
+                            self.last_error = Some(e);
+                            None
+                        }
+                    }
+                }
+                None => None,
+            };
+            src.recycle(f);
+            out
+        }
+
+        pub fn finish(&self) -> Result<(), String> {
+            match (&self.last_error, self.frames) {
+                (Some(e), 0) => Err(format!("{}: no frame read: {e}", self.spec)),
+                _ => Ok(()),
+            }
+        }
+    }
+
+    #[cfg(feature = "v4l2")]
+    impl Drop for DeviceWatch {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.scratch);
         }
     }
 
@@ -765,27 +1096,31 @@ pub mod sut {
         std::fs::write(out_file, out).map_err(|e| format!("{}: {e}", out_file.display()))
     }
 
-    /// Live mode: one report per new `frame_NNNNNN` file of `in_dir` to `report` (see
-    /// [`Reporter::open`]), until standard input closes.
-    pub fn run_live(in_dir: &str, report: &str, estimate: impl Fn(&std::path::Path) -> Estimate) -> Result<(), String> {
+    /// Live mode: one report per new frame of `input` to `report` (see [`Reporter::open`]),
+    /// until standard input closes. `input` is a folder (each new `frame_NNNNNN` file) or
+    /// `v4l2:/dev/videoN` (each frame read from the device, seq from its timestamp, once; see
+    /// [`Input`]).
+    pub fn run_live(input: &str, report: &str, estimate: impl Fn(&std::path::Path) -> Estimate) -> Result<(), String> {
         let mut out = Reporter::open(report)?;
         let done = stdin_closed();
-        let mut watch = FolderWatch::new(in_dir);
+        let mut input = Input::open(input)?;
         loop {
             let last = done.load(Ordering::Relaxed);
-            for p in watch.poll() {
-                let Some(seq) = p.file_name().and_then(|n| n.to_str()).and_then(seq_of_name) else { continue };
+            for (seq, p) in input.poll() {
+                let Some(seq) = seq else { continue };
                 out.send(seq, estimate(&p))?;
             }
             if last {
-                return Ok(());
+                return input.finish();
             }
-            std::thread::sleep(std::time::Duration::from_millis(2));
+            if !input.waits() {
+                std::thread::sleep(std::time::Duration::from_millis(2));
+            }
         }
     }
 
     /// The command line of an image-based SUT: `NAME IN_DIR OUT_FILE [CAMERA_JSON]` (batch) or
-    /// `NAME --live IN_DIR REPORT [CAMERA_JSON]`; `camera` turns the camera file into what
+    /// `NAME --live IN_DIR|v4l2:/dev/videoN REPORT [CAMERA_JSON]`; `camera` turns the camera file into what
     /// `estimate` needs. Exit code 2 with a message on a usage or I/O error.
     pub fn main<C: Copy + Sync>(
         name: &str,
@@ -803,9 +1138,9 @@ pub mod sut {
                 let cam = camera(args.get(3).map(String::as_str));
                 run_batch(args[1].as_ref(), args[2].as_ref(), |p| estimate(p, cam))
             }
-            _ => {
-                Err(format!("usage: {name} IN_DIR OUT_FILE [CAMERA_JSON] | {name} --live IN_DIR REPORT [CAMERA_JSON]"))
-            }
+            _ => Err(format!(
+                "usage: {name} IN_DIR OUT_FILE [CAMERA_JSON] | {name} --live IN_DIR|v4l2:/dev/videoN REPORT [CAMERA_JSON]"
+            )),
         };
         match result {
             Ok(()) => std::process::ExitCode::SUCCESS,
@@ -848,6 +1183,63 @@ mod tests {
         assert!(check_sink("v4l2:/dev/video42?format=GREY").is_ok());
         assert!(check_sink("null:").unwrap_err().contains("files:, gst:, v4l2:"));
         assert!(check_sink("v4l2:video0").unwrap_err().contains("/dev/videoN"));
+    }
+
+    #[test]
+    fn seq_stamps_round_trip_through_a_v4l2_timestamp() {
+        // Frame seq N is stamped (N + 1) ms: never 0 (v4l2loopback replaces a zero stamp).
+        assert_eq!(seq_stamp_ns(0), Some(1_000_000));
+        assert_eq!(seq_stamp_ns(41), Some(42_000_000));
+        assert_eq!(seq_stamp_ns(u64::MAX), None);
+        assert_eq!(seq_stamp_ns(u64::MAX / 1_000_000), None, "(seq + 1) ms overflows u64 ns");
+        for seq in (0..5000).chain([999, 1000, 86_399_999, 9_000_000_000]) {
+            let ts = seq_stamp_ns(seq).unwrap();
+            // Through struct timeval (what VIDIOC_QBUF takes and VIDIOC_DQBUF gives back):
+            // whole µs, so nothing is lost.
+            let (sec, usec) = (ts / 1_000_000_000, ts % 1_000_000_000 / 1000);
+            let back = sec * 1_000_000_000 + usec * 1000;
+            assert_eq!(back, ts, "seq {seq}");
+            assert_eq!(seq_of_stamp_ns(back), Some(seq), "seq {seq}");
+            // A reader's rounding takes anything within half a period (a float-seconds reader,
+            // a driver that moves stamps by some µs).
+            assert_eq!(seq_of_stamp_ns(back + 499_999), Some(seq), "seq {seq} + 0.499999 ms");
+            assert_eq!(seq_of_stamp_ns(back - 500_000), Some(seq), "seq {seq} − 0.5 ms");
+            assert_eq!(seq_of_stamp_ns(back + 500_000), Some(seq + 1), "seq {seq} + 0.5 ms is the next");
+        }
+        assert_eq!(seq_of_stamp_ns(0), None);
+        assert_eq!(seq_of_stamp_ns(499_999), None, "below half a period: no frame's stamp");
+        // In float seconds (a Python reader: tv_sec + tv_usec / 1e6), rounding recovers seq.
+        for seq in [0u64, 7, 12_345, 3_600_000] {
+            let secs = seq_stamp_ns(seq).unwrap() as f64 / 1e9;
+            assert_eq!(((secs * 1000.0).round() as u64).checked_sub(1), Some(seq));
+        }
+    }
+
+    #[test]
+    fn restamped_buffers_are_no_seq_stamps() {
+        // A reader that started opening at 35.0000005 s of uptime: buffers stamped then or
+        // later (v4l2loopback restamps at the reader's VIDIOC_REQBUFS, µs resolution) are not
+        // frames' stamps; earlier ones are.
+        let opened = 35_000_000_500;
+        assert_eq!(sut::is_seq_stamp(35_000_000_000, opened), None, "same µs as the open");
+        assert_eq!(sut::is_seq_stamp(35_000_017_000, opened), None);
+        assert_eq!(sut::is_seq_stamp(seq_stamp_ns(7).unwrap(), opened), Some(7));
+        assert_eq!(
+            sut::is_seq_stamp(34_999_999_000, opened),
+            Some(34_999),
+            "just before the open (rounded to 35 000 ms)"
+        );
+        assert!(sut::monotonic_ns() > 0);
+    }
+
+    #[test]
+    fn live_v4l2_sinks_get_seq_stamps() {
+        assert_eq!(v4l2_sink_uri("v4l2:/dev/video10"), "v4l2:/dev/video10?stamp=seq");
+        assert_eq!(v4l2_sink_uri("v4l2:/dev/video10?format=GREY"), "v4l2:/dev/video10?format=GREY&stamp=seq");
+        assert_eq!(v4l2_sink_uri("v4l2:/dev/video10?stamp=seq"), "v4l2:/dev/video10?stamp=seq");
+        assert!(check_sink("v4l2:/dev/video10?stamp=seq").is_ok());
+        assert!(check_sink("v4l2:/dev/video10?stamp=pts").unwrap_err().contains("stamp=seq"));
+        assert!(check_sink("v4l2:/dev/video10?io=write").unwrap_err().contains("io=mmap"));
     }
 
     #[test]
