@@ -399,6 +399,13 @@ pub fn write_unpaired(rep: &UnpairedReport, out: &Path, _opts: &Options) -> Resu
             f.evidence
         ));
     }
+    // Readings the data cannot tell from a finding, with why.
+    for f in rep.report.findings.iter().filter(|f| !f.alternatives.is_empty()) {
+        md.push_str(&format!("\n- **{}** cannot be told apart here from:\n", f.effect));
+        for a in &f.alternatives {
+            md.push_str(&format!("  - **{}**: {}\n", a.label, a.evidence));
+        }
+    }
     md.push_str("\n## Fit (statistics of the sets)\n\n| | RMSE of mean histograms | FQI | histogram correlation |\n|---|---|---|---|\n");
     md.push_str(&format!("| sim vs real (before) {}\n", fmt_metrics(&rep.report.fit.before)));
     md.push_str(&format!("| model vs real (after) {}\n\n", fmt_metrics(&rep.report.fit.after)));
