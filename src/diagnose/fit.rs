@@ -460,6 +460,17 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             "over-exposed sources: pixels within {r:.0} px of saturated regions are left out of the forward-model fit (their halo is fed by charge the clipped sim does not hold)"
         ));
     }
+    // With a dithered JPEG step (three JPEG round trips per frame and evaluation, most of the cost
+    // of a fit) the fit reads whole bands of rows instead of every `row_step`-th row, and the JPEG
+    // runs on those bands only: rows 1..=14 of every `s`-th 16-row band (a whole number of MCU
+    // rows, so the block grid is the image's; rows 0 and 15 take chroma from the neighbouring
+    // band in libjpeg's fancy upsampling and are not read), about as many rows as before.
+    let h = pairs[fidx[0]].h();
+    let bands: Option<Vec<usize>> = (!start.is_empty() && row_step > 1 && h >= 2 * select::BAND).then(|| {
+        let s = ((row_step * (select::BAND - 2)) as f64 / select::BAND as f64).round().max(1.0) as usize;
+        let nb = h / select::BAND;
+        (s / 2..nb).step_by(s).map(|j| j * select::BAND).collect()
+    });
     let mut ctx = FitCtx {
         inputs,
         seqs: fidx.iter().map(|&k| k as u64).collect(),
@@ -476,9 +487,18 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             row_step,
         ),
         seed,
+        bands: bands.clone(),
         evals: std::sync::atomic::AtomicUsize::new(0),
     };
+    if let Some(b) = &bands {
+        let mut rows = vec![false; h];
+        for &y0 in b {
+            rows[y0 + 1..y0 + select::BAND - 1].iter_mut().for_each(|r| *r = true);
+        }
+        ctx.loss.rows = Some(rows);
+    }
     let mut sel = select::select(&ctx, &cands, z, start, None)?;
+    super::progress(&format!("selection done ({} evaluations)", ctx.evals.load(std::sync::atomic::Ordering::Relaxed)));
     // The noise model was measured on real - sim; with the fitted effects taken out it may
     // differ (structure such as smear rows inflates it). If it changed, select again with it,
     // starting from the model found.
@@ -510,7 +530,12 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             .collect();
         let first_tests = std::mem::take(&mut sel.tests);
         let prior = sel.best_z.clone();
+        super::progress("noise model changed: selection repeated");
         sel = select::select(&ctx, &cands, z, start, Some(&prior))?;
+        super::progress(&format!(
+            "selection done ({} evaluations)",
+            ctx.evals.load(std::sync::atomic::Ordering::Relaxed)
+        ));
         let mut all = first_tests;
         all.append(&mut sel.tests);
         sel.tests = all;
@@ -574,10 +599,20 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         ctx.evals.load(std::sync::atomic::Ordering::Relaxed),
         fidx.len(),
         pairs.len(),
-        if row_step > 1 { format!(" (every {row_step}th row)") } else { String::new() }
+        match &bands {
+            Some(b) => format!(
+                " (rows 1-{} of {} bands of {} rows, the JPEG run on those bands only)",
+                select::BAND - 2,
+                b.len(),
+                select::BAND
+            ),
+            None if row_step > 1 => format!(" (every {row_step}th row)"),
+            None => String::new(),
+        }
     ));
     let dropped = sel.notes.clone();
     // ---- stochastic tests on the residual of the deterministic model ----------------------------
+    super::progress("tone check and RMSE check done; stochastic tests");
     let (mut st, _hot) = stochastic_tests(pairs, loc, &model_planes, z, jp.detected);
     st.jpeg = jp;
     // ---- findings --------------------------------------------------------------------------------
@@ -685,7 +720,10 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     // curve scales it, JPEG removes part of it); without them the direct estimate is the answer.
     let after_noise = chain.iter().any(|p| matches!(p.info().name, "gain_offset" | "gamma" | "jpeg"));
     let through_model = if after_noise && (st.gaussian.detected || st.shot.detected) {
-        Some(noise_through_model(pairs, loc, &model_planes, &st.noise, &chain, seed)?)
+        {
+            super::progress("camera noise through the fitted chain");
+            Some(noise_through_model(pairs, loc, &model_planes, &st.noise, &chain, seed)?)
+        }
     } else {
         None
     };

@@ -150,6 +150,16 @@ impl Signature {
     }
 }
 
+/// Progress of a diagnosis on stderr (`faultcam diagnose: <stage> at <s> s`), seconds since the
+/// first call of the process. Set `FAULTCAM_DIAG_QUIET` to silence it.
+pub fn progress(stage: &str) {
+    static START: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
+    let t0 = *START.get_or_init(std::time::Instant::now);
+    if std::env::var_os("FAULTCAM_DIAG_QUIET").is_none() {
+        eprintln!("faultcam diagnose: {stage} at {:.1} s", t0.elapsed().as_secs_f64());
+    }
+}
+
 /// Run a diagnosis on two folders and write the report into `out`.
 pub fn diagnose_dirs(sim: &Path, real: &Path, out: &Path, opts: &Options) -> Result<report::Report, DiagnoseError> {
     std::fs::create_dir_all(out).map_err(|source| DiagnoseError::Io { path: out.to_path_buf(), source })?;
@@ -160,9 +170,13 @@ pub fn diagnose_dirs(sim: &Path, real: &Path, out: &Path, opts: &Options) -> Res
         report::write_unpaired(&rep, out, opts)?;
         return Ok(rep.report);
     }
+    progress("loading pairs");
     let (pairs, notes) = img::load_pairs(sim, real)?;
+    progress(&format!("{} pairs loaded; locating", pairs.len()));
     let mut located = locate::locate(&pairs, opts);
+    progress("located; forward-model selection");
     let fitted = fit::fit(&pairs, &mut located, opts)?;
+    progress("fitted; writing the report");
     let rep = report::build(&pairs, &located, &fitted, notes, opts);
     report::write(&rep, &pairs, &located, &fitted, out, opts)?;
     Ok(rep)

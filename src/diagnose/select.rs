@@ -83,7 +83,10 @@ const DITHER_DRAWS: u64 = 3;
 /// the same for every evaluation of a frame, so they are drawn once (for the first few frames;
 /// further frames draw without keeping them). Shared by the clones of a step.
 #[derive(Clone, Default)]
-pub struct DitherDraws(std::sync::Arc<std::sync::Mutex<Vec<KeptDraws>>>);
+pub struct DitherDraws(std::sync::Arc<std::sync::Mutex<Vec<KeptDraws>>>, std::sync::Arc<std::sync::Mutex<SdTable>>);
+
+/// The dither sigma of each 16-bit level for one noise model (a, b, c, quant as bits).
+type SdTable = Option<([u64; 4], std::sync::Arc<Vec<f64>>)>;
 
 /// Key of one kept set of dither draws: (seed, frame seq, step index, values).
 type DrawKey = (u64, u64, usize, usize);
@@ -104,6 +107,23 @@ impl DitherDraws {
             out.extend((0..n).map(|_| rng.normal()));
         }
         out
+    }
+
+    /// Dither sigma (DN) of each 16-bit level: `sqrt(1.5 var(v / 257))`.
+    fn sd_table(&self, nm: &NoiseModel) -> std::sync::Arc<Vec<f64>> {
+        let key = [nm.a.to_bits(), nm.b.to_bits(), nm.c.to_bits(), nm.quant.to_bits()];
+        if let Ok(t) = self.1.lock()
+            && let Some((k, v)) = t.as_ref()
+            && *k == key
+        {
+            return v.clone();
+        }
+        let v =
+            std::sync::Arc::new((0..65536u32).map(|v| (1.5 * nm.var(v as f64 / 257.0)).sqrt()).collect::<Vec<f64>>());
+        if let Ok(mut t) = self.1.lock() {
+            *t = Some((key, v.clone()));
+        }
+        v
     }
 
     fn get(&self, seed: u64, seq: u64, index: usize, n: usize) -> std::sync::Arc<Vec<f64>> {
@@ -167,8 +187,17 @@ impl Step {
         }
     }
 
-    /// Apply to the planes of one image (Mono16 frames, one per channel).
-    fn apply(&mut self, img: &mut [Frame], seed: u64, seq: u64, index: usize) -> Result<(), DiagnoseError> {
+    /// Apply to the planes of one image (Mono16 frames, one per channel). `bands`: start rows of
+    /// the [`BAND`]-row bands a dithered JPEG step runs on (None: the whole frame); rows outside
+    /// them are left as they came in, and the loss must not read them (see [`LossData::rows`]).
+    fn apply(
+        &mut self,
+        img: &mut [Frame],
+        seed: u64,
+        seq: u64,
+        index: usize,
+        bands: Option<&[usize]>,
+    ) -> Result<(), DiagnoseError> {
         if self.name == "dark_current" {
             let off = self.params.get("mean_dn") * 257.0;
             for f in img.iter_mut() {
@@ -183,46 +212,18 @@ impl Step {
         if self.name == "jpeg"
             && let Some(nm) = self.dither.clone()
         {
-            let orig: Vec<Frame> = img.to_vec();
-            let mut acc: Vec<Vec<f64>> =
-                orig.iter().map(|f| vec![0.0; f.as_u16().map(|d| d.len()).unwrap_or(0)]).collect();
-            let mut plain = Step { dither: None, effect: faults::create("jpeg").ok(), ..self.boxed_clone() };
-            // The dither sigma of each 16-bit level, and the normal draws (the same for every
-            // evaluation of this frame: cached).
-            let sd_of: Vec<f64> = (0..65536u32).map(|v| (1.5 * nm.var(v as f64 / 257.0)).sqrt()).collect();
-            let n_values: usize = orig.iter().map(|f| f.as_u16().map(|d| d.len()).unwrap_or(0)).sum();
-            let draws = self.dither_draws.get(seed, seq, index, n_values);
-            for k in 0..DITHER_DRAWS {
-                let mut noisy = orig.clone();
-                let dk = &draws[k as usize * n_values..(k as usize + 1) * n_values];
-                let mut at = 0;
-                for f in noisy.iter_mut() {
-                    if let Some(d) = f.as_u16_mut() {
-                        for (v, &g) in d.iter_mut().zip(&dk[at..]) {
-                            let m = *v as f64 / 257.0;
-                            let sd = sd_of[*v as usize];
-                            *v = ((m + sd * g) * 257.0).round().clamp(0.0, 65535.0) as u16;
-                        }
-                        at += d.len();
-                    }
+            if let Some(b) = bands.filter(|b| !b.is_empty()) {
+                let mut sub: Vec<Frame> = Vec::with_capacity(img.len());
+                for f in img.iter() {
+                    sub.push(stack_bands(f, b)?);
                 }
-                plain.apply(&mut noisy, seed, seq, index)?;
-                for (a, f) in acc.iter_mut().zip(&noisy) {
-                    if let Some(d) = f.as_u16() {
-                        for (x, &v) in a.iter_mut().zip(d) {
-                            *x += v as f64;
-                        }
-                    }
+                self.dithered_jpeg(&mut sub, &nm, seed, seq, index)?;
+                for (f, s) in img.iter_mut().zip(&sub) {
+                    unstack_bands(s, f, b);
                 }
+                return Ok(());
             }
-            for (f, a) in img.iter_mut().zip(&acc) {
-                if let Some(d) = f.as_u16_mut() {
-                    for (v, &x) in d.iter_mut().zip(a) {
-                        *v = (x / DITHER_DRAWS as f64).round().clamp(0.0, 65535.0) as u16;
-                    }
-                }
-            }
-            return Ok(());
+            return self.dithered_jpeg(img, &nm, seed, seq, index);
         }
         let Some(e) = self.effect.as_mut() else { return Ok(()) };
         if self.name == "channel_shift" || (self.name == "jpeg" && img.len() == 3) {
@@ -241,6 +242,101 @@ impl Step {
         }
         Ok(())
     }
+
+    /// The mean of [`DITHER_DRAWS`] JPEG round trips of `img` plus noise of the model `nm`.
+    fn dithered_jpeg(
+        &mut self,
+        img: &mut [Frame],
+        nm: &NoiseModel,
+        seed: u64,
+        seq: u64,
+        index: usize,
+    ) -> Result<(), DiagnoseError> {
+        {
+            let n_values: usize = img.iter().map(|f| f.as_u16().map(|d| d.len()).unwrap_or(0)).sum();
+            // The dither sigma of each 16-bit level (cached per noise model), and the normal draws
+            // (the same for every evaluation of this frame: cached).
+            let sd_of = self.dither_draws.sd_table(nm);
+            // Keyed by the frame, not by the step's place in the chain: a candidate inserted before
+            // the JPEG must not change its noise draws (a different draw changes the loss by
+            // chance, by as much as a weak effect, for every candidate alike).
+            let draws = self.dither_draws.get(seed, seq, 0, n_values);
+            let mut acc: Vec<Vec<u32>> =
+                img.iter().map(|f| vec![0; f.as_u16().map(|d| d.len()).unwrap_or(0)]).collect();
+            let mut plain = Step { dither: None, effect: faults::create("jpeg").ok(), ..self.boxed_clone() };
+            let mut noisy: Vec<Frame> = img.to_vec();
+            for k in 0..DITHER_DRAWS {
+                let dk = &draws[k as usize * n_values..(k as usize + 1) * n_values];
+                let mut at = 0;
+                for (f, o) in noisy.iter_mut().zip(img.iter()) {
+                    if let (Some(d), Some(src)) = (f.as_u16_mut(), o.as_u16()) {
+                        for ((v, &s), &g) in d.iter_mut().zip(src).zip(&dk[at..]) {
+                            let m = s as f64 / 257.0;
+                            *v = round_clamp_u16((m + sd_of[s as usize] * g) * 257.0);
+                        }
+                        at += d.len();
+                    }
+                }
+                plain.apply(&mut noisy, seed, seq, index, None)?;
+                for (a, f) in acc.iter_mut().zip(&noisy) {
+                    if let Some(d) = f.as_u16() {
+                        for (x, &v) in a.iter_mut().zip(d) {
+                            *x += v as u32;
+                        }
+                    }
+                }
+            }
+            // round(x / D) of a non-negative integer sum x, exactly (ties away from zero).
+            let dd = DITHER_DRAWS as u32;
+            for (f, a) in img.iter_mut().zip(&acc) {
+                if let Some(d) = f.as_u16_mut() {
+                    for (v, &x) in d.iter_mut().zip(a) {
+                        *v = ((2 * x + dd) / (2 * dd)).min(65535) as u16;
+                    }
+                }
+            }
+            Ok(())
+        }
+    }
+}
+
+/// Height of the row bands a dithered JPEG step can be restricted to (a whole number of JPEG
+/// MCU rows for 4:2:0 and 4:4:4, so the stacked bands keep the image's block grid).
+pub const BAND: usize = 16;
+
+/// The rows of `bands` (each [`BAND`] rows from its start) of a Mono16 frame, stacked.
+fn stack_bands(f: &Frame, bands: &[usize]) -> Result<Frame, DiagnoseError> {
+    let w = f.width as usize;
+    let src = f.as_u16().unwrap_or(&[]);
+    let mut data = Vec::with_capacity(w * BAND * bands.len());
+    for &b in bands {
+        data.extend_from_slice(&src[b * w..(b + BAND) * w]);
+    }
+    let mut out = Frame::from_data(f.width, (BAND * bands.len()) as u32, w, PixelFormat::Mono16, FrameData::U16(data))
+        .map_err(|e| DiagnoseError::Fault(faults::FaultError::Failed { effect: "jpeg", reason: e.to_string() }))?;
+    out.seq = f.seq;
+    Ok(out)
+}
+
+/// Write stacked bands back into their rows.
+fn unstack_bands(sub: &Frame, f: &mut Frame, bands: &[usize]) {
+    let w = f.width as usize;
+    let (Some(s), Some(d)) = (sub.as_u16(), f.as_u16_mut()) else { return };
+    for (j, &b) in bands.iter().enumerate() {
+        d[b * w..(b + BAND) * w].copy_from_slice(&s[j * BAND * w..(j + 1) * BAND * w]);
+    }
+}
+
+/// `x.round().clamp(0, 65535) as u16`, exactly (round half away from zero), without the libm
+/// call `f64::round` costs on the baseline x86-64 target.
+#[inline]
+fn round_clamp_u16(x: f64) -> u16 {
+    // Branch-free: the fraction's test is a coin flip for noisy values, so a branch on it is
+    // mispredicted half of the time. NaN converts to 0, as `NaN as u16` does.
+    let y = x.clamp(0.0, 65535.0);
+    let i = y as u32;
+    // y - i is exact for 0 <= y <= 65535.
+    (i + (y - i as f64 >= 0.5) as u32).min(65535) as u16
 }
 
 /// Rgb8 frame from three Mono16 planes (rounded to 8 bits).
@@ -251,7 +347,8 @@ fn assemble_rgb8(planes: &[Frame]) -> Result<Frame, DiagnoseError> {
     for (c, p) in planes.iter().enumerate().take(3) {
         if let Some(d) = p.as_u16() {
             for i in 0..n {
-                data[i * 3 + c] = ((d[i] as f32 / 257.0).round()).clamp(0.0, 255.0) as u8;
+                // round(d / 257) of an integer d, exactly (no ties: the remainder is an integer).
+                data[i * 3 + c] = ((d[i] as u32 + 128) / 257) as u8;
             }
         }
     }
@@ -309,6 +406,9 @@ pub struct LossData<'a> {
     noise: NoiseModel,
     /// Row subsampling of the loss (1 = every row).
     pub row_step: usize,
+    /// Rows the loss reads instead of every `row_step`-th (per row of the frames; set with the
+    /// JPEG bands of [`FitCtx::bands`], whose rows are the only ones the model completes).
+    pub rows: Option<Vec<bool>>,
     tables: LossTables,
 }
 
@@ -425,7 +525,7 @@ impl<'a> LossData<'a> {
         row_step: usize,
     ) -> LossData<'a> {
         let tables = LossTables::new(&noise);
-        LossData { pairs, skip, interior, noise, row_step, tables }
+        LossData { pairs, skip, interior, noise, row_step, rows: None, tables }
     }
 
     pub fn noise(&self) -> &NoiseModel {
@@ -480,7 +580,11 @@ impl LossData<'_> {
         let tab = &self.tables;
         let mut bs = vec![0.0f64; nb];
         let mut bc = vec![0u32; nb];
-        for y in (0..h).step_by(self.row_step) {
+        let ys: Vec<usize> = match &self.rows {
+            Some(r) => (0..h).filter(|&y| r.get(y).copied().unwrap_or(false)).collect(),
+            None => (0..h).step_by(self.row_step).collect(),
+        };
+        for y in ys {
             for x in 0..w {
                 let i = y * w + x;
                 if self.skip[k][i] || (interior_only && !self.interior[k][i]) {
@@ -576,6 +680,9 @@ pub struct FitCtx<'a> {
     pub seqs: Vec<u64>,
     pub loss: LossData<'a>,
     pub seed: u64,
+    /// Start rows of the [`BAND`]-row bands the dithered JPEG step runs on during the fit (None:
+    /// whole frames); the loss then reads only their rows ([`LossData::rows`]).
+    pub bands: Option<Vec<usize>>,
     /// Number of loss evaluations (for the report).
     pub evals: std::sync::atomic::AtomicUsize,
 }
@@ -603,13 +710,14 @@ impl FitCtx<'_> {
         steps: &mut [Step],
         from: usize,
         start: &[Vec<Frame>],
+        bands: Option<&[usize]>,
     ) -> Result<Vec<Vec<Plane>>, DiagnoseError> {
         sync_coupled(steps);
         let mut out = Vec::with_capacity(start.len());
         for (k, img) in start.iter().enumerate() {
             let mut img = img.clone();
             for (j, s) in steps.iter_mut().enumerate().skip(from) {
-                s.apply(&mut img, self.seed, self.seqs[k], j)?;
+                s.apply(&mut img, self.seed, self.seqs[k], j, bands)?;
             }
             out.push(planes_of_work(&img));
         }
@@ -622,7 +730,7 @@ impl FitCtx<'_> {
         for (k, img) in self.inputs.iter().enumerate() {
             let mut img = img.clone();
             for (j, s) in steps.iter_mut().enumerate().take(upto) {
-                s.apply(&mut img, self.seed, self.seqs[k], j)?;
+                s.apply(&mut img, self.seed, self.seqs[k], j, self.bands.as_deref())?;
             }
             out.push(img);
         }
@@ -630,17 +738,17 @@ impl FitCtx<'_> {
     }
     pub fn eval(&self, steps: &mut [Step]) -> Result<LossEval, DiagnoseError> {
         self.count_eval();
-        Ok(self.loss.eval(&self.run_from(steps, 0, &self.inputs)?))
+        Ok(self.loss.eval(&self.run_from(steps, 0, &self.inputs, self.bands.as_deref())?))
     }
-    /// Model planes of the fit frames.
+    /// Model planes of the fit frames (whole frames, also with JPEG bands).
     pub fn model_planes(&self, steps: &mut [Step]) -> Result<Vec<Vec<Plane>>, DiagnoseError> {
-        self.run_from(steps, 0, &self.inputs)
+        self.run_from(steps, 0, &self.inputs, None)
     }
     /// Model planes without the fixed steps (materiality is judged before JPEG, whose
     /// quantisation turns tiny input changes into whole-DN output changes).
     pub fn physical_planes(&self, steps: &[Step]) -> Result<Vec<Vec<Plane>>, DiagnoseError> {
         let mut st: Vec<Step> = steps.iter().filter(|s| !s.fixed).map(Step::boxed_clone).collect();
-        self.run_from(&mut st, 0, &self.inputs)
+        self.run_from(&mut st, 0, &self.inputs, None)
     }
 }
 
@@ -649,7 +757,7 @@ pub fn apply_steps(steps: &mut [Step], frame: &Frame, seq: u64, seed: u64) -> Re
     sync_coupled(steps);
     let mut img = work_planes(frame, seq)?;
     for (j, s) in steps.iter_mut().enumerate() {
-        s.apply(&mut img, seed, seq, j)?;
+        s.apply(&mut img, seed, seq, j, None)?;
     }
     Ok(planes_of_work(&img))
 }
@@ -760,7 +868,7 @@ fn optimise(
             let mut eval = |u: f64| -> f64 {
                 set_coord(steps, c, c.value_at(u));
                 ctx.count_eval();
-                match ctx.run_from(steps, c.step, &prefix) {
+                match ctx.run_from(steps, c.step, &prefix, ctx.bands.as_deref()) {
                     Ok(o) => {
                         last = ctx.loss.eval(&o);
                         last.total
