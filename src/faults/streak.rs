@@ -158,8 +158,6 @@ struct Slot {
     b: Vec<f32>,
     u: Vec<f32>,
     pad: Vec<u8>,
-    // the cross-filter tap of each line of the band
-    taps: Vec<f32>,
 }
 
 /// Scratch of [`blur_u8`]; grows only (allocation when the frame size or the streak grows).
@@ -171,6 +169,10 @@ pub struct Scratch {
     out: Vec<u8>,
     // allocation: per frame size, streak and thread count: one slot per band
     slots: Vec<Slot>,
+    // allocation: per frame size and streak: the cross-filter tap of every line, and the
+    // (streak, line count) they are for
+    taps: Vec<f32>,
+    taps_for: Option<(StreakPlan, usize)>,
 }
 
 /// Line access: `nl` pixels of `ch` samples per line, lines `stride` bytes apart.
@@ -294,6 +296,7 @@ fn band(
     rows: usize,
     dst: &mut [u8],
     dstride: usize,
+    taps: &[f32],
     slot: &mut Slot,
 ) {
     let (nl, ch) = (src.nl, src.ch);
@@ -304,8 +307,6 @@ fn band(
         let q = -plan.shift_q(i as isize);
         ((q >> 6) as isize, (q & 63) as u8)
     };
-    slot.taps.clear();
-    slot.taps.extend((i0..i0 + rows).map(|i| plan.cross_tap(i as isize)));
     let len = (CHUNK as usize + 3) * ch;
     for v in [&mut slot.r, &mut slot.b, &mut slot.u].into_iter().chain(slot.a.iter_mut()) {
         if v.len() < len {
@@ -355,7 +356,7 @@ fn band(
                 }
                 continue;
             }
-            let Slot { r, a, b, u, pad, taps } = &mut *slot;
+            let Slot { r, a, b, u, pad } = &mut *slot;
             if !started {
                 // Running sums and held lines at line i.
                 started = true;
@@ -402,27 +403,59 @@ fn band(
 }
 
 /// Pixel transpose: `dst[x * dstride + y * ch + c] = src[y * sstride + x * ch + c]` for
-/// `x < w`, `y < h`, in blocks of 16 x 16 pixels (a block's rows stay in cache).
-fn transpose(src: &[u8], sstride: usize, w: usize, h: usize, ch: usize, dst: &mut [u8], dstride: usize) {
+/// `x < w`, `y < h`, in blocks of 32 x 32 pixels (a block's rows stay in cache), 8 x 8 pixels at
+/// a time in AVX2 registers (level `lv` >= 1), the block edges pixel by pixel.
+#[allow(clippy::too_many_arguments)]
+fn transpose(lv: u8, src: &[u8], sstride: usize, w: usize, h: usize, ch: usize, dst: &mut [u8], dstride: usize) {
     match ch {
-        1 => transpose_px::<1>(src, sstride, w, h, dst, dstride),
-        3 => transpose_px::<3>(src, sstride, w, h, dst, dstride),
+        1 => transpose_px::<1>(lv, src, sstride, w, h, dst, dstride),
+        3 => transpose_px::<3>(lv, src, sstride, w, h, dst, dstride),
         _ => unreachable!("8-bit frames have 1 or 3 channels"),
     }
 }
 
-fn transpose_px<const C: usize>(src: &[u8], sstride: usize, w: usize, h: usize, dst: &mut [u8], dstride: usize) {
+#[allow(clippy::too_many_arguments)]
+fn transpose_px<const C: usize>(
+    lv: u8,
+    src: &[u8],
+    sstride: usize,
+    w: usize,
+    h: usize,
+    dst: &mut [u8],
+    dstride: usize,
+) {
     const B: usize = 32;
     let used = dst.len().min(dstride * w);
+    #[cfg(target_arch = "x86_64")]
+    let simd = lv >= 1 && super::kit::has_avx2();
+    #[cfg(not(target_arch = "x86_64"))]
+    let simd = {
+        let _ = lv;
+        false
+    };
     dst[..used].par_chunks_mut(dstride * B).enumerate().for_each(|(bx, dband)| {
         let x0 = bx * B;
         let xs = B.min(w - x0);
         for y0 in (0..h).step_by(B) {
             let ys = B.min(h - y0);
             let sblock = &src[y0 * sstride + x0 * C..];
+            // Pixels (dx, dy) of the block done in registers: dx < xv, dy < yv.
+            let (xv, yv) = if simd { (xs / 8 * 8, ys / 8 * 8) } else { (0, 0) };
+            #[cfg(target_arch = "x86_64")]
+            for dx in (0..xv).step_by(8) {
+                for dy in (0..yv).step_by(8) {
+                    let s = &sblock[dy * sstride + dx * C..];
+                    let d = &mut dband[dx * dstride + (y0 + dy) * C..];
+                    assert!(s.len() >= 7 * sstride + 8 * C && d.len() >= 7 * dstride + 8 * C);
+                    // SAFETY: AVX2 present (checked with `simd`); 8 rows of 8 pixels readable
+                    // at `s + r * sstride` and writable at `d + r * dstride` (asserted).
+                    unsafe { simd::t8x8_px::<C>(s.as_ptr(), sstride, d.as_mut_ptr(), dstride) };
+                }
+            }
             for dx in 0..xs {
                 let drow = &mut dband[dx * dstride + y0 * C..dx * dstride + (y0 + ys) * C];
-                for (dy, d) in drow.chunks_exact_mut(C).enumerate() {
+                let from = if dx < xv { yv } else { 0 };
+                for (dy, d) in drow.chunks_exact_mut(C).enumerate().skip(from) {
                     let o = dy * sstride + dx * C;
                     let px: &[u8; C] = sblock[o..o + C].try_into().expect("C bytes");
                     d.copy_from_slice(px);
@@ -430,6 +463,92 @@ fn transpose_px<const C: usize>(src: &[u8], sstride: usize, w: usize, h: usize, 
             }
         }
     });
+}
+
+#[cfg(target_arch = "x86_64")]
+mod simd {
+    use std::arch::x86_64::*;
+
+    /// Transposes 8 x 8 pixels of `C` (1 or 3) bytes: `dst[c * ds + r * C + b] = src[r * ss +
+    /// c * C + b]`, each pixel widened to a 32-bit lane, an 8 x 8 32-bit transpose, narrowed back.
+    ///
+    /// # Safety
+    /// AVX2; 8 rows of `8 C` bytes readable at `src + r * ss`, writable at `dst + c * ds`.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn t8x8_px<const C: usize>(src: *const u8, ss: usize, dst: *mut u8, ds: usize) {
+        // SAFETY: as documented; every load and store stays within the 8 C bytes of its row.
+        unsafe {
+            let widen = _mm256_setr_epi8(
+                0, 1, 2, -1, 3, 4, 5, -1, 6, 7, 8, -1, 9, 10, 11, -1, 4, 5, 6, -1, 7, 8, 9, -1, 10, 11, 12, -1, 13, 14,
+                15, -1,
+            );
+            let ld = |r: usize| {
+                let p = src.add(r * ss);
+                if C == 3 {
+                    // Pixels 0..4 from bytes 0..12, pixels 4..8 from bytes 12..24 (lane 1 loads
+                    // from byte 8).
+                    let v = _mm256_set_m128i(
+                        _mm_loadu_si128(p.add(8) as *const __m128i),
+                        _mm_loadu_si128(p as *const __m128i),
+                    );
+                    _mm256_shuffle_epi8(v, widen)
+                } else {
+                    _mm256_cvtepu8_epi32(_mm_loadl_epi64(p as *const __m128i))
+                }
+            };
+            let (r0, r1, r2, r3, r4, r5, r6, r7) = (ld(0), ld(1), ld(2), ld(3), ld(4), ld(5), ld(6), ld(7));
+            let t0 = _mm256_unpacklo_epi32(r0, r1);
+            let t1 = _mm256_unpackhi_epi32(r0, r1);
+            let t2 = _mm256_unpacklo_epi32(r2, r3);
+            let t3 = _mm256_unpackhi_epi32(r2, r3);
+            let t4 = _mm256_unpacklo_epi32(r4, r5);
+            let t5 = _mm256_unpackhi_epi32(r4, r5);
+            let t6 = _mm256_unpacklo_epi32(r6, r7);
+            let t7 = _mm256_unpackhi_epi32(r6, r7);
+            let u0 = _mm256_unpacklo_epi64(t0, t2);
+            let u1 = _mm256_unpackhi_epi64(t0, t2);
+            let u2 = _mm256_unpacklo_epi64(t1, t3);
+            let u3 = _mm256_unpackhi_epi64(t1, t3);
+            let u4 = _mm256_unpacklo_epi64(t4, t6);
+            let u5 = _mm256_unpackhi_epi64(t4, t6);
+            let u6 = _mm256_unpacklo_epi64(t5, t7);
+            let u7 = _mm256_unpackhi_epi64(t5, t7);
+            let cols = [
+                _mm256_permute2x128_si256(u0, u4, 0x20),
+                _mm256_permute2x128_si256(u1, u5, 0x20),
+                _mm256_permute2x128_si256(u2, u6, 0x20),
+                _mm256_permute2x128_si256(u3, u7, 0x20),
+                _mm256_permute2x128_si256(u0, u4, 0x31),
+                _mm256_permute2x128_si256(u1, u5, 0x31),
+                _mm256_permute2x128_si256(u2, u6, 0x31),
+                _mm256_permute2x128_si256(u3, u7, 0x31),
+            ];
+            let narrow = if C == 3 {
+                _mm256_setr_epi8(
+                    0, 1, 2, 4, 5, 6, 8, 9, 10, 12, 13, 14, -1, -1, -1, -1, 0, 1, 2, 4, 5, 6, 8, 9, 10, 12, 13, 14, -1,
+                    -1, -1, -1,
+                )
+            } else {
+                _mm256_setr_epi8(
+                    0, 4, 8, 12, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, 0, 4, 8, 12, -1, -1, -1, -1, -1, -1,
+                    -1, -1, -1, -1, -1, -1,
+                )
+            };
+            for (c, v) in cols.into_iter().enumerate() {
+                let v = _mm256_shuffle_epi8(v, narrow);
+                let (lo, hi) = (_mm256_castsi256_si128(v), _mm256_extracti128_si256(v, 1));
+                let d = dst.add(c * ds);
+                if C == 3 {
+                    // Bytes 0..16 (12 valid), then 12..20 and 20..24 from the second half.
+                    _mm_storeu_si128(d as *mut __m128i, lo);
+                    _mm_storel_epi64(d.add(12) as *mut __m128i, hi);
+                    (d.add(20) as *mut i32).write_unaligned(_mm_cvtsi128_si32(_mm_srli_si128(hi, 8)));
+                } else {
+                    _mm_storel_epi64(d as *mut __m128i, _mm_unpacklo_epi32(lo, hi));
+                }
+            }
+        }
+    }
 }
 
 /// Streak blur of an 8-bit frame (`ch` interleaved channels, rows of `stride` bytes) in place.
@@ -460,7 +579,7 @@ pub fn blur_u8_at(
             .enumerate()
             .for_each(|(y, l)| l.copy_from_slice(&d[y * stride..y * stride + ls]));
     } else {
-        transpose(d, stride, w, h, ch, &mut sc.src[..count * ls], ls);
+        transpose(lv, d, stride, w, h, ch, &mut sc.src[..count * ls], ls);
         if sc.out.len() < count * ls {
             sc.out.resize(count * ls, 0);
         }
@@ -471,15 +590,22 @@ pub fn blur_u8_at(
     if sc.slots.len() < nb {
         sc.slots.resize_with(nb, Slot::default);
     }
+    if sc.taps_for.as_ref().is_none_or(|(p, c)| p != plan || *c != count) {
+        sc.taps.clear();
+        sc.taps.extend((0..count).map(|i| plan.cross_tap(i as isize)));
+        sc.taps_for = Some((plan.clone(), count));
+    }
     let src = Lines { data: &sc.src, stride: ls, count, nl, ch };
+    let taps = &sc.taps;
     let (dst, dstride): (&mut [u8], usize) = if plan.vertical { (d, stride) } else { (&mut sc.out[..count * ls], ls) };
     let used = dst.len().min(dstride * count);
     dst[..used].par_chunks_mut(dstride * per).zip(sc.slots.par_iter_mut()).enumerate().for_each(|(b, (out, slot))| {
         let i0 = b * per;
-        band(lv, plan, src, i0, per.min(count - i0), out, dstride, slot);
+        let rows = per.min(count - i0);
+        band(lv, plan, src, i0, rows, out, dstride, &taps[i0..i0 + rows], slot);
     });
     if !plan.vertical {
-        transpose(&sc.out, ls, h, w, ch, d, stride);
+        transpose(lv, &sc.out, ls, h, w, ch, d, stride);
     }
 }
 
