@@ -237,25 +237,20 @@ fn add_k(r: &mut [f32], a: &[f32]) {
 }
 dispatch!(add_d, add_k, (r: &mut [f32], a: &[f32]));
 
-/// `r[t] += lead[t] - trail[t]` (exact).
+/// One line step over the held lines `a0..a4` = `A(i - n - 2)`, `A(i - n - 1)`, `A(i - n)`,
+/// `A(i + n + 1)`, `A(i + n + 2)`: `b = r + e0 (a1 + a3) + e1 (a0 + a4)` (line `i` with its end
+/// taps), then `r += a3 - a2` (the running sum of line `i + 1`, exact).
 #[inline(always)]
-fn slide_k(r: &mut [f32], lead: &[f32], trail: &[f32]) {
-    for ((r, &l), &t) in r.iter_mut().zip(lead).zip(trail) {
-        *r += l - t;
-    }
-}
-dispatch!(slide_d, slide_k, (r: &mut [f32], lead: &[f32], trail: &[f32]));
-
-/// `b = r + e0 (t1 + l1) + e1 (t2 + l2)`.
-#[inline(always)]
-fn ends_k(b: &mut [f32], r: &[f32], t1: &[f32], l1: &[f32], t2: &[f32], l2: &[f32], e0: f32, e1: f32) {
+#[allow(clippy::too_many_arguments)]
+fn step_k(b: &mut [f32], r: &mut [f32], a0: &[f32], a1: &[f32], a2: &[f32], a3: &[f32], a4: &[f32], e0: f32, e1: f32) {
     let n = b.len();
-    let (r, t1, l1, t2, l2) = (&r[..n], &t1[..n], &l1[..n], &t2[..n], &l2[..n]);
+    let (r, a0, a1, a2, a3, a4) = (&mut r[..n], &a0[..n], &a1[..n], &a2[..n], &a3[..n], &a4[..n]);
     for i in 0..n {
-        b[i] = r[i] + e0 * (t1[i] + l1[i]) + e1 * (t2[i] + l2[i]);
+        b[i] = r[i] + e0 * (a1[i] + a3[i]) + e1 * (a0[i] + a4[i]);
+        r[i] += a3[i] - a2[i];
     }
 }
-dispatch!(ends_d, ends_k, (b: &mut [f32], r: &[f32], t1: &[f32], l1: &[f32], t2: &[f32], l2: &[f32], e0: f32, e1: f32));
+dispatch!(step_d, step_k, (b: &mut [f32], r: &mut [f32], a0: &[f32], a1: &[f32], a2: &[f32], a3: &[f32], a4: &[f32], e0: f32, e1: f32));
 
 /// `u[t] = b[t] (64 - g) + b[t + ch] g` (the unshear), then
 /// `out[t] = round_half_even((u[t + ch] (1 - 2a) + (u[t] + u[t + 2 ch]) a) inv)` clamped to 0..=255
@@ -369,28 +364,19 @@ fn band(
                     fill(&mut a[t], pad, base, i as isize + o, base, c1 + 2);
                 }
             }
-            // B over [o0 - 1, o1 + 2), then unshear and cross filter into pixels o0 - k.. o1 - k.
+            // B over the block (used over [o0 - 1, o1 + 2)) and the running sums of line i + 1,
+            // then unshear and cross filter into pixels o0 - k.. o1 - k.
+            let [a0, a1, a2, a3, a4] = &*a;
+            step_d(lv, &mut b[..w], &mut r[..w], a0, a1, a2, a3, a4, plan.e[0], plan.e[1]);
             let (x0, x1) = ((o0 - 1 - base) as usize * ch, (o1 + 2 - base) as usize * ch);
-            ends_d(
-                lv,
-                &mut b[x0..x1],
-                &r[x0..x1],
-                &a[1][x0..x1],
-                &a[3][x0..x1],
-                &a[0][x0..x1],
-                &a[4][x0..x1],
-                plan.e[0],
-                plan.e[1],
-            );
             let p0 = row * dstride + (o0 - k) as usize * ch;
             let orow = &mut dst[p0..p0 + (o1 - o0) as usize * ch];
             unshear_d(lv, orow, &b[x0..x1], u, ch, g, taps[row], plan.inv);
             if row + 1 == rows {
                 break;
             }
-            let Slot { r, a, pad, .. } = &mut *slot;
+            let Slot { a, pad, .. } = &mut *slot;
             // Advance to line i + 1.
-            slide_d(lv, &mut r[..w], &a[3][..w], &a[2][..w]);
             // Trail: t2 <- t1 <- t0 <- A(i + 1 - n); lead: l1 <- l2 <- A(i + 1 + n + 2).
             a.swap(0, 1);
             a.swap(1, 2);
