@@ -280,6 +280,30 @@ dispatch!(unshear_d, unshear_k, (out: &mut [u8], b: &[f32], u: &mut [f32], ch: u
 /// lines stay in the L1 cache while it runs down the band.
 const CHUNK: isize = 256;
 
+/// Lines ahead of the newest held line whose bytes [`prefetch`] asks the cache for: the block
+/// walks down the lines, one new source line per output line, a stride the hardware
+/// prefetchers miss.
+const AHEAD: isize = 6;
+
+/// Hints the cache to load the bytes of source line `j` that `A(j, k)`, `k` in `[k0, k1)`, reads
+/// (no effect on the values).
+#[inline]
+fn prefetch(plan: &StreakPlan, src: Lines, j: isize, k0: isize, k1: isize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        let s = (plan.shift_q(j) >> 6) as isize;
+        let line = src.line(j);
+        let at = |k: isize| ((k + s).max(0) as usize * src.ch).min(line.len());
+        for p in (at(k0)..at(k1 + 1)).step_by(64) {
+            // SAFETY: a prefetch hint of an address inside `line` (p < line.len()).
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(line.as_ptr().add(p).cast::<i8>()) };
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (plan, src, j, k0, k1);
+}
+
 /// One band of output lines `i0..i0 + rows` (written to `dst`, lines `dstride` apart), block by
 /// block of output positions `k` (line `i` writes pixel `x = k - klo(i)`).
 #[allow(clippy::too_many_arguments)]
@@ -383,6 +407,7 @@ fn band(
             fill(&mut a[2], pad, base, i as isize + 1 - n, base, c1 + 2);
             a.swap(3, 4);
             fill(&mut a[4], pad, base, i as isize + 1 + n + 2, base, c1 + 2);
+            prefetch(plan, src, i as isize + 1 + n + 2 + AHEAD, base, c1 + 2);
         }
         c0 = c1;
     }
