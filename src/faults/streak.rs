@@ -156,7 +156,6 @@ struct Slot {
     r: Vec<f32>,
     a: [Vec<f32>; 5],
     b: Vec<f32>,
-    u: Vec<f32>,
     pad: Vec<u8>,
 }
 
@@ -254,27 +253,25 @@ dispatch!(step_d, step_k, (b: &mut [f32], r: &mut [f32], a0: &[f32], a1: &[f32],
 
 /// `u[t] = b[t] (64 - g) + b[t + ch] g` (the unshear), then
 /// `out[t] = round_half_even((u[t + ch] (1 - 2a) + (u[t] + u[t + 2 ch]) a) inv)` clamped to 0..=255
-/// (the cross filter). `b` and `u` start one position before the output.
+/// (the cross filter), in one pass (each `u` computed where it is used). `b` starts one position
+/// before the output.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn unshear_k(out: &mut [u8], b: &[f32], u: &mut [f32], ch: usize, g: u8, a: f32, inv: f32) {
+fn unshear_k(out: &mut [u8], b: &[f32], ch: usize, g: u8, a: f32, inv: f32) {
     let (w0, w1) = ((64 - g) as f32, g as f32);
     let n = out.len();
-    let m = n + 2 * ch;
-    let (b0, b1, u) = (&b[..m], &b[ch..ch + m], &mut u[..m]);
-    for i in 0..m {
-        u[i] = b0[i] * w0 + b1[i] * w1;
-    }
+    let (b0, b1, b2, b3) = (&b[..n], &b[ch..ch + n], &b[2 * ch..2 * ch + n], &b[3 * ch..3 * ch + n]);
     let c0 = 1.0 - 2.0 * a;
-    let (ul, uc, ur) = (&u[..n], &u[ch..ch + n], &u[2 * ch..2 * ch + n]);
     for i in 0..n {
-        let v = ((uc[i] * c0 + (ul[i] + ur[i]) * a) * inv).round_ties_even().clamp(0.0, 255.0);
+        let ul = b0[i] * w0 + b1[i] * w1;
+        let uc = b1[i] * w0 + b2[i] * w1;
+        let ur = b2[i] * w0 + b3[i] * w1;
+        let v = ((uc * c0 + (ul + ur) * a) * inv).round_ties_even().clamp(0.0, 255.0);
         // SAFETY: `v` is finite (sums and products of finite values, clamped) and in 0..=255,
         // so the conversion is exact and defined (and vectorises, unlike `as u8`).
         out[i] = unsafe { v.to_int_unchecked::<i32>() } as u8;
     }
 }
-dispatch!(unshear_d, unshear_k, (out: &mut [u8], b: &[f32], u: &mut [f32], ch: usize, g: u8, a: f32, inv: f32));
+dispatch!(unshear_d, unshear_k, (out: &mut [u8], b: &[f32], ch: usize, g: u8, a: f32, inv: f32));
 
 /// Output positions (pixels along a line) per column block: the block's running sums and held
 /// lines stay in the L1 cache while it runs down the band.
@@ -327,7 +324,7 @@ fn band(
         ((q >> 6) as isize, (q & 63) as u8)
     };
     let len = (CHUNK as usize + 3) * ch;
-    for v in [&mut slot.r, &mut slot.b, &mut slot.u].into_iter().chain(slot.a.iter_mut()) {
+    for v in [&mut slot.r, &mut slot.b].into_iter().chain(slot.a.iter_mut()) {
         if v.len() < len {
             v.resize(len, 0.0);
         }
@@ -375,7 +372,7 @@ fn band(
                 }
                 continue;
             }
-            let Slot { r, a, b, u, pad } = &mut *slot;
+            let Slot { r, a, b, pad } = &mut *slot;
             if !started {
                 // Running sums and held lines at line i.
                 started = true;
@@ -395,7 +392,7 @@ fn band(
             let (x0, x1) = ((o0 - 1 - base) as usize * ch, (o1 + 2 - base) as usize * ch);
             let p0 = row * dstride + (o0 - k) as usize * ch;
             let orow = &mut dst[p0..p0 + (o1 - o0) as usize * ch];
-            unshear_d(lv, orow, &b[x0..x1], u, ch, g, taps[row], plan.inv);
+            unshear_d(lv, orow, &b[x0..x1], ch, g, taps[row], plan.inv);
             if row + 1 == rows {
                 break;
             }
