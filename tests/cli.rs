@@ -516,6 +516,8 @@ fn blur_kernels_give_the_same_bytes_on_every_path() {
         &["--effect", "motion_blur", "--set", "motion_blur.length_px=25", "--set", "motion_blur.angle_deg=80"],
         &["--effect", "motion_blur", "--set", "motion_blur.length_px=61", "--set", "motion_blur.angle_deg=10"],
         &["--effect", "motion_blur", "--set", "motion_blur.length_px=60", "--set", "motion_blur.angle_deg=100"],
+        &["--effect", "motion_blur", "--set", "motion_blur.length_px=40", "--set", "motion_blur.angle_deg=30"],
+        &["--effect", "motion_blur", "--set", "motion_blur.length_px=90", "--set", "motion_blur.angle_deg=0"],
     ];
     for case in cases {
         let run = |env: Option<&str>| -> Vec<String> {

@@ -23,9 +23,11 @@ pub static INFO: EffectInfo = EffectInfo {
             point (samples x 64, the point-symmetric tap pairs' weights rounded to multiples of 2^-15 \
             that sum exactly to 1, every product rounded to nearest, the same integer operations on \
             every CPU path): each output is within 1 DN of the exact convolution (tested against an f64 \
-            reference for lengths 0.7-60 px); cost grows with length_px (about 1.5 taps per px). \
-            8-bit frames, length_px > 24 for mostly vertical streaks (|sin angle| >= |cos angle|) or \
-            > 60 for mostly horizontal ones: cost independent of the length: the lines across the \
+            reference for lengths 0.7-88 px); cost grows with length_px (about 1.5 taps per px). \
+            8-bit frames, length_px > 24 where that FIR would need more than 30 point-symmetric tap \
+            pairs for mostly vertical streaks (|sin angle| >= |cos angle|) or 45 for mostly \
+            horizontal ones (from 25 px at 80 deg, 34 px at 30 deg, 59 px at 90 deg, 90 px at 0 \
+            deg): cost independent of the length: the lines across the \
             streak's major axis are sheared (linear interpolation, shifts rounded to 1/64 px) so the \
             streak runs straight across them, a running sum across lines applies the model's exact \
             weights along the major axis (a box of 2T = length x |major component| lines convolved \
@@ -81,18 +83,26 @@ pub fn line_taps(length: f64, angle_deg: f64) -> Vec<(i32, i32, f32)> {
     taps
 }
 
-/// 8-bit frames with length_px up to this use the exact FIR (`fir16`, cost linear in the
-/// length), longer streaks the running-sum path (`streak`, cost independent of the length): 24 px
-/// for mostly vertical streaks, 60 px for mostly horizontal ones (their running sums run on a
-/// transposed copy, about twice the cost), about where the two cost the same (BENCHMARKS.md).
-pub fn fir_max_length(angle_deg: f64) -> f64 {
-    if streak::is_vertical(angle_deg) { 24.0 } else { 60.0 }
+/// Most point-symmetric tap pairs (the centre tap included) of a streak that 8-bit frames run
+/// as the exact FIR (`fir16`, cost about linear in the pair count): 30 for mostly vertical
+/// streaks, 45 for mostly horizontal ones (their running sums run on a transposed copy, about
+/// 1.5 times the cost); about where the two paths cost the same (BENCHMARKS.md).
+pub fn fir_max_pairs(angle_deg: f64) -> usize {
+    if streak::is_vertical(angle_deg) { 30 } else { 45 }
+}
+
+/// Whether 8-bit frames run the running-sum path (`streak`, cost independent of the length)
+/// rather than the exact FIR: streaks longer than 24 px (the running sums' error bound) whose
+/// FIR would need more than [`fir_max_pairs`] tap pairs (e.g. from 25 px at 80 deg, 34 px at
+/// 30 deg, 59 px at 90 deg, 90 px at 0 deg).
+pub fn runs_streak(length: f64, angle_deg: f64) -> bool {
+    length > 24.0 && line_taps(length, angle_deg).len() / 2 + 1 > fir_max_pairs(angle_deg)
 }
 
 /// Stated bound of the running-sum path against the model (DN, 8-bit) on point sources, hard
 /// edges and a textured scene, by length (the model text quotes it).
 pub fn streak_max_error_dn(length: f64, angle_deg: f64) -> f64 {
-    if length <= fir_max_length(angle_deg) {
+    if !runs_streak(length, angle_deg) {
         1.0 // the FIR
     } else if angle_deg.rem_euclid(90.0) == 0.0 {
         0.5 + 1e-4 // the final rounding (and f32 rounding of the weights)
@@ -110,7 +120,7 @@ pub fn streak_max_error_dn(length: f64, angle_deg: f64) -> f64 {
 #[derive(Default)]
 pub struct MotionBlur {
     key: Option<(u64, u64)>,
-    // 8-bit frames with length_px > fir_max_length: the running-sum plan and its scratch
+    // 8-bit frames when `runs_streak`: the running-sum plan and its scratch
     streak: Option<streak::StreakPlan>,
     streak_scratch: streak::Scratch,
     taps: Vec<(i32, i32, f32)>,
@@ -237,7 +247,7 @@ impl Effect for MotionBlur {
             let (pairs, half) = pair_up(&self.taps);
             self.q15 = fir16::q15_pairs(&half);
             self.pairs = pairs;
-            self.streak = (len > fir_max_length(ang)).then(|| streak::StreakPlan::new(len, ang));
+            self.streak = runs_streak(len, ang).then(|| streak::StreakPlan::new(len, ang));
             self.key = Some((len.to_bits(), ang.to_bits()));
         }
         let (w, h, ch, stride, r) =
@@ -347,7 +357,10 @@ mod tests {
         orig.set(30, 90, 1, 255.0);
         let (w, h) = (140usize, 120usize);
         let src = orig.packed_samples_f32();
-        for &(len, ang) in &[(0.7, 20.0), (5.0, 0.0), (10.0, 30.0), (24.0, 90.0), (37.5, 137.0), (60.0, 10.0)] {
+        for &(len, ang) in
+            &[(0.7, 20.0), (5.0, 0.0), (10.0, 30.0), (24.0, 90.0), (30.0, 30.0), (45.0, 90.0), (88.0, 0.0)]
+        {
+            assert!(!runs_streak(len, ang), "{len} px at {ang} deg runs the FIR");
             let mut f = orig.clone();
             let mut p = Params::defaults(&INFO);
             p.set("length_px", len).unwrap();
@@ -496,6 +509,7 @@ mod streak_tests {
                     (20.0, 45.0),
                     (30.0, 63.0),
                     (37.5, 137.0),
+                    (40.0, 30.0),
                     (64.0, 90.0),
                     (100.0, 170.0),
                     (100.0, 100.0),

@@ -156,10 +156,7 @@ struct Slot {
     r: Vec<f32>,
     a: [Vec<f32>; 5],
     b: Vec<f32>,
-    u: Vec<f32>,
     pad: Vec<u8>,
-    // the cross-filter tap of each line of the band
-    taps: Vec<f32>,
 }
 
 /// Scratch of [`blur_u8`]; grows only (allocation when the frame size or the streak grows).
@@ -171,6 +168,10 @@ pub struct Scratch {
     out: Vec<u8>,
     // allocation: per frame size, streak and thread count: one slot per band
     slots: Vec<Slot>,
+    // allocation: per frame size and streak: the cross-filter tap of every line, and the
+    // (streak, line count) they are for
+    taps: Vec<f32>,
+    taps_for: Option<(StreakPlan, usize)>,
 }
 
 /// Line access: `nl` pixels of `ch` samples per line, lines `stride` bytes apart.
@@ -235,53 +236,70 @@ fn add_k(r: &mut [f32], a: &[f32]) {
 }
 dispatch!(add_d, add_k, (r: &mut [f32], a: &[f32]));
 
-/// `r[t] += lead[t] - trail[t]` (exact).
+/// One line step over the held lines `a0..a4` = `A(i - n - 2)`, `A(i - n - 1)`, `A(i - n)`,
+/// `A(i + n + 1)`, `A(i + n + 2)`: `b = r + e0 (a1 + a3) + e1 (a0 + a4)` (line `i` with its end
+/// taps), then `r += a3 - a2` (the running sum of line `i + 1`, exact).
 #[inline(always)]
-fn slide_k(r: &mut [f32], lead: &[f32], trail: &[f32]) {
-    for ((r, &l), &t) in r.iter_mut().zip(lead).zip(trail) {
-        *r += l - t;
-    }
-}
-dispatch!(slide_d, slide_k, (r: &mut [f32], lead: &[f32], trail: &[f32]));
-
-/// `b = r + e0 (t1 + l1) + e1 (t2 + l2)`.
-#[inline(always)]
-fn ends_k(b: &mut [f32], r: &[f32], t1: &[f32], l1: &[f32], t2: &[f32], l2: &[f32], e0: f32, e1: f32) {
+#[allow(clippy::too_many_arguments)]
+fn step_k(b: &mut [f32], r: &mut [f32], a0: &[f32], a1: &[f32], a2: &[f32], a3: &[f32], a4: &[f32], e0: f32, e1: f32) {
     let n = b.len();
-    let (r, t1, l1, t2, l2) = (&r[..n], &t1[..n], &l1[..n], &t2[..n], &l2[..n]);
+    let (r, a0, a1, a2, a3, a4) = (&mut r[..n], &a0[..n], &a1[..n], &a2[..n], &a3[..n], &a4[..n]);
     for i in 0..n {
-        b[i] = r[i] + e0 * (t1[i] + l1[i]) + e1 * (t2[i] + l2[i]);
+        b[i] = r[i] + e0 * (a1[i] + a3[i]) + e1 * (a0[i] + a4[i]);
+        r[i] += a3[i] - a2[i];
     }
 }
-dispatch!(ends_d, ends_k, (b: &mut [f32], r: &[f32], t1: &[f32], l1: &[f32], t2: &[f32], l2: &[f32], e0: f32, e1: f32));
+dispatch!(step_d, step_k, (b: &mut [f32], r: &mut [f32], a0: &[f32], a1: &[f32], a2: &[f32], a3: &[f32], a4: &[f32], e0: f32, e1: f32));
 
 /// `u[t] = b[t] (64 - g) + b[t + ch] g` (the unshear), then
 /// `out[t] = round_half_even((u[t + ch] (1 - 2a) + (u[t] + u[t + 2 ch]) a) inv)` clamped to 0..=255
-/// (the cross filter). `b` and `u` start one position before the output.
+/// (the cross filter), in one pass (each `u` computed where it is used). `b` starts one position
+/// before the output.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn unshear_k(out: &mut [u8], b: &[f32], u: &mut [f32], ch: usize, g: u8, a: f32, inv: f32) {
+fn unshear_k(out: &mut [u8], b: &[f32], ch: usize, g: u8, a: f32, inv: f32) {
     let (w0, w1) = ((64 - g) as f32, g as f32);
     let n = out.len();
-    let m = n + 2 * ch;
-    let (b0, b1, u) = (&b[..m], &b[ch..ch + m], &mut u[..m]);
-    for i in 0..m {
-        u[i] = b0[i] * w0 + b1[i] * w1;
-    }
+    let (b0, b1, b2, b3) = (&b[..n], &b[ch..ch + n], &b[2 * ch..2 * ch + n], &b[3 * ch..3 * ch + n]);
     let c0 = 1.0 - 2.0 * a;
-    let (ul, uc, ur) = (&u[..n], &u[ch..ch + n], &u[2 * ch..2 * ch + n]);
     for i in 0..n {
-        let v = ((uc[i] * c0 + (ul[i] + ur[i]) * a) * inv).round_ties_even().clamp(0.0, 255.0);
+        let ul = b0[i] * w0 + b1[i] * w1;
+        let uc = b1[i] * w0 + b2[i] * w1;
+        let ur = b2[i] * w0 + b3[i] * w1;
+        let v = ((uc * c0 + (ul + ur) * a) * inv).round_ties_even().clamp(0.0, 255.0);
         // SAFETY: `v` is finite (sums and products of finite values, clamped) and in 0..=255,
         // so the conversion is exact and defined (and vectorises, unlike `as u8`).
         out[i] = unsafe { v.to_int_unchecked::<i32>() } as u8;
     }
 }
-dispatch!(unshear_d, unshear_k, (out: &mut [u8], b: &[f32], u: &mut [f32], ch: usize, g: u8, a: f32, inv: f32));
+dispatch!(unshear_d, unshear_k, (out: &mut [u8], b: &[f32], ch: usize, g: u8, a: f32, inv: f32));
 
 /// Output positions (pixels along a line) per column block: the block's running sums and held
 /// lines stay in the L1 cache while it runs down the band.
 const CHUNK: isize = 256;
+
+/// Lines ahead of the newest held line whose bytes [`prefetch`] asks the cache for: the block
+/// walks down the lines, one new source line per output line, a stride the hardware
+/// prefetchers miss.
+const AHEAD: isize = 6;
+
+/// Hints the cache to load the bytes of source line `j` that `A(j, k)`, `k` in `[k0, k1)`, reads
+/// (no effect on the values).
+#[inline]
+fn prefetch(plan: &StreakPlan, src: Lines, j: isize, k0: isize, k1: isize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        let s = (plan.shift_q(j) >> 6) as isize;
+        let line = src.line(j);
+        let at = |k: isize| ((k + s).max(0) as usize * src.ch).min(line.len());
+        for p in (at(k0)..at(k1 + 1)).step_by(64) {
+            // SAFETY: a prefetch hint of an address inside `line` (p < line.len()).
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(line.as_ptr().add(p).cast::<i8>()) };
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (plan, src, j, k0, k1);
+}
 
 /// One band of output lines `i0..i0 + rows` (written to `dst`, lines `dstride` apart), block by
 /// block of output positions `k` (line `i` writes pixel `x = k - klo(i)`).
@@ -294,6 +312,7 @@ fn band(
     rows: usize,
     dst: &mut [u8],
     dstride: usize,
+    taps: &[f32],
     slot: &mut Slot,
 ) {
     let (nl, ch) = (src.nl, src.ch);
@@ -304,10 +323,8 @@ fn band(
         let q = -plan.shift_q(i as isize);
         ((q >> 6) as isize, (q & 63) as u8)
     };
-    slot.taps.clear();
-    slot.taps.extend((i0..i0 + rows).map(|i| plan.cross_tap(i as isize)));
     let len = (CHUNK as usize + 3) * ch;
-    for v in [&mut slot.r, &mut slot.b, &mut slot.u].into_iter().chain(slot.a.iter_mut()) {
+    for v in [&mut slot.r, &mut slot.b].into_iter().chain(slot.a.iter_mut()) {
         if v.len() < len {
             v.resize(len, 0.0);
         }
@@ -355,7 +372,7 @@ fn band(
                 }
                 continue;
             }
-            let Slot { r, a, b, u, pad, taps } = &mut *slot;
+            let Slot { r, a, b, pad } = &mut *slot;
             if !started {
                 // Running sums and held lines at line i.
                 started = true;
@@ -368,61 +385,85 @@ fn band(
                     fill(&mut a[t], pad, base, i as isize + o, base, c1 + 2);
                 }
             }
-            // B over [o0 - 1, o1 + 2), then unshear and cross filter into pixels o0 - k.. o1 - k.
+            // B over the block (used over [o0 - 1, o1 + 2)) and the running sums of line i + 1,
+            // then unshear and cross filter into pixels o0 - k.. o1 - k.
+            let [a0, a1, a2, a3, a4] = &*a;
+            step_d(lv, &mut b[..w], &mut r[..w], a0, a1, a2, a3, a4, plan.e[0], plan.e[1]);
             let (x0, x1) = ((o0 - 1 - base) as usize * ch, (o1 + 2 - base) as usize * ch);
-            ends_d(
-                lv,
-                &mut b[x0..x1],
-                &r[x0..x1],
-                &a[1][x0..x1],
-                &a[3][x0..x1],
-                &a[0][x0..x1],
-                &a[4][x0..x1],
-                plan.e[0],
-                plan.e[1],
-            );
             let p0 = row * dstride + (o0 - k) as usize * ch;
             let orow = &mut dst[p0..p0 + (o1 - o0) as usize * ch];
-            unshear_d(lv, orow, &b[x0..x1], u, ch, g, taps[row], plan.inv);
+            unshear_d(lv, orow, &b[x0..x1], ch, g, taps[row], plan.inv);
             if row + 1 == rows {
                 break;
             }
-            let Slot { r, a, pad, .. } = &mut *slot;
+            let Slot { a, pad, .. } = &mut *slot;
             // Advance to line i + 1.
-            slide_d(lv, &mut r[..w], &a[3][..w], &a[2][..w]);
             // Trail: t2 <- t1 <- t0 <- A(i + 1 - n); lead: l1 <- l2 <- A(i + 1 + n + 2).
             a.swap(0, 1);
             a.swap(1, 2);
             fill(&mut a[2], pad, base, i as isize + 1 - n, base, c1 + 2);
             a.swap(3, 4);
             fill(&mut a[4], pad, base, i as isize + 1 + n + 2, base, c1 + 2);
+            prefetch(plan, src, i as isize + 1 + n + 2 + AHEAD, base, c1 + 2);
         }
         c0 = c1;
     }
 }
 
 /// Pixel transpose: `dst[x * dstride + y * ch + c] = src[y * sstride + x * ch + c]` for
-/// `x < w`, `y < h`, in blocks of 16 x 16 pixels (a block's rows stay in cache).
-fn transpose(src: &[u8], sstride: usize, w: usize, h: usize, ch: usize, dst: &mut [u8], dstride: usize) {
+/// `x < w`, `y < h`, in blocks of 32 x 32 pixels (a block's rows stay in cache), 8 x 8 pixels at
+/// a time in AVX2 registers (level `lv` >= 1), the block edges pixel by pixel.
+#[allow(clippy::too_many_arguments)]
+fn transpose(lv: u8, src: &[u8], sstride: usize, w: usize, h: usize, ch: usize, dst: &mut [u8], dstride: usize) {
     match ch {
-        1 => transpose_px::<1>(src, sstride, w, h, dst, dstride),
-        3 => transpose_px::<3>(src, sstride, w, h, dst, dstride),
+        1 => transpose_px::<1>(lv, src, sstride, w, h, dst, dstride),
+        3 => transpose_px::<3>(lv, src, sstride, w, h, dst, dstride),
         _ => unreachable!("8-bit frames have 1 or 3 channels"),
     }
 }
 
-fn transpose_px<const C: usize>(src: &[u8], sstride: usize, w: usize, h: usize, dst: &mut [u8], dstride: usize) {
+#[allow(clippy::too_many_arguments)]
+fn transpose_px<const C: usize>(
+    lv: u8,
+    src: &[u8],
+    sstride: usize,
+    w: usize,
+    h: usize,
+    dst: &mut [u8],
+    dstride: usize,
+) {
     const B: usize = 32;
     let used = dst.len().min(dstride * w);
+    #[cfg(target_arch = "x86_64")]
+    let simd = lv >= 1 && super::kit::has_avx2();
+    #[cfg(not(target_arch = "x86_64"))]
+    let simd = {
+        let _ = lv;
+        false
+    };
     dst[..used].par_chunks_mut(dstride * B).enumerate().for_each(|(bx, dband)| {
         let x0 = bx * B;
         let xs = B.min(w - x0);
         for y0 in (0..h).step_by(B) {
             let ys = B.min(h - y0);
             let sblock = &src[y0 * sstride + x0 * C..];
+            // Pixels (dx, dy) of the block done in registers: dx < xv, dy < yv.
+            let (xv, yv) = if simd { (xs / 8 * 8, ys / 8 * 8) } else { (0, 0) };
+            #[cfg(target_arch = "x86_64")]
+            for dx in (0..xv).step_by(8) {
+                for dy in (0..yv).step_by(8) {
+                    let s = &sblock[dy * sstride + dx * C..];
+                    let d = &mut dband[dx * dstride + (y0 + dy) * C..];
+                    assert!(s.len() >= 7 * sstride + 8 * C && d.len() >= 7 * dstride + 8 * C);
+                    // SAFETY: AVX2 present (checked with `simd`); 8 rows of 8 pixels readable
+                    // at `s + r * sstride` and writable at `d + r * dstride` (asserted).
+                    unsafe { simd::t8x8_px::<C>(s.as_ptr(), sstride, d.as_mut_ptr(), dstride) };
+                }
+            }
             for dx in 0..xs {
                 let drow = &mut dband[dx * dstride + y0 * C..dx * dstride + (y0 + ys) * C];
-                for (dy, d) in drow.chunks_exact_mut(C).enumerate() {
+                let from = if dx < xv { yv } else { 0 };
+                for (dy, d) in drow.chunks_exact_mut(C).enumerate().skip(from) {
                     let o = dy * sstride + dx * C;
                     let px: &[u8; C] = sblock[o..o + C].try_into().expect("C bytes");
                     d.copy_from_slice(px);
@@ -430,6 +471,92 @@ fn transpose_px<const C: usize>(src: &[u8], sstride: usize, w: usize, h: usize, 
             }
         }
     });
+}
+
+#[cfg(target_arch = "x86_64")]
+mod simd {
+    use std::arch::x86_64::*;
+
+    /// Transposes 8 x 8 pixels of `C` (1 or 3) bytes: `dst[c * ds + r * C + b] = src[r * ss +
+    /// c * C + b]`, each pixel widened to a 32-bit lane, an 8 x 8 32-bit transpose, narrowed back.
+    ///
+    /// # Safety
+    /// AVX2; 8 rows of `8 C` bytes readable at `src + r * ss`, writable at `dst + c * ds`.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn t8x8_px<const C: usize>(src: *const u8, ss: usize, dst: *mut u8, ds: usize) {
+        // SAFETY: as documented; every load and store stays within the 8 C bytes of its row.
+        unsafe {
+            let widen = _mm256_setr_epi8(
+                0, 1, 2, -1, 3, 4, 5, -1, 6, 7, 8, -1, 9, 10, 11, -1, 4, 5, 6, -1, 7, 8, 9, -1, 10, 11, 12, -1, 13, 14,
+                15, -1,
+            );
+            let ld = |r: usize| {
+                let p = src.add(r * ss);
+                if C == 3 {
+                    // Pixels 0..4 from bytes 0..12, pixels 4..8 from bytes 12..24 (lane 1 loads
+                    // from byte 8).
+                    let v = _mm256_set_m128i(
+                        _mm_loadu_si128(p.add(8) as *const __m128i),
+                        _mm_loadu_si128(p as *const __m128i),
+                    );
+                    _mm256_shuffle_epi8(v, widen)
+                } else {
+                    _mm256_cvtepu8_epi32(_mm_loadl_epi64(p as *const __m128i))
+                }
+            };
+            let (r0, r1, r2, r3, r4, r5, r6, r7) = (ld(0), ld(1), ld(2), ld(3), ld(4), ld(5), ld(6), ld(7));
+            let t0 = _mm256_unpacklo_epi32(r0, r1);
+            let t1 = _mm256_unpackhi_epi32(r0, r1);
+            let t2 = _mm256_unpacklo_epi32(r2, r3);
+            let t3 = _mm256_unpackhi_epi32(r2, r3);
+            let t4 = _mm256_unpacklo_epi32(r4, r5);
+            let t5 = _mm256_unpackhi_epi32(r4, r5);
+            let t6 = _mm256_unpacklo_epi32(r6, r7);
+            let t7 = _mm256_unpackhi_epi32(r6, r7);
+            let u0 = _mm256_unpacklo_epi64(t0, t2);
+            let u1 = _mm256_unpackhi_epi64(t0, t2);
+            let u2 = _mm256_unpacklo_epi64(t1, t3);
+            let u3 = _mm256_unpackhi_epi64(t1, t3);
+            let u4 = _mm256_unpacklo_epi64(t4, t6);
+            let u5 = _mm256_unpackhi_epi64(t4, t6);
+            let u6 = _mm256_unpacklo_epi64(t5, t7);
+            let u7 = _mm256_unpackhi_epi64(t5, t7);
+            let cols = [
+                _mm256_permute2x128_si256(u0, u4, 0x20),
+                _mm256_permute2x128_si256(u1, u5, 0x20),
+                _mm256_permute2x128_si256(u2, u6, 0x20),
+                _mm256_permute2x128_si256(u3, u7, 0x20),
+                _mm256_permute2x128_si256(u0, u4, 0x31),
+                _mm256_permute2x128_si256(u1, u5, 0x31),
+                _mm256_permute2x128_si256(u2, u6, 0x31),
+                _mm256_permute2x128_si256(u3, u7, 0x31),
+            ];
+            let narrow = if C == 3 {
+                _mm256_setr_epi8(
+                    0, 1, 2, 4, 5, 6, 8, 9, 10, 12, 13, 14, -1, -1, -1, -1, 0, 1, 2, 4, 5, 6, 8, 9, 10, 12, 13, 14, -1,
+                    -1, -1, -1,
+                )
+            } else {
+                _mm256_setr_epi8(
+                    0, 4, 8, 12, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, 0, 4, 8, 12, -1, -1, -1, -1, -1, -1,
+                    -1, -1, -1, -1, -1, -1,
+                )
+            };
+            for (c, v) in cols.into_iter().enumerate() {
+                let v = _mm256_shuffle_epi8(v, narrow);
+                let (lo, hi) = (_mm256_castsi256_si128(v), _mm256_extracti128_si256(v, 1));
+                let d = dst.add(c * ds);
+                if C == 3 {
+                    // Bytes 0..16 (12 valid), then 12..20 and 20..24 from the second half.
+                    _mm_storeu_si128(d as *mut __m128i, lo);
+                    _mm_storel_epi64(d.add(12) as *mut __m128i, hi);
+                    (d.add(20) as *mut i32).write_unaligned(_mm_cvtsi128_si32(_mm_srli_si128(hi, 8)));
+                } else {
+                    _mm_storel_epi64(d as *mut __m128i, _mm_unpacklo_epi32(lo, hi));
+                }
+            }
+        }
+    }
 }
 
 /// Streak blur of an 8-bit frame (`ch` interleaved channels, rows of `stride` bytes) in place.
@@ -460,7 +587,7 @@ pub fn blur_u8_at(
             .enumerate()
             .for_each(|(y, l)| l.copy_from_slice(&d[y * stride..y * stride + ls]));
     } else {
-        transpose(d, stride, w, h, ch, &mut sc.src[..count * ls], ls);
+        transpose(lv, d, stride, w, h, ch, &mut sc.src[..count * ls], ls);
         if sc.out.len() < count * ls {
             sc.out.resize(count * ls, 0);
         }
@@ -471,15 +598,22 @@ pub fn blur_u8_at(
     if sc.slots.len() < nb {
         sc.slots.resize_with(nb, Slot::default);
     }
+    if sc.taps_for.as_ref().is_none_or(|(p, c)| p != plan || *c != count) {
+        sc.taps.clear();
+        sc.taps.extend((0..count).map(|i| plan.cross_tap(i as isize)));
+        sc.taps_for = Some((plan.clone(), count));
+    }
     let src = Lines { data: &sc.src, stride: ls, count, nl, ch };
+    let taps = &sc.taps;
     let (dst, dstride): (&mut [u8], usize) = if plan.vertical { (d, stride) } else { (&mut sc.out[..count * ls], ls) };
     let used = dst.len().min(dstride * count);
     dst[..used].par_chunks_mut(dstride * per).zip(sc.slots.par_iter_mut()).enumerate().for_each(|(b, (out, slot))| {
         let i0 = b * per;
-        band(lv, plan, src, i0, per.min(count - i0), out, dstride, slot);
+        let rows = per.min(count - i0);
+        band(lv, plan, src, i0, rows, out, dstride, &taps[i0..i0 + rows], slot);
     });
     if !plan.vertical {
-        transpose(&sc.out, ls, h, w, ch, d, stride);
+        transpose(lv, &sc.out, ls, h, w, ch, d, stride);
     }
 }
 
