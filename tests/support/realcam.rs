@@ -20,6 +20,7 @@
 //! | `gamma` | `FS·(v/FS)^γ` after clipping | `gamma` |
 //! | `gamma` (generalised sRGB) | linear toe tangent to an offset power, `(1+a)·x^q − a` (encoding) or `((x+a)/(1+a))^q` (decoding), x = v/FS | `gamma` = least-squares power law over x in [0, 1] |
 //! | `jpeg` | `image` crate JPEG encoder round trip | `quality` |
+//! | `lens_flare` | logistic-edged round ghosts (no polygon, no smoothstep) at realcam's own places along the line from the largest saturated blob through the centre, own radii and levels | `ghosts`, `intensity` = mean ghost plateau / FS |
 //!
 //! Camera noise is always present: Poisson photo-electrons at `gain_e_per_dn`, Gaussian read noise
 //! `sigma_dn`, rounding to integers and clipping to [0, 255]. A pixel whose expected signal reaches
@@ -280,6 +281,9 @@ pub struct Scene {
     /// sim, clipped at FS, cannot say by how much, but charge overflow in the real camera
     /// spills what lies above the well).
     pub glint_level: f64,
+    /// A bright, fixed (distant) source: centre x, y and radius in px, irradiance FS. It drives
+    /// the lens-flare cases' ghosts.
+    pub sun: Option<(f64, f64, f64)>,
 }
 
 /// Per-frame pose: screen position of the body centre, rotation (rad), scale.
@@ -327,6 +331,7 @@ impl Scene {
             stars,
             glints,
             glint_level: FS,
+            sun: None,
         }
     }
 
@@ -433,6 +438,18 @@ impl Scene {
         if rr <= 1.0 {
             let t = 0.75 + 0.2 * (1.0 - rr);
             col = [210.0 * t, 208.0 * t, 200.0 * t];
+        }
+        // A distant bright source (fixed on screen), saturated, with a short halo.
+        if let Some((sx, sy, sr)) = self.sun {
+            let d = ((x - sx).powi(2) + (y - sy).powi(2)).sqrt();
+            if d <= sr {
+                col = [FS; 3];
+            } else {
+                let halo = 150.0 * (-(d - sr) / 2.5).exp();
+                for c in col.iter_mut() {
+                    *c = c.max(halo);
+                }
+            }
         }
         // Glints (screen-aligned cores).
         for &(gx, gy, a, b) in glints {
@@ -570,6 +587,11 @@ pub enum Hidden {
     HotPixels { rate: f64 },
     /// Readout transfer v·gain + offset (before rounding).
     GainOffset { gain: f64, offset_dn: f64 },
+    /// Lens flare (EFFECTS.md: additive ghosts along the line from the brightest source through
+    /// the image centre; `intensity` = the ghosts' mean plateau / FS). realcam's own form: `ghosts`
+    /// round ghosts with logistic edges, placed, sized and levelled by [`flare_layout`]; source =
+    /// centroid of the largest saturated blob of the irradiance.
+    LensFlare { ghosts: usize, intensity: f64 },
 }
 
 impl Hidden {
@@ -591,6 +613,7 @@ impl Hidden {
             Hidden::Blooming { .. } => "blooming",
             Hidden::HotPixels { .. } => "hot_pixels",
             Hidden::GainOffset { .. } => "gain_offset",
+            Hidden::LensFlare { .. } => "lens_flare",
         }
     }
 
@@ -617,6 +640,7 @@ impl Hidden {
             }
             Hidden::HotPixels { rate } => vec![("rate", rate)],
             Hidden::GainOffset { gain, offset_dn } => vec![("gain", gain), ("offset_dn", offset_dn)],
+            Hidden::LensFlare { ghosts, intensity } => vec![("ghosts", ghosts as f64), ("intensity", intensity)],
         }
     }
 
@@ -661,6 +685,9 @@ impl Hidden {
             }
             Hidden::HotPixels { .. } => "fixed constant offsets 60-150 DN".into(),
             Hidden::GainOffset { .. } => "v*gain + offset before rounding".into(),
+            Hidden::LensFlare { .. } => {
+                "logistic-edged round ghosts on the source-centre line, plateaus with mean intensity*FS".into()
+            }
         }
     }
 }
@@ -985,11 +1012,20 @@ pub struct FixedPattern {
     stray: Option<Vec<f64>>,
     kernel: Option<(Vec<f64>, usize)>,
     streak: Option<(Vec<f64>, usize)>,
+    flare: Option<Vec<FlareGhost>>,
 }
 
 impl FixedPattern {
     pub fn new(w: usize, h: usize, c: usize, hidden: &[Hidden], seed: u64) -> Self {
-        let mut fp = FixedPattern { prnu: None, hot: None, hot_const: None, stray: None, kernel: None, streak: None };
+        let mut fp = FixedPattern {
+            prnu: None,
+            hot: None,
+            hot_const: None,
+            stray: None,
+            kernel: None,
+            streak: None,
+            flare: None,
+        };
         let mut r = Prng::new(seed ^ 0xf1c5ed);
         for hd in hidden {
             match *hd {
@@ -1015,6 +1051,9 @@ impl FixedPattern {
                 }
                 Hidden::Defocus { radius_px } => fp.kernel = Some(pillbox_kernel(radius_px)),
                 Hidden::MotionBlur { length_px, angle_deg } => fp.streak = Some(streak_kernel(length_px, angle_deg)),
+                Hidden::LensFlare { ghosts, intensity } => {
+                    fp.flare = Some(flare_layout(ghosts, intensity, w, h, seed ^ 0xf1a2e));
+                }
                 Hidden::HotPixels { rate } => {
                     let mut m = vec![0.0; w * h * c];
                     for px in 0..w * h {
@@ -1032,6 +1071,74 @@ impl FixedPattern {
         }
         fp
     }
+}
+
+/// One lens-flare ghost, fixed for the lens: position along the line as `t` (the centre is 0,
+/// the source 1, the mirror point -1), radius and edge scale in px, plateau in DN.
+#[derive(Clone, Copy, Debug)]
+pub struct FlareGhost {
+    pub t: f64,
+    pub radius: f64,
+    pub edge: f64,
+    pub level: f64,
+}
+
+/// realcam's ghost layout: ghost k sits at t = 0.45 − 1.6·(k + 0.5)/n ± 0.06 (between the source
+/// side and past the mirror point), radius 3–5.5 % of the diagonal, logistic edge scale
+/// 0.5 + 0.03·radius px, relative level b_k uniform in [0.6, 1.4] normalised so the plateaus
+/// average exactly `intensity`·FS.
+pub fn flare_layout(n: usize, intensity: f64, w: usize, h: usize, seed: u64) -> Vec<FlareGhost> {
+    let mut r = Prng::new(seed);
+    let diag = ((w * w + h * h) as f64).sqrt();
+    let mut g: Vec<FlareGhost> = (0..n)
+        .map(|k| {
+            let t = 0.45 - 1.6 * (k as f64 + 0.5) / n as f64 + r.range(-0.06, 0.06);
+            let radius = diag * r.range(0.03, 0.055);
+            FlareGhost { t, radius, edge: 0.5 + 0.03 * radius, level: r.range(0.6, 1.4) }
+        })
+        .collect();
+    let mean = g.iter().map(|x| x.level).sum::<f64>() / n.max(1) as f64;
+    for x in g.iter_mut() {
+        x.level *= intensity * FS / mean;
+    }
+    g
+}
+
+/// The brightest source of an irradiance image: centroid of the largest 8-connected blob whose
+/// brightest channel is at or above full scale.
+pub fn brightest_blob(irr: &Img) -> Option<(f64, f64)> {
+    let (w, h, c) = (irr.w, irr.h, irr.c);
+    let hot = |i: usize| (0..c).any(|ch| irr.v[i * c + ch] >= FS - 0.5);
+    let mut seen = vec![false; w * h];
+    let mut best: Option<(usize, f64, f64)> = None;
+    let mut stack = Vec::new();
+    for i0 in 0..w * h {
+        if seen[i0] || !hot(i0) {
+            continue;
+        }
+        seen[i0] = true;
+        stack.push(i0);
+        let (mut n, mut sx, mut sy) = (0usize, 0.0, 0.0);
+        while let Some(i) = stack.pop() {
+            let (x, y) = (i % w, i / w);
+            n += 1;
+            sx += x as f64;
+            sy += y as f64;
+            for yy in y.saturating_sub(1)..(y + 2).min(h) {
+                for xx in x.saturating_sub(1)..(x + 2).min(w) {
+                    let j = yy * w + xx;
+                    if !seen[j] && hot(j) {
+                        seen[j] = true;
+                        stack.push(j);
+                    }
+                }
+            }
+        }
+        if best.is_none_or(|b| n > b.0) {
+            best = Some((n, sx / n as f64, sy / n as f64));
+        }
+    }
+    best.map(|b| (b.1, b.2))
 }
 
 /// Expose the sim image `sim` through the camera with the hidden effects; `rng` is this frame's
@@ -1074,6 +1181,29 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
                     for ch in 0..c {
                         let v = irr.at(x, y, ch);
                         irr.set(x, y, ch, v + amplitude_dn * f[y * w + x]);
+                    }
+                }
+            }
+        }
+    }
+    if let Some(ghosts) = &fp.flare
+        && let Some((sx, sy)) = brightest_blob(&irr)
+    {
+        // Additive ghosts; RGB ghosts get a mild amber coating tint with mean gain 1.
+        let tint: [f64; 3] = if c == 3 { [1.08, 1.0, 0.92] } else { [1.0; 3] };
+        let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+        for g in ghosts {
+            let (gx, gy) = (cx + g.t * (sx - cx), cy + g.t * (sy - cy));
+            let reach = g.radius + 12.0 * g.edge;
+            let (x0, x1) = ((gx - reach).floor().max(0.0) as usize, ((gx + reach).ceil().max(0.0) as usize).min(w));
+            let (y0, y1) = ((gy - reach).floor().max(0.0) as usize, ((gy + reach).ceil().max(0.0) as usize).min(h));
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    let d = ((x as f64 - gx).powi(2) + (y as f64 - gy).powi(2)).sqrt();
+                    let a = 1.0 / (1.0 + ((d - g.radius) / g.edge).exp());
+                    for ch in 0..c {
+                        let v = irr.at(x, y, ch);
+                        irr.set(x, y, ch, v + a * g.level * tint[ch]);
                     }
                 }
             }
@@ -1281,6 +1411,9 @@ pub struct Case {
     /// Irradiance of the glint cores as a multiple of FS (1: just at full scale). Above 1 the
     /// real camera sees the over-exposure the clipped sim hides.
     pub glint_exposure: f64,
+    /// A fixed bright source (x, y, radius as fractions of the width and height, radius of the
+    /// width), in sim and real alike.
+    pub sun: Option<(f64, f64, f64)>,
 }
 
 impl Case {
@@ -1293,7 +1426,15 @@ impl Case {
         let mut s =
             if self.lab { Scene::lab(self.w, self.h, seed) } else { Scene::new(self.w, self.h, seed, self.earth) };
         s.glint_level = FS * self.glint_exposure;
+        s.sun = self.sun.map(|(x, y, r)| (x * self.w as f64, y * self.h as f64, r * self.w as f64));
         s
+    }
+
+    /// Same case with a fixed saturated source at (`x`, `y`) (fractions of width and height) of
+    /// radius `r` (fraction of the width).
+    pub fn with_sun(mut self, x: f64, y: f64, r: f64) -> Self {
+        self.sun = Some((x, y, r));
+        self
     }
 
     /// Same case with glint cores at `k`·FS in the real camera (the sim still clips them at FS).
@@ -1398,6 +1539,7 @@ fn case(name: &str, fmt: Fmt, seed: u64, earth: bool, gain: f64, read: f64, hidd
         hidden,
         real_scene_seed: None,
         glint_exposure: 1.0,
+        sun: None,
     }
 }
 
@@ -1488,6 +1630,12 @@ pub fn corpus() -> Vec<Case> {
         case("gain_offset_lab_mono", Mono8, 227, false, 6.0, 1.5, vec![GainOffset { gain: 1.05, offset_dn: -2.0 }])
             .in_lab(),
         case("jpeg_rgb", Rgb8, 228, true, 6.0, 1.5, vec![Jpeg { quality: 85 }]),
+        // Lens flare from a fixed saturated source near a corner: ghosts a few DN high on the
+        // line through the centre (plateau about twice the dark-sky noise).
+        case("lens_flare_mono", Mono8, 232, false, 6.0, 1.5, vec![LensFlare { ghosts: 4, intensity: 0.012 }])
+            .with_sun(0.13, 0.17, 0.03),
+        case("lens_flare_rgb", Rgb8, 233, true, 6.0, 1.5, vec![LensFlare { ghosts: 3, intensity: 0.016 }])
+            .with_sun(0.85, 0.16, 0.03),
         // Generalised sRGB tone curves (linear toe + offset power): not a pure power law, and
         // over the mid-tones close to a gain and offset.
         case("tone_srgb_lab_mono", Mono8, 230, false, 6.0, 1.5, vec![ToneCurve { q: 0.9, a: 0.02, encode: true }])
