@@ -667,6 +667,22 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
                 params.get("full_well_fraction")
             );
         }
+        if s.name == "lens_flare"
+            && let Some(pl) = sig.and_then(|g| g.param(super::saturation::PLATEAU_PARAM))
+            && pl > 0.0
+        {
+            // EFFECTS.md's intensity is the ghosts' mean plateau: read on the ghost cores by the
+            // signature. The forward fit scales the library's ghost layout (its places and sizes
+            // are not the lens's), so its value is diluted where those ghosts miss the real ones.
+            canonical
+                .iter_mut()
+                .filter(|(n, _)| n == "intensity")
+                .for_each(|(_, v)| *v = serde_json::Value::from(round_sig(pl, 5)));
+            sig_evidence = format!(
+                "{sig_evidence}; intensity read on the ghosts' plateau, {pl:.4} of FS (fitted.toml keeps the forward fit's {:.4}, which scales the library's ghost layout)",
+                params.get("intensity")
+            );
+        }
         results.push(FittedEffect {
             name: s.name,
             params: Some(params),

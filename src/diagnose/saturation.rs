@@ -371,6 +371,7 @@ pub fn lens_flare(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], noise: &No
     let mut prof_main = Vec::new();
     let mut prof_ctrl = Vec::new();
     let mut ghost_levels = Vec::new();
+    let mut plateaus = Vec::new();
     let mut n_frames = 0;
     for (k, p) in pairs.iter().enumerate() {
         let m = &masks[k];
@@ -462,6 +463,9 @@ pub fn lens_flare(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], noise: &No
             let med = stats::median(&vals);
             ghost_levels.push(vals.iter().fold(f64::NEG_INFINITY, |a, &b| a.max(b)) - med);
         }
+        if let Some(g) = ghost_plateaus(m, &r1[k], w, h) {
+            plateaus.push(g);
+        }
     }
     if on_line.is_empty() || controls.len() < 3 {
         sig.evidence = "no off-centre bright source: lens flare cannot be tested".into();
@@ -477,9 +481,22 @@ pub fn lens_flare(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], noise: &No
     sig.size_unit = "DN ghost peak above the line median";
     sig.set_param("ghosts", 3.0);
     sig.set_param("intensity", (peak / FS as f64).clamp(0.0, 1.0));
+    // The intensity as EFFECTS.md defines it (the ghosts' mean plateau / FS), read on the ghost
+    // cores; the forward fit's own intensity only scales the library's ghost layout, which is not
+    // the lens's, so it is diluted wherever its ghosts miss the real ones.
+    let plateau_note = if plateaus.is_empty() {
+        "no ghost plateau above the noise on the source–centre line".to_string()
+    } else {
+        let mut means: Vec<f64> = plateaus.iter().map(|g| g.0).collect();
+        let mut counts: Vec<f64> = plateaus.iter().map(|g| g.1 as f64).collect();
+        let pl = stats::median_mut(&mut means);
+        let n_g = stats::median_mut(&mut counts);
+        sig.set_param(PLATEAU_PARAM, (pl / FS as f64).clamp(0.0, 1.0));
+        format!("ghost plateau {pl:.2} DN (mean over {n_g:.0} ghost(s) found, median over {} frame(s))", plateaus.len())
+    };
     sig.where_ = format!("along the line from the brightest source through the centre ({n_frames} frames)");
     sig.evidence = format!(
-        "positive excess along the source–centre line {m_on:.3} DN vs {m_c:.3} ± {sd_c:.3} DN on control lines (z = {:.1}); ghost peak {peak:.2} DN",
+        "positive excess along the source–centre line {m_on:.3} DN vs {m_c:.3} ± {sd_c:.3} DN on control lines (z = {:.1}); ghost peak {peak:.2} DN; {plateau_note}",
         sig.z
     );
     sig.profiles.push(Profile {
@@ -490,6 +507,169 @@ pub fn lens_flare(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], noise: &No
         series: vec![("source–centre line".into(), prof_main), ("control line (30°)".into(), prof_ctrl)],
     });
     sig
+}
+
+/// Signature parameter holding the ghosts' plateau / FS (not a library parameter, so the fit's
+/// initial values do not see it; the report's `intensity` is this reading).
+pub const PLATEAU_PARAM: &str = "plateau_intensity";
+
+/// Ghost plateaus on one frame: the source is the largest 8-connected saturated blob (the
+/// brightest source), ghosts are runs of the lightly smoothed channel-mean residual along the line
+/// from it through the centre that stand 4 noise sd above the line's median for at least 5 px.
+/// Each ghost's plateau is the trimmed mean (10–90 %) of the unsmoothed residual within 0.6 of its
+/// half-length of its centre, minus the trimmed mean of a ring 4–10 px outside it (pixels of other
+/// ghosts left out). Returns (mean plateau in DN, number of ghosts) or `None` (no source or no
+/// ghost). Masked pixels (near saturation or edges) are not used.
+fn ghost_plateaus(m: &Masks, r: &[Plane], w: usize, h: usize) -> Option<(f64, usize)> {
+    let (sx, sy) = largest_blob(&m.sat, w, h)?;
+    let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+    let (vx, vy) = (sx - cx, sy - cy);
+    let len = (vx * vx + vy * vy).sqrt();
+    if len < 0.05 * w.min(h) as f64 {
+        return None;
+    }
+    let nc = r.len() as f32;
+    let mut res = Plane::new(w, h);
+    for i in 0..w * h {
+        res.data[i] = if m.dist_sat[i] <= 15.0 || m.dist_edge[i] <= 3.0 {
+            f32::NAN
+        } else {
+            r.iter().map(|p| p.data[i]).sum::<f32>() / nc
+        };
+    }
+    let sm = nan_smooth(&res, 2);
+    // Points c + u (s - c), one pixel apart, u from -1.6 (past the mirror point) to 1.
+    let at = |ux: f64, uy: f64, u: f64| -> f64 {
+        let (x, y) = (cx + u * ux, cy + u * uy);
+        if x < 0.0 || y < 0.0 || x > w as f64 - 1.0 || y > h as f64 - 1.0 {
+            f64::NAN
+        } else {
+            sm.data[y.round() as usize * w + x.round() as usize] as f64
+        }
+    };
+    let n = (2.6 * len) as usize;
+    let us: Vec<f64> = (0..=n).map(|j| -1.6 + j as f64 / len).collect();
+    let main: Vec<f64> = us.iter().map(|&u| at(vx, vy, u)).collect();
+    // Noise of the smoothed residual from control lines at other angles through the centre.
+    let mut ctrl = Vec::new();
+    for a in [30.0f64, 60.0, 90.0, 120.0, 150.0] {
+        let (ca, sa) = (a.to_radians().cos(), a.to_radians().sin());
+        let (dx, dy) = (vx * ca - vy * sa, vx * sa + vy * ca);
+        let line: Vec<f64> = us.iter().map(|&u| at(dx, dy, u)).filter(|v| v.is_finite()).collect();
+        if line.len() >= 10 {
+            let med = stats::median(&line);
+            ctrl.extend(line.iter().map(|v| v - med));
+        }
+    }
+    let vals: Vec<f64> = main.iter().copied().filter(|v| v.is_finite()).collect();
+    if ctrl.len() < 20 || vals.len() < 20 {
+        return None;
+    }
+    let sd = stats::mad_sigma(&ctrl).max(1e-3);
+    let thr = stats::median(&vals) + 4.0 * sd;
+    // Runs above the threshold (gaps of up to 3 masked samples bridged).
+    let mut runs: Vec<(usize, usize)> = Vec::new();
+    let (mut start, mut last, mut gap) = (None::<usize>, 0usize, 0usize);
+    for (j, &v) in main.iter().enumerate() {
+        if v.is_finite() && v > thr {
+            start.get_or_insert(j);
+            last = j;
+            gap = 0;
+        } else if start.is_some() {
+            gap += 1;
+            if !v.is_finite() && gap <= 3 {
+                continue;
+            }
+            runs.push((start.take().unwrap_or(j), last));
+            gap = 0;
+        }
+    }
+    if let Some(s0) = start {
+        runs.push((s0, last));
+    }
+    let discs: Vec<(f64, f64, f64)> = runs
+        .iter()
+        .filter(|(a, b)| b - a + 1 >= 5)
+        .map(|&(a, b)| {
+            let u = 0.5 * (us[a] + us[b]);
+            (cx + u * vx, cy + u * vy, 0.5 * (b - a + 1) as f64)
+        })
+        .collect();
+    let trimmed = |v: &mut Vec<f64>| -> Option<f64> {
+        if v.len() < 8 {
+            return None;
+        }
+        v.sort_by(f64::total_cmp);
+        let (a, b) = (v.len() / 10, v.len() - v.len() / 10);
+        Some(v[a..b].iter().sum::<f64>() / (b - a) as f64)
+    };
+    let mut levels = Vec::new();
+    for (k, &(gx, gy, rad)) in discs.iter().enumerate() {
+        let (mut core, mut ring) = (Vec::new(), Vec::new());
+        let reach = rad + 10.0;
+        let (x0, x1) = ((gx - reach).floor().max(0.0) as usize, ((gx + reach).ceil().max(0.0) as usize).min(w));
+        let (y0, y1) = ((gy - reach).floor().max(0.0) as usize, ((gy + reach).ceil().max(0.0) as usize).min(h));
+        for y in y0..y1 {
+            for x in x0..x1 {
+                let v = res.data[y * w + x] as f64;
+                if !v.is_finite() {
+                    continue;
+                }
+                let d = ((x as f64 - gx).powi(2) + (y as f64 - gy).powi(2)).sqrt();
+                if d <= (0.6 * rad).max(2.0) {
+                    core.push(v);
+                } else if d >= rad + 4.0
+                    && d <= rad + 10.0
+                    && discs.iter().enumerate().all(|(j, &(ox, oy, orad))| {
+                        j == k || ((x as f64 - ox).powi(2) + (y as f64 - oy).powi(2)).sqrt() > orad + 4.0
+                    })
+                {
+                    ring.push(v);
+                }
+            }
+        }
+        if let (Some(c), Some(b)) = (trimmed(&mut core), trimmed(&mut ring)) {
+            levels.push(c - b);
+        }
+    }
+    if levels.is_empty() {
+        return None;
+    }
+    Some((levels.iter().sum::<f64>() / levels.len() as f64, levels.len()))
+}
+
+/// Centroid of the largest 8-connected region of `mask` (pixel count), if any.
+fn largest_blob(mask: &[bool], w: usize, h: usize) -> Option<(f64, f64)> {
+    let mut seen = vec![false; w * h];
+    let mut stack = Vec::new();
+    let mut best: Option<(usize, f64, f64)> = None;
+    for i0 in 0..w * h {
+        if seen[i0] || !mask[i0] {
+            continue;
+        }
+        seen[i0] = true;
+        stack.push(i0);
+        let (mut n, mut sx, mut sy) = (0usize, 0.0, 0.0);
+        while let Some(i) = stack.pop() {
+            let (x, y) = (i % w, i / w);
+            n += 1;
+            sx += x as f64;
+            sy += y as f64;
+            for yy in y.saturating_sub(1)..(y + 2).min(h) {
+                for xx in x.saturating_sub(1)..(x + 2).min(w) {
+                    let j = yy * w + xx;
+                    if !seen[j] && mask[j] {
+                        seen[j] = true;
+                        stack.push(j);
+                    }
+                }
+            }
+        }
+        if best.is_none_or(|b| n > b.0) {
+            best = Some((n, sx / n as f64, sy / n as f64));
+        }
+    }
+    best.map(|b| (b.1, b.2))
 }
 
 /// Box smoothing ignoring NaN samples (NaN where the window has no valid sample).
