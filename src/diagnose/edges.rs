@@ -18,11 +18,10 @@
 //! direct scans of the loss with exact kernels evaluated at the edge pixels: a Gaussian σ scan, a
 //! line-kernel (length, angle) scan, and a per-channel sub-pixel shift minimisation.
 
+use super::common::{Masks, NoiseModel};
 use super::img::{FS, Pair, Plane};
-use super::locate::Masks;
-use super::noise::NoiseModel;
 use super::stats::{self, Wls, WlsFit};
-use super::{Profile, Signature};
+use super::types::{Profile, Signature};
 
 /// Edge sample: frame, channel, pixel index, weight.
 #[derive(Clone, Copy)]

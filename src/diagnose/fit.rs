@@ -14,9 +14,10 @@
 //!   Camera noise (variance against signal) is re-measured on the same residual. They are fitted
 //!   by moment matching through the library's own effects ([`super::moments`]).
 
+use super::common::{NoiseModel, QUIET_LAPLACIAN, params_from_signature};
 use super::img::{Pair, Plane, frame_from_planes};
 use super::locate::{self, Located};
-use super::noise::{self, NoiseModel};
+use super::noise;
 use super::select::{self, Candidate, Evidence, FitCtx, LossData};
 use super::{DiagnoseError, Options, Signature, fixed, jpeg};
 use crate::config::FaultConfig;
@@ -70,27 +71,6 @@ pub struct Fitted {
     pub selection_tests: Vec<Evidence>,
     /// Noise model measured on the residual of the fitted model.
     pub noise: NoiseModel,
-}
-
-/// Parameters of a registered effect initialised from a signature.
-pub fn params_from_signature(sig: &Signature) -> Option<Params> {
-    let reg = registry::find(sig.effect)?;
-    let mut p = Params::defaults(reg.info);
-    for (n, v) in &sig.params {
-        if let Some((_, spec)) = reg.info.param(n) {
-            let v = match spec.kind {
-                ParamKind::Int => v.round(),
-                _ => *v,
-            };
-            if v.is_finite() {
-                let _ = p.set(n, v.clamp(spec.min, spec.max));
-            }
-        }
-    }
-    for (n, w) in &sig.choices {
-        let _ = p.set_choice(n, w);
-    }
-    Some(p)
 }
 
 fn cand(name: &'static str, label: &str, params: Params, fit: &[&'static str]) -> Candidate {
@@ -307,7 +287,7 @@ fn stochastic_tests(
     // between independent measurements, recurrence), so they need less margin than the
     // forward-model tests.
     let z = (z_det - 1.0).max(3.0);
-    let quiet: Vec<Vec<bool>> = model.iter().map(|m| noise::quiet_mask(m, noise::QUIET_LAPLACIAN)).collect();
+    let quiet: Vec<Vec<bool>> = model.iter().map(|m| noise::quiet_mask(m, QUIET_LAPLACIAN)).collect();
     let (mut hot_sig, hot, _) = fixed::hot_pixels(pairs, &loc.masks, &quiet, model, &loc.noise);
     hot_sig.detected = hot_sig.z > z && hot_sig.size > 0.0;
     // JPEG blocks and ringing mimic fixed patterns and row structure: those tests are not

@@ -7,11 +7,10 @@
 //! Their covariance is zero without the effect whatever the noise model is, so no noise
 //! calibration can fake a detection.
 
+use super::common::{Masks, NoiseModel, RowOffsets};
 use super::img::{FS, Pair, Plane};
-use super::locate::Masks;
-use super::noise::{NoiseModel, RowOffsets};
 use super::stats::{self, Wls};
-use super::{Profile, Signature};
+use super::types::{Profile, Signature};
 
 /// PRNU by cross-frame covariance. Returns the signature and the variance coefficient c =
 /// sigma² (0 when not detected) for the noise model.

@@ -21,7 +21,8 @@
 //! equals the real one.
 
 use super::img::{Plane, luma, planes_of};
-use super::{DiagnoseError, Signature, stats};
+use super::stats;
+use super::types::{DiagnoseError, Signature};
 use crate::faults::veiling_glare::{grid, kernel};
 use crate::faults::{Params, default_params};
 use crate::frame::Frame;

@@ -6,7 +6,7 @@
 //! every threshold and every reported parameter has one unit (EFFECTS.md: parameters "in DN" are
 //! 8-bit DN). 16-bit data are divided by 257; their quantisation step is then 1/257.
 
-use super::DiagnoseError;
+use super::types::DiagnoseError;
 use crate::frame::{Frame, FrameData, PixelFormat};
 use std::path::{Path, PathBuf};
 

@@ -9,7 +9,7 @@
 //! is the libjpeg quality whose scaled standard luminance table maximises the aligned score.
 
 use super::img::{Pair, Plane};
-use super::{Profile, Signature};
+use super::types::{Profile, Signature};
 
 /// The standard JPEG luminance quantisation table (ITU T.81 Annex K), natural order.
 pub const STD_LUMA: [u16; 64] = [

@@ -9,71 +9,11 @@
 //! example). The stochastic effects are tested after that, on the residual of the fitted model
 //! ([`super::fit`]).
 
-use super::img::{FS, Pair, Plane, distance_transform};
-use super::noise::{self, NoiseModel};
+use super::common::{Masks, NoiseModel};
+use super::img::{FS, Pair, Plane};
+use super::noise;
 use super::photometric::{self, Photometric};
 use super::{Options, Signature, edges, fixed, saturation};
-
-/// Per-pair masks computed from the sim image (all channels).
-#[derive(Debug, Clone)]
-pub struct Masks {
-    /// Any channel at full scale.
-    pub sat: Vec<bool>,
-    /// Distance to the nearest saturated pixel (px; infinite without saturation).
-    pub dist_sat: Vec<f32>,
-    /// Inside saturated regions: distance to the nearest unsaturated pixel.
-    pub dist_in: Vec<f32>,
-    /// Smooth (gradient <= 4 DN/px and |Laplacian| <= 4 DN over the 3x3 neighbourhood): blur and
-    /// sub-pixel shifts change these pixels by little, so the photometric regression uses them.
-    pub smooth: Vec<bool>,
-    /// Quiet (|Laplacian| <= 2 DN over the 3x3 neighbourhood): high-pass noise measurements.
-    pub quiet: Vec<bool>,
-    /// Distance to the nearest edge pixel (gradient > 8 DN/px).
-    pub dist_edge: Vec<f32>,
-    /// Distance to the nearest edge pixel that is not the border of a saturated region.
-    pub dist_edge_unsat: Vec<f32>,
-}
-
-impl Masks {
-    pub fn compute(sim: &[Plane]) -> Masks {
-        let (w, h) = (sim[0].w, sim[0].h);
-        let n = w * h;
-        let mut grad = Plane::new(w, h);
-        let mut lap = Plane::new(w, h);
-        let mut sat = vec![false; n];
-        for s in sim {
-            for y in 0..h {
-                for x in 0..w {
-                    let i = y * w + x;
-                    let (xi, yi) = (x as isize, y as isize);
-                    let c = s.at(x, y);
-                    let l = s.at_clamped(xi - 1, yi);
-                    let r = s.at_clamped(xi + 1, yi);
-                    let u = s.at_clamped(xi, yi - 1);
-                    let d = s.at_clamped(xi, yi + 1);
-                    let g = 0.5 * ((r - l).abs() + (d - u).abs());
-                    grad.data[i] = grad.data[i].max(g);
-                    lap.data[i] = lap.data[i].max((l + r + u + d - 4.0 * c).abs());
-                    if c >= 254.5 {
-                        sat[i] = true;
-                    }
-                }
-            }
-        }
-        let lap3 = lap.extreme_filter(1, true);
-        let grad3 = grad.extreme_filter(1, true);
-        let smooth: Vec<bool> = (0..n).map(|i| lap3.data[i] <= 4.0 && grad3.data[i] <= 4.0).collect();
-        let quiet: Vec<bool> = lap3.data.iter().map(|&v| v <= noise::QUIET_LAPLACIAN).collect();
-        let dist_sat = distance_transform(&sat, w, h);
-        let unsat: Vec<bool> = sat.iter().map(|&s| !s).collect();
-        let dist_in = distance_transform(&unsat, w, h);
-        let edge: Vec<bool> = grad.data.iter().map(|&g| g > 8.0).collect();
-        let dist_edge = distance_transform(&edge, w, h);
-        let edge_unsat: Vec<bool> = (0..n).map(|i| edge[i] && dist_sat[i] > 3.0).collect();
-        let dist_edge_unsat = distance_transform(&edge_unsat, w, h);
-        Masks { sat, dist_sat, dist_in, smooth, quiet, dist_edge, dist_edge_unsat }
-    }
-}
 
 /// Everything the signature stage found.
 pub struct Located {

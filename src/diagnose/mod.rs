@@ -21,7 +21,28 @@
 //!    evidence plots ([`plot`]).
 //!
 //! `--unpaired` ([`unpaired`]) compares statistics instead of pixels.
+//!
+//! # Module dependencies
+//!
+//! The modules form layers; a module imports (`super::x`, `crate::diagnose::x`) only modules of
+//! the layers above its own, never a module of its own layer (the test
+//! `tests::module_layers_hold` reads the sources and enforces this):
+//!
+//! 1. **Shared** — [`types`] (errors, [`Options`], [`Signature`], [`Profile`], [`progress`];
+//!    re-exported here) and [`stats`] import nothing of `diagnose`; [`img`] imports `types`;
+//!    [`common`] ([`Masks`](common::Masks), [`NoiseModel`](common::NoiseModel),
+//!    [`params_from_signature`](common::params_from_signature)) imports `types`, `img`, `stats`;
+//!    [`plot`] imports `types`, `img`.
+//! 2. **Signatures** — [`edges`], [`fixed`], [`glare`], [`jpeg`], [`moments`], [`noise`],
+//!    [`photometric`], [`saturation`], [`tone`] and every new file not named below: they import
+//!    only `types`, `img`, `stats` and `common`, never each other nor an orchestrator. A new
+//!    signature is one new file; only the orchestrators import it.
+//! 3. **Orchestrators**, in this order, each importing the shared and signature modules and the
+//!    orchestrators before it: [`locate`] (masks, first noise model, the signature tests),
+//!    [`select`] (forward-model selection), [`fit`], [`report`], [`unpaired`], and this module
+//!    (`diagnose_dirs`).
 
+pub mod common;
 pub mod edges;
 pub mod fit;
 pub mod fixed;
@@ -39,126 +60,12 @@ pub mod saturation;
 pub mod select;
 pub mod stats;
 pub mod tone;
+pub mod types;
 pub mod unpaired;
 
-use crate::faults::FaultError;
-use std::path::{Path, PathBuf};
-use thiserror::Error;
+pub use types::{DiagnoseError, Options, Profile, Signature, progress};
 
-/// Errors of diagnosis (each names the file concerned).
-#[derive(Debug, Error)]
-pub enum DiagnoseError {
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
-    #[error("{path}: cannot decode image: {message}")]
-    Decode { path: PathBuf, message: String },
-    #[error("{name}: sim is {sim} but real ({real_path}) is {real}; pairs must have the same size and channels")]
-    SizeMismatch { name: String, sim: String, real: String, real_path: PathBuf },
-    #[error("no pairs: no file name of {sim} is also in {real} (images are paired by file name)")]
-    NoPairs { sim: PathBuf, real: PathBuf },
-    #[error("{dir}: no images (accepted: png, jpg, tif, pgm, ppm)")]
-    NoImages { dir: PathBuf },
-    #[error("{path}: cannot write: {message}")]
-    Write { path: PathBuf, message: String },
-    #[error(transparent)]
-    Fault(#[from] FaultError),
-}
-
-/// Options of a diagnosis run.
-#[derive(Debug, Clone)]
-pub struct Options {
-    /// Sim and real show different scenes: compare statistics.
-    pub unpaired: bool,
-    /// Significance (one-sided normal z) a signature must reach to become a candidate.
-    pub z_threshold: f64,
-    /// Largest number of pairs used by the joint forward-model fit (all pairs are used by the
-    /// signature tests).
-    pub fit_frames: usize,
-    /// Seed of the forward models' generators.
-    pub seed: u64,
-    /// Write report.md with plots and residual maps.
-    pub write_markdown: bool,
-}
-
-impl Default for Options {
-    fn default() -> Self {
-        Options { unpaired: false, z_threshold: 6.0, fit_frames: 4, seed: 1, write_markdown: true }
-    }
-}
-
-/// A curve that gave evidence (plotted in report.md).
-#[derive(Debug, Clone, serde::Serialize)]
-pub struct Profile {
-    pub title: String,
-    pub x_label: String,
-    pub y_label: String,
-    pub x: Vec<f64>,
-    /// (label, values); values may be NaN where there is no data.
-    pub series: Vec<(String, Vec<f64>)>,
-}
-
-/// Outcome of one signature test.
-#[derive(Debug, Clone, serde::Serialize)]
-pub struct Signature {
-    /// Effect name from EFFECTS.md.
-    pub effect: &'static str,
-    /// Significance as a one-sided normal z (large = strong evidence against "absent").
-    pub z: f64,
-    /// Passed the significance test and the minimum effect size.
-    pub detected: bool,
-    /// Initial canonical parameter estimates from the signature (before the forward-model fit).
-    pub params: Vec<(String, f64)>,
-    /// Choice parameters (e.g. smear direction).
-    pub choices: Vec<(String, String)>,
-    /// Standard errors of the estimates, where known.
-    pub stderr: Vec<(String, f64)>,
-    /// Effect size in the unit of `size_unit`, for ranking and the practical threshold.
-    pub size: f64,
-    pub size_unit: &'static str,
-    #[serde(rename = "where")]
-    pub where_: String,
-    pub evidence: String,
-    #[serde(skip)]
-    pub profiles: Vec<Profile>,
-}
-
-impl Signature {
-    pub fn new(effect: &'static str) -> Signature {
-        Signature {
-            effect,
-            z: 0.0,
-            detected: false,
-            params: Vec::new(),
-            choices: Vec::new(),
-            stderr: Vec::new(),
-            size: 0.0,
-            size_unit: "",
-            where_: String::new(),
-            evidence: String::new(),
-            profiles: Vec::new(),
-        }
-    }
-    pub fn param(&self, name: &str) -> Option<f64> {
-        self.params.iter().find(|(n, _)| n == name).map(|(_, v)| *v)
-    }
-    pub fn set_param(&mut self, name: &str, v: f64) {
-        if let Some(p) = self.params.iter_mut().find(|(n, _)| n == name) {
-            p.1 = v;
-        } else {
-            self.params.push((name.to_string(), v));
-        }
-    }
-}
-
-/// Progress of a diagnosis on stderr (`faultcam diagnose: <stage> at <s> s`), seconds since the
-/// first call of the process. Set `FAULTCAM_DIAG_QUIET` to silence it.
-pub fn progress(stage: &str) {
-    static START: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
-    let t0 = *START.get_or_init(std::time::Instant::now);
-    if std::env::var_os("FAULTCAM_DIAG_QUIET").is_none() {
-        eprintln!("faultcam diagnose: {stage} at {:.1} s", t0.elapsed().as_secs_f64());
-    }
-}
+use std::path::Path;
 
 /// Run a diagnosis on two folders and write the report into `out`.
 pub fn diagnose_dirs(sim: &Path, real: &Path, out: &Path, opts: &Options) -> Result<report::Report, DiagnoseError> {
@@ -180,4 +87,161 @@ pub fn diagnose_dirs(sim: &Path, real: &Path, out: &Path, opts: &Options) -> Res
     let rep = report::build(&pairs, &located, &fitted, notes, opts);
     report::write(&rep, &pairs, &located, &fitted, out, opts)?;
     Ok(rep)
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::{BTreeMap, BTreeSet};
+
+    /// Orchestrators in dependency order: each may import the ones before it.
+    const ORCHESTRATORS: [&str; 6] = ["locate", "select", "fit", "report", "unpaired", "mod"];
+    /// Shared modules and the modules each may import.
+    const SHARED: [(&str, &[&str]); 5] = [
+        ("types", &[]),
+        ("stats", &[]),
+        ("img", &["types"]),
+        ("common", &["types", "img", "stats"]),
+        ("plot", &["types", "img"]),
+    ];
+    /// What a signature module (any other file) may import.
+    const FOR_SIGNATURES: [&str; 4] = ["types", "img", "stats", "common"];
+
+    /// Modules of `diagnose` a source refers to outside comments: `super::x`, `super::super::x`,
+    /// `crate::diagnose::x` and the members of `super::{..}` groups. Names re-exported by mod.rs
+    /// count as their module (`types`), items defined in mod.rs as `mod`; other names (items of
+    /// the file itself, seen from its test module) are not module references.
+    fn referenced(src: &str, names: &BTreeMap<String, String>) -> BTreeSet<String> {
+        let code: Vec<&str> = src.lines().map(|l| l.split("//").next().unwrap_or("")).collect();
+        let code = code.join("\n");
+        let ident = |s: &str| -> String { s.chars().take_while(|c| c.is_alphanumeric() || *c == '_').collect() };
+        let mut out = BTreeSet::new();
+        for prefix in ["super::", "crate::diagnose::"] {
+            let mut rest = code.as_str();
+            while let Some(i) = rest.find(prefix) {
+                rest = &rest[i + prefix.len()..];
+                let mut tail = rest;
+                while let Some(t) = tail.strip_prefix("super::") {
+                    tail = t;
+                }
+                let mut found = Vec::new();
+                if let Some(group) = tail.strip_prefix('{') {
+                    let (mut depth, mut start) = (0usize, 0usize);
+                    for (k, ch) in group.char_indices() {
+                        match ch {
+                            '{' => depth += 1,
+                            '}' if depth == 0 => {
+                                found.push(ident(group[start..k].trim()));
+                                break;
+                            }
+                            '}' => depth -= 1,
+                            ',' if depth == 0 => {
+                                found.push(ident(group[start..k].trim()));
+                                start = k + 1;
+                            }
+                            _ => {}
+                        }
+                    }
+                } else {
+                    found.push(ident(tail));
+                }
+                out.extend(found.into_iter().filter_map(|n| names.get(&n).cloned()));
+            }
+        }
+        out
+    }
+
+    /// Name → module for the names a path after `super::` can mean: the module files, the
+    /// re-exports of mod.rs (`pub use types::{..}`) and the items mod.rs defines.
+    fn names(stems: &BTreeSet<String>, mod_rs: &str) -> BTreeMap<String, String> {
+        let mut m: BTreeMap<String, String> = stems.iter().map(|s| (s.clone(), s.clone())).collect();
+        for line in mod_rs.lines() {
+            if let Some(r) = line.strip_prefix("pub use ")
+                && let Some((module, items)) = r.split_once("::")
+            {
+                for item in items.trim_matches(|c| "{};".contains(c)).split(',') {
+                    m.insert(item.trim().to_string(), module.to_string());
+                }
+            }
+            for kw in ["pub fn ", "pub struct ", "pub enum ", "pub const ", "pub static ", "pub type "] {
+                if let Some(r) = line.strip_prefix(kw) {
+                    let n: String = r.chars().take_while(|c| c.is_alphanumeric() || *c == '_').collect();
+                    m.insert(n, "mod".to_string());
+                }
+            }
+        }
+        m
+    }
+
+    /// Violations of the layer rule (module doc) in `sources` (module name → source).
+    fn violations(sources: &BTreeMap<String, String>) -> Vec<String> {
+        let stems: BTreeSet<String> = sources.keys().cloned().collect();
+        let names = names(&stems, sources.get("mod").map(String::as_str).unwrap_or(""));
+        let mut bad = Vec::new();
+        for (module, src) in sources {
+            let allowed: Vec<&str> = if let Some(k) = ORCHESTRATORS.iter().position(|o| o == module) {
+                let later = &ORCHESTRATORS[k + 1..];
+                stems.iter().map(String::as_str).filter(|s| !later.contains(s)).collect()
+            } else if let Some((_, a)) = SHARED.iter().find(|(s, _)| s == module) {
+                a.to_vec()
+            } else {
+                FOR_SIGNATURES.to_vec()
+            };
+            for r in referenced(src, &names) {
+                if r != *module && !allowed.contains(&r.as_str()) {
+                    bad.push(format!("src/diagnose/{module}.rs imports `{r}` (allowed: {})", allowed.join(", ")));
+                }
+            }
+        }
+        bad
+    }
+
+    fn sources() -> BTreeMap<String, String> {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/diagnose");
+        let mut out = BTreeMap::new();
+        for e in std::fs::read_dir(&dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display())) {
+            let p = e.unwrap().path();
+            if p.extension().is_some_and(|x| x == "rs") {
+                let stem = p.file_stem().unwrap().to_string_lossy().into_owned();
+                let src = std::fs::read_to_string(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+                out.insert(stem, src);
+            }
+        }
+        out
+    }
+
+    /// The module layers of the module doc hold in the sources: no signature module imports an
+    /// orchestrator or another signature module, shared modules import only the shared modules
+    /// listed, and orchestrators only the ones before them.
+    #[test]
+    fn module_layers_hold() {
+        let src = sources();
+        for m in ORCHESTRATORS.iter().chain(SHARED.iter().map(|(s, _)| s)).chain(FOR_SIGNATURES.iter()) {
+            assert!(src.contains_key(*m), "src/diagnose/{m}.rs named in the layer rule does not exist");
+        }
+        let bad = violations(&src);
+        assert!(bad.is_empty(), "module layer rule broken (see src/diagnose/mod.rs):\n{}", bad.join("\n"));
+    }
+
+    /// The check sees the forms of import the sources use and ignores comments.
+    #[test]
+    fn layer_check_catches_imports() {
+        let mut src = sources();
+        let case = |src: &mut BTreeMap<String, String>, module: &str, text: &str| -> Vec<String> {
+            let keep = src.insert(module.to_string(), text.to_string());
+            let v = violations(src);
+            if let Some(k) = keep {
+                src.insert(module.to_string(), k);
+            }
+            v
+        };
+        assert_eq!(case(&mut src, "edges", "use super::locate::Masks;").len(), 1);
+        assert_eq!(case(&mut src, "edges", "use super::{Signature, diagnose_dirs, fixed};").len(), 2);
+        assert_eq!(case(&mut src, "edges", "fn f() { super::fit::params_from_signature(s) }").len(), 1);
+        assert_eq!(case(&mut src, "edges", "mod t { use crate::diagnose::select::X; }").len(), 1);
+        assert_eq!(case(&mut src, "edges", "mod t { use super::super::noise::X; }").len(), 1);
+        assert_eq!(case(&mut src, "new_signature", "use super::common::Masks;\nuse super::types::Signature;").len(), 0);
+        assert_eq!(case(&mut src, "new_signature", "/// see [`super::locate`]\nuse super::img::Plane;").len(), 0);
+        assert_eq!(case(&mut src, "img", "use super::common::Masks;").len(), 1);
+        assert_eq!(case(&mut src, "locate", "use super::fit::X;").len(), 1);
+    }
 }

@@ -10,9 +10,9 @@
 //! `loss_before`/`loss_after` of these findings is the squared standardised mismatch of the
 //! statistic without the effect and with the fitted effect.
 
-use super::Signature;
+use super::common::NoiseModel;
 use super::img::{FS, planes_of};
-use super::noise::NoiseModel;
+use super::types::Signature;
 use crate::faults::{self, EffectCtx, Params, registry};
 use crate::frame::{Frame, PixelFormat};
 
@@ -70,7 +70,7 @@ pub fn calibrate(
     seed: u64,
 ) -> Option<(Params, String, f64, f64)> {
     let reg = registry::find(sig.effect)?;
-    let mut p = super::fit::params_from_signature(sig)?;
+    let mut p = super::common::params_from_signature(sig)?;
     let bins_loss = |a: f64, b: f64| -> f64 {
         // mean squared standardised mismatch of the binned variance curve
         let mut s = 0.0;

@@ -21,107 +21,12 @@
 //! pattern (prnu σ², measured separately across frames and then held fixed here). Variances are
 //! those of the continuous noise; [`NoiseModel::var`] adds the quantisation of the data.
 
+use super::common::{LowBlock, Masks, NoiseBin, NoiseModel, QUIET_LAPLACIAN, RowOffsets};
 use super::img::{FS, Pair, Plane};
-use super::locate::Masks;
 use super::stats::{self, Wls};
-
-/// One level bin of the high-pass measurement.
-#[derive(Debug, Clone, Copy, serde::Serialize)]
-pub struct NoiseBin {
-    /// Level (8-bit DN) of the bin centre.
-    pub level: f64,
-    /// Variance of the continuous noise (DN²), quantisation removed.
-    pub var: f64,
-    pub n: usize,
-}
-
-/// Censored fit of one dark block.
-#[derive(Debug, Clone, Copy, serde::Serialize)]
-pub struct LowBlock {
-    /// Pair index and channel.
-    pub k: usize,
-    pub c: usize,
-    /// Block centre (px).
-    pub xc: f64,
-    pub yc: f64,
-    /// Mean base level of the fitted pixels (DN).
-    pub base: f64,
-    /// Additive level real - base (DN), its standard error, and the noise sigma.
-    pub mu: f64,
-    pub se_mu: f64,
-    pub sigma: f64,
-    pub n: usize,
-    /// Fraction of the block's values clipped at 0.
-    pub clipped: f64,
-}
-
-/// Noise model in 8-bit DN.
-#[derive(Debug, Clone, serde::Serialize)]
-pub struct NoiseModel {
-    /// Variance intercept (DN²) of the continuous noise.
-    pub a: f64,
-    pub se_a: f64,
-    /// Variance per DN of signal (1 / gain_e_per_dn).
-    pub b: f64,
-    pub se_b: f64,
-    /// Variance per DN² of signal (prnu sigma²), held fixed.
-    pub c: f64,
-    /// Quantisation step of the real data (1 for 8-bit files, 1/257 for 16-bit).
-    pub quant: f64,
-    pub bins: Vec<NoiseBin>,
-    pub low: Vec<LowBlock>,
-    /// Levels covered by the fit.
-    pub fit_range: (f64, f64),
-    /// Whether the slope could be measured (two or more separated levels).
-    pub slope_identified: bool,
-}
-
-impl NoiseModel {
-    /// Variance (DN²) of an observed value whose noise-free level is `s` (quantisation included).
-    #[inline]
-    pub fn var(&self, s: f64) -> f64 {
-        let s = s.clamp(0.0, FS as f64);
-        (self.a + self.b * s + self.c * s * s).max(0.02) + self.quant * self.quant / 12.0
-    }
-    pub fn sd(&self, s: f64) -> f64 {
-        self.var(s).sqrt()
-    }
-    /// Standard deviation of the signal-independent noise (DN).
-    pub fn read_sigma(&self) -> f64 {
-        self.a.max(0.0).sqrt()
-    }
-    /// A flat prior for the start of the analysis.
-    pub fn prior(quant: f64) -> NoiseModel {
-        NoiseModel {
-            a: 4.0,
-            se_a: f64::INFINITY,
-            b: 0.1,
-            se_b: f64::INFINITY,
-            c: 0.0,
-            quant,
-            bins: Vec::new(),
-            low: Vec::new(),
-            fit_range: (0.0, FS as f64),
-            slope_identified: false,
-        }
-    }
-    /// Additive level of the dark regions: inverse-variance mean of the low blocks' μ with its
-    /// standard error across blocks (None without low blocks).
-    pub fn dark_level(&self) -> Option<(f64, f64, usize)> {
-        if self.low.len() < 2 {
-            return None;
-        }
-        let mus: Vec<f64> = self.low.iter().map(|b| b.mu).collect();
-        let (m, se) = stats::mean_se(&mus);
-        let se_model = (1.0 / self.low.iter().map(|b| 1.0 / (b.se_mu * b.se_mu).max(1e-9)).sum::<f64>()).sqrt();
-        Some((m, se.max(se_model), self.low.len()))
-    }
-}
 
 const BIN: f64 = 4.0;
 const NBINS: usize = 64;
-/// Largest Laplacian (DN) of the base in a 3x3 neighbourhood for a high-pass sample.
-pub const QUIET_LAPLACIAN: f32 = 2.0;
 
 /// Largest |Laplacian| (DN) of the base over the 3x3 neighbourhood, in any channel.
 pub fn laplacian3(base: &[Plane]) -> Vec<f32> {
@@ -154,9 +59,6 @@ pub fn quiet_mask(base: &[Plane], limit: f32) -> Vec<bool> {
 /// Laplacian limit for level bins that quiet pixels do not populate (textured scenes): the
 /// residual of a fitted model is noise there too, at the price of a little leakage of misfit.
 pub const TEXTURED_LAPLACIAN: f32 = 8.0;
-
-/// Per-row offsets (frame, channel, row) removed from the residual (row noise).
-pub type RowOffsets = Vec<Vec<Vec<f32>>>;
 
 /// High-pass samples per level bin: (quiet samples, textured samples).
 fn collect(
@@ -470,8 +372,8 @@ mod tests {
     /// approximation), rounded and clipped: the fit recovers a and b within a few standard errors.
     #[test]
     fn estimate_recovers_read_and_shot_noise_on_a_ramp() {
+        use crate::diagnose::common::Masks;
         use crate::diagnose::img::{Pair, Plane};
-        use crate::diagnose::locate::Masks;
         let (w, h) = (200usize, 120usize);
         let mut r = Rng::new(5);
         let mut pairs = Vec::new();

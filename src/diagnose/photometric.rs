@@ -16,11 +16,10 @@
 //! all estimates and a cluster-robust covariance (clusters: 32x32 blocks of one frame). Each
 //! effect is then a Wald test on its group of coefficients.
 
+use super::common::{Masks, NoiseModel};
 use super::img::{FS, Pair};
-use super::locate::Masks;
-use super::noise::NoiseModel;
 use super::stats::{self, Wls, WlsFit};
-use super::{Profile, Signature};
+use super::types::{Profile, Signature};
 
 pub const K: usize = 14;
 pub const I_OFF: usize = 0;

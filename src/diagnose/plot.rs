@@ -1,8 +1,8 @@
 //! Minimal PNG plots drawn with the `image` crate: line plots with axes and numeric tick labels
 //! (a built-in 3x5 digit font), and diverging residual maps.
 
-use super::Profile;
 use super::img::Plane;
+use super::types::Profile;
 use image::{Rgb, RgbImage};
 use std::path::Path;
 

@@ -2,11 +2,10 @@
 //! `smear` (column or row offsets proportional to the number of saturated pixels they contain)
 //! and `lens_flare` (ghost discs on the line from the brightest source through the centre).
 
+use super::common::{Masks, NoiseModel};
 use super::img::{FS, Pair, Plane};
-use super::locate::Masks;
-use super::noise::NoiseModel;
 use super::stats::{self, Wls};
-use super::{Profile, Signature};
+use super::types::{Profile, Signature};
 
 /// Location of `vals` (observations of N(mu, sigma²) rounded to `q` and clipped at 0) with
 /// sigma known; returns (mu, variance of mu).

@@ -23,8 +23,8 @@
 //! 5. finally each selected effect must still be significant when dropped from the full model
 //!    (the others fixed); the weakest that is not is removed and the rest refitted.
 
+use super::common::NoiseModel;
 use super::img::{FS, Pair, Plane, planes_of};
-use super::noise::NoiseModel;
 use super::{DiagnoseError, stats, tone};
 use crate::faults::{self, Effect, EffectCtx, ParamKind, Params, Scale, Stage, registry};
 use crate::frame::{Frame, FrameData, PixelFormat};

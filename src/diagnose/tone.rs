@@ -25,8 +25,8 @@
 //! The module depends only on shared types (planes, the noise model); the selection
 //! ([`super::select`]) decides what to do with the readings.
 
+use super::common::NoiseModel;
 use super::img::FS;
-use super::noise::NoiseModel;
 use super::stats;
 
 /// One bin of the level response.

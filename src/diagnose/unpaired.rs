@@ -22,9 +22,9 @@
 //! identifiable from different scenes and are not fitted here (the histograms are still
 //! compared in `fit`).
 
+use super::common::{NoiseBin, NoiseModel};
 use super::fit::{FitMetrics, canonical_of, mean_metrics, round_sig};
 use super::img::{FS, Plane, distance_transform, luma, planes_of};
-use super::noise::{NoiseBin, NoiseModel};
 use super::report::{Alternative, Finding, FitSummary, Report, TestRow, UnpairedReport};
 use super::{DiagnoseError, Options, Profile, Signature, jpeg, stats};
 use crate::config::FaultConfig;

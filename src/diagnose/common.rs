@@ -1,0 +1,191 @@
+//! Types and helpers the signature modules share: the per-pair masks of the sim ([`Masks`]), the
+//! camera noise model ([`NoiseModel`]) and the effect parameters a signature initialises
+//! ([`params_from_signature`]). Depends only on [`super::types`], [`super::img`] and
+//! [`super::stats`], so that a signature module needs nothing but these (see the dependency rule
+//! in the module doc of `diagnose`).
+
+use super::img::{FS, Plane, distance_transform};
+use super::stats;
+use super::types::Signature;
+use crate::faults::{ParamKind, Params, registry};
+
+/// Largest Laplacian (DN) of the base in a 3x3 neighbourhood for a high-pass sample.
+pub const QUIET_LAPLACIAN: f32 = 2.0;
+
+/// Per-pair masks computed from the sim image (all channels).
+#[derive(Debug, Clone)]
+pub struct Masks {
+    /// Any channel at full scale.
+    pub sat: Vec<bool>,
+    /// Distance to the nearest saturated pixel (px; infinite without saturation).
+    pub dist_sat: Vec<f32>,
+    /// Inside saturated regions: distance to the nearest unsaturated pixel.
+    pub dist_in: Vec<f32>,
+    /// Smooth (gradient <= 4 DN/px and |Laplacian| <= 4 DN over the 3x3 neighbourhood): blur and
+    /// sub-pixel shifts change these pixels by little, so the photometric regression uses them.
+    pub smooth: Vec<bool>,
+    /// Quiet (|Laplacian| <= 2 DN over the 3x3 neighbourhood): high-pass noise measurements.
+    pub quiet: Vec<bool>,
+    /// Distance to the nearest edge pixel (gradient > 8 DN/px).
+    pub dist_edge: Vec<f32>,
+    /// Distance to the nearest edge pixel that is not the border of a saturated region.
+    pub dist_edge_unsat: Vec<f32>,
+}
+
+impl Masks {
+    pub fn compute(sim: &[Plane]) -> Masks {
+        let (w, h) = (sim[0].w, sim[0].h);
+        let n = w * h;
+        let mut grad = Plane::new(w, h);
+        let mut lap = Plane::new(w, h);
+        let mut sat = vec![false; n];
+        for s in sim {
+            for y in 0..h {
+                for x in 0..w {
+                    let i = y * w + x;
+                    let (xi, yi) = (x as isize, y as isize);
+                    let c = s.at(x, y);
+                    let l = s.at_clamped(xi - 1, yi);
+                    let r = s.at_clamped(xi + 1, yi);
+                    let u = s.at_clamped(xi, yi - 1);
+                    let d = s.at_clamped(xi, yi + 1);
+                    let g = 0.5 * ((r - l).abs() + (d - u).abs());
+                    grad.data[i] = grad.data[i].max(g);
+                    lap.data[i] = lap.data[i].max((l + r + u + d - 4.0 * c).abs());
+                    if c >= 254.5 {
+                        sat[i] = true;
+                    }
+                }
+            }
+        }
+        let lap3 = lap.extreme_filter(1, true);
+        let grad3 = grad.extreme_filter(1, true);
+        let smooth: Vec<bool> = (0..n).map(|i| lap3.data[i] <= 4.0 && grad3.data[i] <= 4.0).collect();
+        let quiet: Vec<bool> = lap3.data.iter().map(|&v| v <= QUIET_LAPLACIAN).collect();
+        let dist_sat = distance_transform(&sat, w, h);
+        let unsat: Vec<bool> = sat.iter().map(|&s| !s).collect();
+        let dist_in = distance_transform(&unsat, w, h);
+        let edge: Vec<bool> = grad.data.iter().map(|&g| g > 8.0).collect();
+        let dist_edge = distance_transform(&edge, w, h);
+        let edge_unsat: Vec<bool> = (0..n).map(|i| edge[i] && dist_sat[i] > 3.0).collect();
+        let dist_edge_unsat = distance_transform(&edge_unsat, w, h);
+        Masks { sat, dist_sat, dist_in, smooth, quiet, dist_edge, dist_edge_unsat }
+    }
+}
+
+/// One level bin of the high-pass measurement.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct NoiseBin {
+    /// Level (8-bit DN) of the bin centre.
+    pub level: f64,
+    /// Variance of the continuous noise (DN²), quantisation removed.
+    pub var: f64,
+    pub n: usize,
+}
+
+/// Censored fit of one dark block.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct LowBlock {
+    /// Pair index and channel.
+    pub k: usize,
+    pub c: usize,
+    /// Block centre (px).
+    pub xc: f64,
+    pub yc: f64,
+    /// Mean base level of the fitted pixels (DN).
+    pub base: f64,
+    /// Additive level real - base (DN), its standard error, and the noise sigma.
+    pub mu: f64,
+    pub se_mu: f64,
+    pub sigma: f64,
+    pub n: usize,
+    /// Fraction of the block's values clipped at 0.
+    pub clipped: f64,
+}
+
+/// Noise model in 8-bit DN.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct NoiseModel {
+    /// Variance intercept (DN²) of the continuous noise.
+    pub a: f64,
+    pub se_a: f64,
+    /// Variance per DN of signal (1 / gain_e_per_dn).
+    pub b: f64,
+    pub se_b: f64,
+    /// Variance per DN² of signal (prnu sigma²), held fixed.
+    pub c: f64,
+    /// Quantisation step of the real data (1 for 8-bit files, 1/257 for 16-bit).
+    pub quant: f64,
+    pub bins: Vec<NoiseBin>,
+    pub low: Vec<LowBlock>,
+    /// Levels covered by the fit.
+    pub fit_range: (f64, f64),
+    /// Whether the slope could be measured (two or more separated levels).
+    pub slope_identified: bool,
+}
+
+impl NoiseModel {
+    /// Variance (DN²) of an observed value whose noise-free level is `s` (quantisation included).
+    #[inline]
+    pub fn var(&self, s: f64) -> f64 {
+        let s = s.clamp(0.0, FS as f64);
+        (self.a + self.b * s + self.c * s * s).max(0.02) + self.quant * self.quant / 12.0
+    }
+    pub fn sd(&self, s: f64) -> f64 {
+        self.var(s).sqrt()
+    }
+    /// Standard deviation of the signal-independent noise (DN).
+    pub fn read_sigma(&self) -> f64 {
+        self.a.max(0.0).sqrt()
+    }
+    /// A flat prior for the start of the analysis.
+    pub fn prior(quant: f64) -> NoiseModel {
+        NoiseModel {
+            a: 4.0,
+            se_a: f64::INFINITY,
+            b: 0.1,
+            se_b: f64::INFINITY,
+            c: 0.0,
+            quant,
+            bins: Vec::new(),
+            low: Vec::new(),
+            fit_range: (0.0, FS as f64),
+            slope_identified: false,
+        }
+    }
+    /// Additive level of the dark regions: inverse-variance mean of the low blocks' μ with its
+    /// standard error across blocks (None without low blocks).
+    pub fn dark_level(&self) -> Option<(f64, f64, usize)> {
+        if self.low.len() < 2 {
+            return None;
+        }
+        let mus: Vec<f64> = self.low.iter().map(|b| b.mu).collect();
+        let (m, se) = stats::mean_se(&mus);
+        let se_model = (1.0 / self.low.iter().map(|b| 1.0 / (b.se_mu * b.se_mu).max(1e-9)).sum::<f64>()).sqrt();
+        Some((m, se.max(se_model), self.low.len()))
+    }
+}
+
+/// Per-row offsets (frame, channel, row) removed from the residual (row noise).
+pub type RowOffsets = Vec<Vec<Vec<f32>>>;
+
+/// Parameters of a registered effect initialised from a signature.
+pub fn params_from_signature(sig: &Signature) -> Option<Params> {
+    let reg = registry::find(sig.effect)?;
+    let mut p = Params::defaults(reg.info);
+    for (n, v) in &sig.params {
+        if let Some((_, spec)) = reg.info.param(n) {
+            let v = match spec.kind {
+                ParamKind::Int => v.round(),
+                _ => *v,
+            };
+            if v.is_finite() {
+                let _ = p.set(n, v.clamp(spec.min, spec.max));
+            }
+        }
+    }
+    for (n, w) in &sig.choices {
+        let _ = p.set_choice(n, w);
+    }
+    Some(p)
+}
