@@ -485,32 +485,9 @@ mod avx2 {
 
     #[inline(always)]
     unsafe fn transpose(r: &mut [V; 8]) {
-        unsafe {
-            let t0 = _mm256_unpacklo_epi32(r[0].0, r[1].0);
-            let t1 = _mm256_unpackhi_epi32(r[0].0, r[1].0);
-            let t2 = _mm256_unpacklo_epi32(r[2].0, r[3].0);
-            let t3 = _mm256_unpackhi_epi32(r[2].0, r[3].0);
-            let t4 = _mm256_unpacklo_epi32(r[4].0, r[5].0);
-            let t5 = _mm256_unpackhi_epi32(r[4].0, r[5].0);
-            let t6 = _mm256_unpacklo_epi32(r[6].0, r[7].0);
-            let t7 = _mm256_unpackhi_epi32(r[6].0, r[7].0);
-            let u0 = _mm256_unpacklo_epi64(t0, t2);
-            let u1 = _mm256_unpackhi_epi64(t0, t2);
-            let u2 = _mm256_unpacklo_epi64(t1, t3);
-            let u3 = _mm256_unpackhi_epi64(t1, t3);
-            let u4 = _mm256_unpacklo_epi64(t4, t6);
-            let u5 = _mm256_unpackhi_epi64(t4, t6);
-            let u6 = _mm256_unpacklo_epi64(t5, t7);
-            let u7 = _mm256_unpackhi_epi64(t5, t7);
-            r[0] = V(_mm256_permute2x128_si256(u0, u4, 0x20));
-            r[1] = V(_mm256_permute2x128_si256(u1, u5, 0x20));
-            r[2] = V(_mm256_permute2x128_si256(u2, u6, 0x20));
-            r[3] = V(_mm256_permute2x128_si256(u3, u7, 0x20));
-            r[4] = V(_mm256_permute2x128_si256(u0, u4, 0x31));
-            r[5] = V(_mm256_permute2x128_si256(u1, u5, 0x31));
-            r[6] = V(_mm256_permute2x128_si256(u2, u6, 0x31));
-            r[7] = V(_mm256_permute2x128_si256(u3, u7, 0x31));
-        }
+        // SAFETY: AVX2, as every caller of this module's kernels.
+        let t = unsafe { crate::faults::kit::transpose8x8_epi32(r.map(|v| v.0)) };
+        *r = t.map(V);
     }
 
     /// Upper 32 bits of the unsigned 32x32-bit products, lane by lane.

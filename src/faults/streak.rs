@@ -504,33 +504,7 @@ mod simd {
                     _mm256_cvtepu8_epi32(_mm_loadl_epi64(p as *const __m128i))
                 }
             };
-            let (r0, r1, r2, r3, r4, r5, r6, r7) = (ld(0), ld(1), ld(2), ld(3), ld(4), ld(5), ld(6), ld(7));
-            let t0 = _mm256_unpacklo_epi32(r0, r1);
-            let t1 = _mm256_unpackhi_epi32(r0, r1);
-            let t2 = _mm256_unpacklo_epi32(r2, r3);
-            let t3 = _mm256_unpackhi_epi32(r2, r3);
-            let t4 = _mm256_unpacklo_epi32(r4, r5);
-            let t5 = _mm256_unpackhi_epi32(r4, r5);
-            let t6 = _mm256_unpacklo_epi32(r6, r7);
-            let t7 = _mm256_unpackhi_epi32(r6, r7);
-            let u0 = _mm256_unpacklo_epi64(t0, t2);
-            let u1 = _mm256_unpackhi_epi64(t0, t2);
-            let u2 = _mm256_unpacklo_epi64(t1, t3);
-            let u3 = _mm256_unpackhi_epi64(t1, t3);
-            let u4 = _mm256_unpacklo_epi64(t4, t6);
-            let u5 = _mm256_unpackhi_epi64(t4, t6);
-            let u6 = _mm256_unpacklo_epi64(t5, t7);
-            let u7 = _mm256_unpackhi_epi64(t5, t7);
-            let cols = [
-                _mm256_permute2x128_si256(u0, u4, 0x20),
-                _mm256_permute2x128_si256(u1, u5, 0x20),
-                _mm256_permute2x128_si256(u2, u6, 0x20),
-                _mm256_permute2x128_si256(u3, u7, 0x20),
-                _mm256_permute2x128_si256(u0, u4, 0x31),
-                _mm256_permute2x128_si256(u1, u5, 0x31),
-                _mm256_permute2x128_si256(u2, u6, 0x31),
-                _mm256_permute2x128_si256(u3, u7, 0x31),
-            ];
+            let cols = crate::faults::kit::transpose8x8_epi32([ld(0), ld(1), ld(2), ld(3), ld(4), ld(5), ld(6), ld(7)]);
             let narrow = if C == 3 {
                 _mm256_setr_epi8(
                     0, 1, 2, 4, 5, 6, 8, 9, 10, 12, 13, 14, -1, -1, -1, -1, 0, 1, 2, 4, 5, 6, 8, 9, 10, 12, 13, 14, -1,
