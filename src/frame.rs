@@ -94,6 +94,16 @@ pub enum FrameError {
     Empty { width: u32, height: u32 },
 }
 
+/// `CLOCK_MONOTONIC` now, ns: the clock of V4L2 buffer timestamps (a `v4l2:` camera's pts, the
+/// stamps a `v4l2:` sink queues).
+pub fn monotonic_ns() -> u64 {
+    // SAFETY: all-zero is a valid timespec; clock_gettime fills it.
+    let mut t: libc::timespec = unsafe { std::mem::zeroed() };
+    // SAFETY: `t` outlives the call; CLOCK_MONOTONIC always exists on Linux.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut t) };
+    t.tv_sec as u64 * 1_000_000_000 + t.tv_nsec as u64
+}
+
 /// One image with its stream metadata.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Frame {

@@ -93,15 +93,6 @@ enum Stamp {
     Seq,
 }
 
-/// `CLOCK_MONOTONIC` now, in ns.
-fn monotonic_ns() -> i128 {
-    // SAFETY: all-zero is a valid timespec; clock_gettime fills it.
-    let mut t: libc::timespec = unsafe { std::mem::zeroed() };
-    // SAFETY: `t` outlives the call; CLOCK_MONOTONIC always exists on Linux.
-    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut t) };
-    t.tv_sec as i128 * 1_000_000_000 + t.tv_nsec as i128
-}
-
 // SAFETY: the mappings belong to this value alone (no other reference to them exists), and the
 // device handle they come from is kept alive by `handle`; moving them to another thread is fine.
 unsafe impl Send for MmapOut {}
@@ -207,7 +198,7 @@ impl MmapOut {
 
     /// The `CLOCK_MONOTONIC` timestamp of a frame with `pts_ns` (see the module notes).
     fn pts_stamp(&mut self, pts_ns: u64) -> u64 {
-        let now = monotonic_ns();
+        let now = crate::frame::monotonic_ns() as i128;
         let offset = match self.ts_offset {
             // pts that are monotonic-clock times already (a live camera) pass unchanged.
             Some(0) => 0,

@@ -175,6 +175,16 @@ pub fn split_uri(uri: &str) -> (&str, &str, Vec<(String, String)>) {
     (scheme, body, opts)
 }
 
+/// `uri` with the option `key=value` added unless it already sets `key`.
+pub fn with_default_option(uri: &str, key: &str, value: &str) -> String {
+    let (_, _, opts) = split_uri(uri);
+    if opts.iter().any(|(k, _)| k == key) {
+        uri.to_string()
+    } else {
+        format!("{uri}{}{key}={value}", if opts.is_empty() { "?" } else { "&" })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     #[test]

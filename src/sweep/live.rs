@@ -94,14 +94,7 @@ pub fn seq_of_stamp_ns(ts_ns: u64) -> Option<u64> {
 
 /// A live `v4l2:` sink's URI as faultcam opens it: `stamp=seq` added (see the module notes).
 pub fn v4l2_sink_uri(uri: &str) -> String {
-    let (_, _, opts) = crate::source::split_uri(uri);
-    if opts.iter().any(|(k, _)| k == "stamp") {
-        uri.to_string()
-    } else if opts.is_empty() {
-        format!("{uri}?stamp=seq")
-    } else {
-        format!("{uri}&stamp=seq")
-    }
+    crate::source::with_default_option(uri, "stamp", "seq")
 }
 
 /// The live settings of a plan.
@@ -858,15 +851,6 @@ pub mod sut {
     /// Longest wait of [`Input::poll`] on a device, ms.
     pub const DEVICE_POLL_MS: u64 = 50;
 
-    /// `CLOCK_MONOTONIC` now, ns (the clock of V4L2 timestamps).
-    pub fn monotonic_ns() -> u64 {
-        // SAFETY: all-zero is a valid timespec; clock_gettime fills it.
-        let mut t: libc::timespec = unsafe { std::mem::zeroed() };
-        // SAFETY: `t` outlives the call; CLOCK_MONOTONIC always exists on Linux.
-        unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut t) };
-        t.tv_sec as u64 * 1_000_000_000 + t.tv_nsec as u64
-    }
-
     /// Whether a buffer stamped `ts_ns` carries a frame's seq stamp, for a reader that started
     /// opening the device at `opened_ns` (`CLOCK_MONOTONIC`): v4l2loopback 0.12.7 restamps
     /// every buffer with the current time on a reader's `VIDIOC_REQBUFS`, so a buffer stamped
@@ -902,15 +886,10 @@ pub mod sut {
     #[cfg(feature = "v4l2")]
     impl DeviceWatch {
         pub fn new(spec: &str) -> Result<DeviceWatch, String> {
-            let (_, path, opts) = crate::source::split_uri(spec);
-            if !path.starts_with('/') {
+            if !crate::source::split_uri(spec).1.starts_with('/') {
                 return Err(format!("{spec}: expected v4l2:/dev/videoN"));
             }
-            let mut uri = spec.to_string();
-            if !opts.iter().any(|(k, _)| k == "timeout_ms") {
-                uri += if opts.is_empty() { "?" } else { "&" };
-                uri += &format!("timeout_ms={DEVICE_POLL_MS}");
-            }
+            let uri = crate::source::with_default_option(spec, "timeout_ms", &DEVICE_POLL_MS.to_string());
             static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
             let scratch = std::env::temp_dir().join(format!(
                 "faultcam-sut-{}-{}",
@@ -942,7 +921,7 @@ pub mod sut {
                     std::thread::sleep(d);
                 }
                 self.next_try = std::time::Instant::now() + wait;
-                self.opened_ns = monotonic_ns();
+                self.opened_ns = crate::frame::monotonic_ns();
                 match crate::source::v4l2::V4l2Source::open(&self.uri) {
                     Ok(s) => {
                         eprintln!("faultcam sut: reading {}", s.describe());
@@ -1229,7 +1208,7 @@ mod tests {
             Some(34_999),
             "just before the open (rounded to 35 000 ms)"
         );
-        assert!(sut::monotonic_ns() > 0);
+        assert!(crate::frame::monotonic_ns() > 0);
     }
 
     #[test]
