@@ -478,7 +478,13 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         ctx.loss.rows = Some(rows);
     }
     let mut sel = select::select(&ctx, &cands, z, start, None)?;
-    super::progress(&format!("selection done ({} evaluations)", ctx.evals.load(std::sync::atomic::Ordering::Relaxed)));
+    let selection_done = |ctx: &FitCtx| {
+        super::progress(&format!(
+            "selection done ({} evaluations)",
+            ctx.evals.load(std::sync::atomic::Ordering::Relaxed)
+        ))
+    };
+    selection_done(&ctx);
     // The noise model was measured on real - sim; with the fitted effects taken out it may
     // differ (structure such as smear rows inflates it). If it changed, select again with it,
     // starting from the model found.
@@ -512,10 +518,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         let prior = sel.best_z.clone();
         super::progress("noise model changed: selection repeated");
         sel = select::select(&ctx, &cands, z, start, Some(&prior))?;
-        super::progress(&format!(
-            "selection done ({} evaluations)",
-            ctx.evals.load(std::sync::atomic::Ordering::Relaxed)
-        ));
+        selection_done(&ctx);
         let mut all = first_tests;
         all.append(&mut sel.tests);
         sel.tests = all;
@@ -631,17 +634,18 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             }
         }
         let mut canonical = canonical_of(&params);
-        // A parameter the data cannot test is reported as null.
-        let mut untestable = |name: &str| {
-            canonical.iter_mut().filter(|(n, _)| n == name).for_each(|(_, v)| *v = serde_json::Value::Null)
+        // A reported value other than the fitted one: null for a parameter the data cannot
+        // test, or a direct reading.
+        let mut report_as = |name: &str, value: serde_json::Value| {
+            canonical.iter_mut().filter(|(n, _)| n == name).for_each(|(_, v)| *v = value.clone())
         };
         if s.name == "blooming" && halo_px.is_some() {
-            untestable("spread_px");
+            report_as("spread_px", serde_json::Value::Null);
         }
         if s.name == "blooming" && well_basis(loc) == WellBasis::Untestable {
             // No saturated plateau: the fitted well only shapes the halo (it trades against the
             // unknown excess of clipped sources), so no number is reported for it.
-            untestable("full_well_fraction");
+            report_as("full_well_fraction", serde_json::Value::Null);
             sig_evidence = format!(
                 "{sig_evidence}; full_well_fraction untestable (null): no saturated plateau in the data, so the well is not constrained (fitted.toml keeps the value that shapes the halo, {:.3})",
                 params.get("full_well_fraction")
@@ -654,10 +658,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             // EFFECTS.md's intensity is the ghosts' mean plateau: read on the ghost cores by the
             // signature. The forward fit scales the library's ghost layout (its places and sizes
             // are not the lens's), so its value is diluted where those ghosts miss the real ones.
-            canonical
-                .iter_mut()
-                .filter(|(n, _)| n == "intensity")
-                .for_each(|(_, v)| *v = serde_json::Value::from(round_sig(pl, 5)));
+            report_as("intensity", serde_json::Value::from(round_sig(pl, 5)));
             sig_evidence = format!(
                 "{sig_evidence}; intensity read on the ghosts' plateau, {pl:.4} of FS (fitted.toml keeps the forward fit's {:.4}, which scales the library's ghost layout)",
                 params.get("intensity")
@@ -716,10 +717,8 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     // curve scales it, JPEG removes part of it); without them the direct estimate is the answer.
     let after_noise = chain.iter().any(|p| matches!(p.info().name, "gain_offset" | "gamma" | "jpeg"));
     let through_model = if after_noise && (st.gaussian.detected || st.shot.detected) {
-        {
-            super::progress("camera noise through the fitted chain");
-            Some(noise_through_model(pairs, loc, &model_planes, &st.noise, &chain, seed)?)
-        }
+        super::progress("camera noise through the fitted chain");
+        Some(noise_through_model(pairs, loc, &model_planes, &st.noise, &chain, seed)?)
     } else {
         None
     };

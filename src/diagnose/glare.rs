@@ -98,14 +98,6 @@ fn count_in(ii: &[u32], w: usize, h: usize, x0: isize, y0: isize, x1: isize, y1:
     ii[y1 * s + x1] + ii[y0 * s + x0] - ii[y0 * s + x1] - ii[y1 * s + x0]
 }
 
-/// Mean of the samples between the [`TRIM`] and `1 - TRIM` order statistics (reorders `v`).
-fn trimmed_mean(v: &mut [f64]) -> f64 {
-    v.sort_unstable_by(f64::total_cmp);
-    let k = (TRIM * v.len() as f64).floor() as usize;
-    let mid = &v[k..v.len() - k];
-    mid.iter().sum::<f64>() / mid.len() as f64
-}
-
 /// Background cells of one image: (predicted glare at unit fraction, floor), both in DN.
 pub fn background_cells(p: &Plane, core_share: f64, slope: f64, flat_dn: f64) -> Vec<(f64, f64)> {
     cells_against(p, p, core_share, slope, flat_dn)
@@ -152,7 +144,7 @@ pub fn cells_against(p: &Plane, floor_of: &Plane, core_share: f64, slope: f64, f
                             vals.extend(floor_of.data[y * w + cx * b..y * w + (cx + 1) * b].iter().map(|&v| v as f64));
                         }
                     }
-                    floor[cy * gw + cx] = trimmed_mean(&mut vals);
+                    floor[cy * gw + cx] = stats::trimmed_mean_mut(&mut vals, TRIM);
                 }
             }
         }

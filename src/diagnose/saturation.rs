@@ -594,14 +594,7 @@ fn ghost_plateaus(m: &Masks, r: &[Plane], w: usize, h: usize) -> Option<(f64, us
             (cx + u * vx, cy + u * vy, 0.5 * (b - a + 1) as f64)
         })
         .collect();
-    let trimmed = |v: &mut Vec<f64>| -> Option<f64> {
-        if v.len() < 8 {
-            return None;
-        }
-        v.sort_by(f64::total_cmp);
-        let (a, b) = (v.len() / 10, v.len() - v.len() / 10);
-        Some(v[a..b].iter().sum::<f64>() / (b - a) as f64)
-    };
+    let trimmed = |v: &mut Vec<f64>| (v.len() >= 8).then(|| stats::trimmed_mean_mut(v, 0.1));
     let mut levels = Vec::new();
     for (k, &(gx, gy, rad)) in discs.iter().enumerate() {
         let (mut core, mut ring) = (Vec::new(), Vec::new());

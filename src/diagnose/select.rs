@@ -252,51 +252,48 @@ impl Step {
         seq: u64,
         index: usize,
     ) -> Result<(), DiagnoseError> {
-        {
-            let n_values: usize = img.iter().map(|f| f.as_u16().map(|d| d.len()).unwrap_or(0)).sum();
-            // The dither sigma of each 16-bit level (cached per noise model), and the normal draws
-            // (the same for every evaluation of this frame: cached).
-            let sd_of = self.dither_draws.sd_table(nm);
-            // Keyed by the frame, not by the step's place in the chain: a candidate inserted before
-            // the JPEG must not change its noise draws (a different draw changes the loss by
-            // chance, by as much as a weak effect, for every candidate alike).
-            let draws = self.dither_draws.get(seed, seq, 0, n_values);
-            let mut acc: Vec<Vec<u32>> =
-                img.iter().map(|f| vec![0; f.as_u16().map(|d| d.len()).unwrap_or(0)]).collect();
-            let mut plain = Step { dither: None, effect: faults::create("jpeg").ok(), ..self.boxed_clone() };
-            let mut noisy: Vec<Frame> = img.to_vec();
-            for k in 0..DITHER_DRAWS {
-                let dk = &draws[k as usize * n_values..(k as usize + 1) * n_values];
-                let mut at = 0;
-                for (f, o) in noisy.iter_mut().zip(img.iter()) {
-                    if let (Some(d), Some(src)) = (f.as_u16_mut(), o.as_u16()) {
-                        for ((v, &s), &g) in d.iter_mut().zip(src).zip(&dk[at..]) {
-                            let m = s as f64 / 257.0;
-                            *v = round_clamp_u16((m + sd_of[s as usize] * g) * 257.0);
-                        }
-                        at += d.len();
+        let n_values: usize = img.iter().map(|f| f.as_u16().map(|d| d.len()).unwrap_or(0)).sum();
+        // The dither sigma of each 16-bit level (cached per noise model), and the normal draws
+        // (the same for every evaluation of this frame: cached).
+        let sd_of = self.dither_draws.sd_table(nm);
+        // Keyed by the frame, not by the step's place in the chain: a candidate inserted before
+        // the JPEG must not change its noise draws (a different draw changes the loss by
+        // chance, by as much as a weak effect, for every candidate alike).
+        let draws = self.dither_draws.get(seed, seq, 0, n_values);
+        let mut acc: Vec<Vec<u32>> = img.iter().map(|f| vec![0; f.as_u16().map(|d| d.len()).unwrap_or(0)]).collect();
+        let mut plain = Step { dither: None, effect: faults::create("jpeg").ok(), ..self.boxed_clone() };
+        let mut noisy: Vec<Frame> = img.to_vec();
+        for k in 0..DITHER_DRAWS {
+            let dk = &draws[k as usize * n_values..(k as usize + 1) * n_values];
+            let mut at = 0;
+            for (f, o) in noisy.iter_mut().zip(img.iter()) {
+                if let (Some(d), Some(src)) = (f.as_u16_mut(), o.as_u16()) {
+                    for ((v, &s), &g) in d.iter_mut().zip(src).zip(&dk[at..]) {
+                        let m = s as f64 / 257.0;
+                        *v = round_clamp_u16((m + sd_of[s as usize] * g) * 257.0);
                     }
+                    at += d.len();
                 }
-                plain.apply(&mut noisy, seed, seq, index, None)?;
-                for (a, f) in acc.iter_mut().zip(&noisy) {
-                    if let Some(d) = f.as_u16() {
-                        for (x, &v) in a.iter_mut().zip(d) {
-                            *x += v as u32;
-                        }
+            }
+            plain.apply(&mut noisy, seed, seq, index, None)?;
+            for (a, f) in acc.iter_mut().zip(&noisy) {
+                if let Some(d) = f.as_u16() {
+                    for (x, &v) in a.iter_mut().zip(d) {
+                        *x += v as u32;
                     }
                 }
             }
-            // round(x / D) of a non-negative integer sum x, exactly (ties away from zero).
-            let dd = DITHER_DRAWS as u32;
-            for (f, a) in img.iter_mut().zip(&acc) {
-                if let Some(d) = f.as_u16_mut() {
-                    for (v, &x) in d.iter_mut().zip(a) {
-                        *v = ((2 * x + dd) / (2 * dd)).min(65535) as u16;
-                    }
-                }
-            }
-            Ok(())
         }
+        // round(x / D) of a non-negative integer sum x, exactly (ties away from zero).
+        let dd = DITHER_DRAWS as u32;
+        for (f, a) in img.iter_mut().zip(&acc) {
+            if let Some(d) = f.as_u16_mut() {
+                for (v, &x) in d.iter_mut().zip(a) {
+                    *v = ((2 * x + dd) / (2 * dd)).min(65535) as u16;
+                }
+            }
+        }
+        Ok(())
     }
 }
 

@@ -26,6 +26,15 @@ pub fn quantile_mut(v: &mut [f64], q: f64) -> f64 {
     a + frac * (b - a)
 }
 
+/// Mean of the samples between the `trim` and `1 - trim` order statistics, `floor(trim n)`
+/// cut from each end (reorders `v`).
+pub fn trimmed_mean_mut(v: &mut [f64], trim: f64) -> f64 {
+    v.sort_unstable_by(f64::total_cmp);
+    let k = (trim * v.len() as f64).floor() as usize;
+    let mid = &v[k..v.len() - k];
+    mid.iter().sum::<f64>() / mid.len() as f64
+}
+
 /// Median of a copy of the slice.
 pub fn median(v: &[f64]) -> f64 {
     let mut c = v.to_vec();
