@@ -96,7 +96,12 @@ pub fn fir_max_pairs(angle_deg: f64) -> usize {
 /// FIR would need more than [`fir_max_pairs`] tap pairs (e.g. from 25 px at 80 deg, 34 px at
 /// 30 deg, 59 px at 90 deg, 90 px at 0 deg).
 pub fn runs_streak(length: f64, angle_deg: f64) -> bool {
-    length > 24.0 && line_taps(length, angle_deg).len() / 2 + 1 > fir_max_pairs(angle_deg)
+    length > 24.0 && runs_streak_with(length, angle_deg, &line_taps(length, angle_deg))
+}
+
+/// [`runs_streak`] with the streak's [`line_taps`] already at hand.
+fn runs_streak_with(length: f64, angle_deg: f64, taps: &[(i32, i32, f32)]) -> bool {
+    length > 24.0 && taps.len() / 2 + 1 > fir_max_pairs(angle_deg)
 }
 
 /// Stated bound of the running-sum path against the model (DN, 8-bit) on point sources, hard
@@ -247,7 +252,7 @@ impl Effect for MotionBlur {
             let (pairs, half) = pair_up(&self.taps);
             self.q15 = fir16::q15_pairs(&half);
             self.pairs = pairs;
-            self.streak = runs_streak(len, ang).then(|| streak::StreakPlan::new(len, ang));
+            self.streak = runs_streak_with(len, ang, &self.taps).then(|| streak::StreakPlan::new(len, ang));
             self.key = Some((len.to_bits(), ang.to_bits()));
         }
         let (w, h, ch, stride, r) =
