@@ -3,7 +3,10 @@
 //! The sim frames are pushed through the library's effects (`faults::create`, `Effect::apply`) in
 //! physical order, and the output is compared with the real frames by a robust likelihood:
 //! Huber (δ = 3) on the residual standardised by the noise model where real is inside (0, FS),
-//! the interval-censored normal likelihood where real is clipped. The fit works on 16-bit copies
+//! plus the density's normalisation ln σ (so every term is a negative log-probability and a model
+//! cannot gain by predicting more noise), the exact Poisson–Gaussian probability of the rounded
+//! value at up to [`PG_MAX_ELECTRONS`] photo-electrons (8-bit data), the interval-censored
+//! likelihood where real is clipped. The fit works on 16-bit copies
 //! of the sim (one Mono16 frame per channel), so that the library's rounding happens at 1/257 DN
 //! and the loss is smooth in every parameter; `channel_shift`, which needs the three planes of a
 //! colour frame together, runs on an Rgb8 frame assembled from them.
