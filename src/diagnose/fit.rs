@@ -633,6 +633,11 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
                 sig_evidence = format!("{sig_evidence}; {}", t.evidence);
             }
         }
+        if let Some(lp) = &sel.level_position
+            && (select::SPATIAL_ALIASES.contains(&s.name) || select::TONE_EFFECTS.contains(&s.name))
+        {
+            sig_evidence = format!("{sig_evidence}; {lp}");
+        }
         let mut canonical = canonical_of(&params);
         // A reported value other than the fitted one: null for a parameter the data cannot
         // test, or a direct reading.

@@ -373,6 +373,29 @@ pub fn load_image(path: &Path) -> Result<Frame, DiagnoseError> {
     frame.map_err(|e| bad(&e.to_string()))
 }
 
+/// Quantisation step (8-bit DN) of a frame's samples: 1 for 8-bit formats; for 16-bit data the
+/// step of the ADC behind it, found from the samples: b-bit codes stored in 16 bits by bit
+/// replication (`code << (16 − b) | code >> (2b − 16)`, the usual PNG scaling, step
+/// FS/(2^b − 1)) or by a plain shift (`code << (16 − b)`, step 2^(16 − b)/257), for b = 8..15;
+/// otherwise 1/257 (true 16-bit data).
+pub fn code_step(frame: &Frame) -> f64 {
+    let FrameData::U16(d) = &frame.data else { return 1.0 };
+    for b in 8u32..16 {
+        let rep = |v: u16| -> bool {
+            let code = (v as u32) >> (16 - b);
+            ((code << (16 - b)) | (code >> (2 * b - 16))) == v as u32
+        };
+        if d.iter().all(|&v| rep(v)) {
+            return FS as f64 / ((1u32 << b) - 1) as f64;
+        }
+        let mask = (1u32 << (16 - b)) - 1;
+        if d.iter().all(|&v| (v as u32) & mask == 0) {
+            return (1u32 << (16 - b)) as f64 / 257.0;
+        }
+    }
+    1.0 / 257.0
+}
+
 /// Pair the images of two folders by file name (the stem decides, so `a.png` pairs with `a.tif`).
 /// Returns the pairs and notes about unpaired files.
 pub fn load_pairs(sim_dir: &Path, real_dir: &Path) -> Result<(Vec<Pair>, Vec<String>), DiagnoseError> {
@@ -439,6 +462,33 @@ pub fn load_folder(dir: &Path) -> Result<Vec<(String, Frame)>, DiagnoseError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// 10- and 12-bit data in 16-bit PNG (bit replication) are read as code·FS/(2^b − 1) DN with
+    /// that quantisation step; plain 16-bit data keep the step 1/257; 8-bit data 1.
+    #[test]
+    fn sixteen_bit_pngs_are_read_at_their_adc_depth() {
+        let dir = tempfile::tempdir().unwrap();
+        for bits in [10u32, 12] {
+            let l = (1u32 << bits) - 1;
+            let codes: Vec<u32> = (0..64 * 16).map(|i| (i as u32 * 37) % (l + 1)).collect();
+            let data: Vec<u16> = codes.iter().map(|&c| ((c << (16 - bits)) | (c >> (2 * bits - 16))) as u16).collect();
+            let path = dir.path().join(format!("b{bits}.png"));
+            image::ImageBuffer::<image::Luma<u16>, _>::from_raw(64, 16, data).unwrap().save(&path).unwrap();
+            let f = load_image(&path).unwrap();
+            assert_eq!(f.format, PixelFormat::Mono16);
+            let step = code_step(&f);
+            assert!((step - 255.0 / l as f64).abs() < 1e-12, "{bits} bits: step {step}");
+            let p = &planes_of(&f)[0];
+            for (v, &c) in p.data.iter().zip(&codes) {
+                assert!((*v as f64 - c as f64 * step).abs() < 0.02, "{bits} bits: code {c} read as {v}");
+            }
+        }
+        let full: Vec<u16> = (0..1024u32).map(|i| (i.wrapping_mul(2654435761) >> 16) as u16).collect();
+        let f = Frame::from_data(64, 16, 64, PixelFormat::Mono16, FrameData::U16(full)).unwrap();
+        assert!((code_step(&f) - 1.0 / 257.0).abs() < 1e-12);
+        let f8 = Frame::from_data(4, 1, 4, PixelFormat::Mono8, FrameData::U8(vec![1, 2, 3, 4])).unwrap();
+        assert_eq!(code_step(&f8), 1.0);
+    }
 
     #[test]
     fn distance_transform_is_close_to_euclidean() {

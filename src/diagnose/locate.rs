@@ -87,9 +87,10 @@ pub fn predict_planes(pairs: &[Pair], ph: &Photometric) -> (Vec<Vec<Plane>>, Vec
     (pred, resid)
 }
 
-/// Quantisation step (8-bit DN) of the real data.
+/// Quantisation step (8-bit DN) of the real data (see [`super::img::code_step`]).
 pub fn quantisation(pairs: &[Pair]) -> f64 {
-    if pairs.iter().all(|p| p.real_frame.format == crate::frame::PixelFormat::Mono16) { 1.0 / 257.0 } else { 1.0 }
+    // The coarsest step of any frame (10-bit data in 16-bit PNG: FS/1023; 8-bit formats: 1).
+    pairs.iter().map(|p| super::img::code_step(&p.real_frame)).fold(0.0, f64::max)
 }
 
 /// Run the signature tests of the deterministic effects.

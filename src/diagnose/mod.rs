@@ -34,7 +34,7 @@
 //!    [`params_from_signature`](common::params_from_signature)) imports `types`, `img`, `stats`;
 //!    [`plot`] imports `types`, `img`.
 //! 2. **Signatures** — [`edges`], [`fixed`], [`glare`], [`jpeg`], [`moments`], [`noise`],
-//!    [`photometric`], [`saturation`], [`tone`] and every new file not named below: they import
+//!    [`photometric`], [`saturation`], [`tone`], [`levelmap`] and every new file not named below: they import
 //!    only `types`, `img`, `stats` and `common`, never each other nor an orchestrator. A new
 //!    signature is one new file; only the orchestrators import it.
 //! 3. **Orchestrators**, in this order, each importing the shared and signature modules and the
@@ -50,6 +50,8 @@ pub mod fixed;
 pub mod glare;
 pub mod img;
 pub mod jpeg;
+/// Level or position: a tone curve against stray light, veiling glare and vignetting on smoothly lit scenes.
+pub mod levelmap;
 pub mod locate;
 pub mod moments;
 pub mod noise;

@@ -28,7 +28,7 @@
 
 use super::common::NoiseModel;
 use super::img::{FS, Pair, Plane, planes_of};
-use super::{DiagnoseError, stats, tone};
+use super::{DiagnoseError, levelmap, stats, tone};
 use crate::faults::{self, Effect, EffectCtx, ParamKind, Params, Scale, Stage, registry};
 use crate::frame::{Frame, FrameData, PixelFormat};
 use rayon::prelude::*;
@@ -1083,6 +1083,9 @@ pub struct Selection {
     pub best_z: Vec<f64>,
     /// The level-response check of the tone effects ([`tone_check`]), when it ran.
     pub tone: Option<ToneOutcome>,
+    /// The level-or-position check of the spatial effects ([`level_position_check`]), when it
+    /// ran: its evidence line.
+    pub level_position: Option<String>,
 }
 
 /// Effects that shape the level response (see [`super::tone`]).
@@ -1156,6 +1159,104 @@ pub fn tone_replacement(rs: &[tone::Reading], chosen: &[&str]) -> Option<tone::R
         .then(|| b.clone())
 }
 
+/// Replace the steps `remove` selects (fixed steps stay) by the effects of the level-response
+/// reading `b` with its parameters, refit the other effects and recompute every effect's
+/// drop-one evidence. False when a reading's effect cannot be built.
+fn replace_by_reading(
+    ctx: &FitCtx,
+    sel: &mut Selection,
+    remove: &dyn Fn(&str) -> bool,
+    b: &tone::Reading,
+    z_thr: f64,
+) -> Result<bool, DiagnoseError> {
+    let mut steps: Vec<Step> = sel.steps.iter().filter(|s| s.fixed || !remove(s.name)).map(Step::boxed_clone).collect();
+    for &e in b.shape.effects() {
+        let Some(params) = tone_params(e, b) else { return Ok(false) };
+        insert_sorted(&mut steps, Step::new(&Candidate { name: e, label: e.to_string(), params, fit: Vec::new() })?);
+    }
+    if !coords_of(&steps, None).is_empty() {
+        refine(ctx, &mut steps)?;
+    }
+    let current = ctx.eval(&mut steps)?;
+    let planes = ctx.physical_planes(&steps)?;
+    let jobs: Vec<(usize, Vec<Step>)> = (0..steps.len()).map(|j| (j, clone_steps(&steps))).collect();
+    let evs: Vec<Evidence> = jobs
+        .into_par_iter()
+        .map(|(j, mut st)| drop_one(ctx, &mut st, j, current, &planes, z_thr))
+        .collect::<Result<_, _>>()?;
+    sel.steps = steps;
+    sel.evidence = evs;
+    sel.loss_final = current;
+    Ok(true)
+}
+
+/// Spatial effects a tone curve can imitate where the scene's level varies smoothly over the
+/// frame (see [`super::levelmap`]).
+pub const SPATIAL_ALIASES: [&str; 3] = ["stray_light", "veiling_glare", "vignetting"];
+
+/// Level-or-position check of the spatial effects the selection chose (`stray_light`,
+/// `veiling_glare`, `vignetting`): the residual of the model without them and without the tone
+/// effects is regressed on a free level response and on the position terms
+/// ([`super::levelmap::test`]). When the position terms are not significant given the level
+/// response while its curvature is, the change depends on each pixel's level and not on where it
+/// is: a tone curve, which the spatial effects only imitated through the scene's smooth lighting.
+/// They are then replaced (with the tone effects) by the best reading of the level response
+/// ([`super::tone::readings`]), whose shape [`tone_check`] judges next.
+pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), DiagnoseError> {
+    let spatial: Vec<&'static str> =
+        sel.steps.iter().filter(|s| !s.fixed && SPATIAL_ALIASES.contains(&s.name)).map(|s| s.name).collect();
+    if spatial.is_empty() {
+        return Ok(());
+    }
+    let removed = |n: &str| SPATIAL_ALIASES.contains(&n) || TONE_EFFECTS.contains(&n);
+    let mut base: Vec<Step> = sel.steps.iter().filter(|s| !removed(s.name)).map(Step::boxed_clone).collect();
+    let planes = ctx.model_planes(&mut base)?;
+    let keep: Vec<Vec<bool>> = (0..planes.len())
+        .map(|k| ctx.loss.skip[k].iter().zip(&ctx.loss.interior[k]).map(|(&s, &i)| !s && i).collect())
+        .collect();
+    let real: Vec<&[Plane]> = ctx.loss.pairs.iter().map(|p| p.real.as_slice()).collect();
+    let Some(lp) = levelmap::test(&real, &planes, &keep, ctx.loss.noise()) else {
+        return Ok(());
+    };
+    let mut line = lp.describe();
+    if std::env::var_os("FAULTCAM_DIAG_DEBUG").is_some() {
+        eprintln!("{line}");
+    }
+    if lp.z_position < z_thr && lp.z_curve >= z_thr {
+        let mut acc = tone::LevelAcc::default();
+        let mut n_values = 0usize;
+        for (k, mp) in planes.iter().enumerate() {
+            for (c, plane) in mp.iter().enumerate() {
+                let r = &real[k][c].data;
+                for (i, &m) in plane.data.iter().enumerate() {
+                    if keep[k][i] {
+                        acc.push(m as f64, r[i] as f64);
+                        n_values += 1;
+                    }
+                }
+            }
+        }
+        let pts = tone::level_response(&acc, ctx.loss.noise());
+        let rs = tone::readings(&pts, n_values);
+        if let Some(b) = rs.iter().find(|r| tone_reading_valid(r)).cloned()
+            && replace_by_reading(ctx, sel, &removed, &b, z_thr)?
+        {
+            sel.notes.push(format!(
+                "level or position: {} replaced by {} (the change follows each pixel's level, not its place: {line})",
+                spatial.join(" + "),
+                b.shape.effects().join(" + ")
+            ));
+            line = format!(
+                "{line}: the change follows the level, not the place, so {} (which only imitated it through the scene's smooth lighting) gave way to the level response read as {}",
+                spatial.join(" + "),
+                b.describe()
+            );
+        }
+    }
+    sel.level_position = Some(line);
+    Ok(())
+}
+
 /// Level-response check of the tone effects the selection chose (`dark_current`, `gain_offset`,
 /// `gamma`): the real level against the level of the model without them, read as each physical
 /// shape ([`super::tone::readings`]). When a tone-curve reading (a tone curve that fixes 0 and
@@ -1167,6 +1268,7 @@ pub fn tone_replacement(rs: &[tone::Reading], chosen: &[&str]) -> Option<tone::R
 /// recomputed. Readings within [`TONE_ALTERNATIVE_BIC`] of the final one are kept as
 /// alternatives.
 pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), DiagnoseError> {
+    level_position_check(ctx, sel, z_thr)?;
     let chosen: Vec<&'static str> =
         sel.steps.iter().filter(|s| !s.fixed && TONE_EFFECTS.contains(&s.name)).map(|s| s.name).collect();
     if chosen.is_empty() {
@@ -1206,25 +1308,9 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
         cur.describe()
     );
     if let Some(b) = replacement {
-        let mut steps: Vec<Step> =
-            sel.steps.iter().filter(|s| s.fixed || !TONE_EFFECTS.contains(&s.name)).map(Step::boxed_clone).collect();
-        for &e in b.shape.effects() {
-            let Some(params) = tone_params(e, &b) else { return Ok(()) };
-            insert_sorted(
-                &mut steps,
-                Step::new(&Candidate { name: e, label: e.to_string(), params, fit: Vec::new() })?,
-            );
+        if !replace_by_reading(ctx, sel, &|n| TONE_EFFECTS.contains(&n), &b, z_thr)? {
+            return Ok(());
         }
-        if !coords_of(&steps, None).is_empty() {
-            refine(ctx, &mut steps)?;
-        }
-        let current = ctx.eval(&mut steps)?;
-        let planes = ctx.physical_planes(&steps)?;
-        let jobs: Vec<(usize, Vec<Step>)> = (0..steps.len()).map(|j| (j, clone_steps(&steps))).collect();
-        let evs: Vec<Evidence> = jobs
-            .into_par_iter()
-            .map(|(j, mut st)| drop_one(ctx, &mut st, j, current, &planes, z_thr))
-            .collect::<Result<_, _>>()?;
         sel.notes.push(format!(
             "level response: {} replaced by {} (BIC better by {:.1}; the shape, not the library's fit of it, decides: {})",
             chosen.join(" + "),
@@ -1241,9 +1327,6 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
             cur.describe(),
             cur.bic - b.bic
         );
-        sel.steps = steps;
-        sel.evidence = evs;
-        sel.loss_final = current;
         final_reading = b;
     }
     let effects: Vec<&'static str> = final_reading.shape.effects().to_vec();
@@ -1689,7 +1772,17 @@ pub fn select(
             None => break,
         }
     }
-    Ok(Selection { steps, evidence: evidence_final, tests, loss_null, loss_final: current, notes, best_z, tone: None })
+    Ok(Selection {
+        steps,
+        evidence: evidence_final,
+        tests,
+        loss_null,
+        loss_final: current,
+        notes,
+        best_z,
+        tone: None,
+        level_position: None,
+    })
 }
 
 #[cfg(test)]

@@ -207,11 +207,36 @@ impl Img {
         image::save_buffer_with_format(path, &self.to_u8(), self.w as u32, self.h as u32, ct, image::ImageFormat::Png)
             .map_err(|e| format!("{}: {e}", path.display()))
     }
+    /// Save as `bits`-bit data: 8-bit PNG for 8 bits, else 16-bit PNG (big-endian samples) of
+    /// the b-bit codes `round(v·(2^b − 1)/FS)` bit-replicated to 16 bits ([`replicate16`]).
+    pub fn save_png_bits(&self, path: &Path, bits: u32) -> Result<(), String> {
+        if bits == 8 {
+            return self.save_png(path);
+        }
+        let l = ((1u32 << bits) - 1) as f64;
+        let mut bytes = Vec::with_capacity(2 * self.v.len());
+        for &x in &self.v {
+            let code = (x * l / FS).round().clamp(0.0, l) as u32;
+            bytes.extend_from_slice(&replicate16(code, bits).to_be_bytes());
+        }
+        let ct = if self.c == 1 { image::ExtendedColorType::L16 } else { image::ExtendedColorType::Rgb16 };
+        let f = std::fs::File::create(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let enc = image::codecs::png::PngEncoder::new(std::io::BufWriter::new(f));
+        // `write_image` takes 16-bit samples in native byte order.
+        let native: Vec<u8> =
+            bytes.chunks_exact(2).flat_map(|b| u16::from_be_bytes([b[0], b[1]]).to_ne_bytes()).collect();
+        image::ImageEncoder::write_image(enc, &native, self.w as u32, self.h as u32, ct)
+            .map_err(|e| format!("{}: {e}", path.display()))
+    }
+    /// Load an 8-bit or 16-bit PNG in 8-bit DN (16-bit samples / 257).
     pub fn load_png(path: &Path) -> Result<Self, String> {
         let im = image::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
         let (w, h) = (im.width() as usize, im.height() as usize);
+        let wide = |c: usize, d: &[u16]| Img { w, h, c, v: d.iter().map(|&x| x as f64 / 257.0).collect() };
         match im {
             image::DynamicImage::ImageLuma8(b) => Ok(Img::from_u8(w, h, 1, b.as_raw())),
+            image::DynamicImage::ImageLuma16(b) => Ok(wide(1, b.as_raw())),
+            image::DynamicImage::ImageRgb16(b) => Ok(wide(3, b.as_raw())),
             other => Ok(Img::from_u8(w, h, 3, other.to_rgb8().as_raw())),
         }
     }
@@ -284,6 +309,13 @@ pub struct Scene {
     /// A bright, fixed (distant) source: centre x, y and radius in px, irradiance FS. It drives
     /// the lens-flare cases' ghosts.
     pub sun: Option<(f64, f64, f64)>,
+    /// A grey step wedge across the bottom of the frame (fixed on the bench, in front of the
+    /// wall): 12 patches from 1.5 to 220 DN in geometric steps, so that the scene has levels
+    /// down to the dark end of the range.
+    pub wedge: bool,
+    /// The lab wall is lit by a lamp off the upper left: its level falls smoothly from about
+    /// 2.4× the wall's mean in the hot spot to about 0.45× in the far corner.
+    pub lamp: bool,
 }
 
 /// Per-frame pose: screen position of the body centre, rotation (rad), scale.
@@ -332,6 +364,8 @@ impl Scene {
             glints,
             glint_level: FS,
             sun: None,
+            wedge: false,
+            lamp: false,
         }
     }
 
@@ -375,8 +409,17 @@ impl Scene {
         if let Some((mean, gx, gy)) = self.lab {
             let (u, v) = (x / self.w as f64 - 0.5, y / self.h as f64 - 0.5);
             let tex = 0.85 + 0.3 * value_noise(x / 11.0, y / 13.0, self.seed ^ 0x7a11);
-            let l = (mean + gx * u + gy * v) * tex;
+            let mut l = (mean + gx * u + gy * v) * tex;
+            if self.lamp {
+                let r2 = ((u + 0.3).powi(2) + (v + 0.3).powi(2)) / 0.18;
+                l *= 0.45 + 1.95 * (-r2).exp();
+            }
             col = [l * 1.04, l, l * 0.93];
+        }
+        if self.wedge && y >= 0.84 * self.h as f64 {
+            let k = ((x / self.w as f64) * 12.0).floor().clamp(0.0, 11.0);
+            let l = 1.5 * (220.0f64 / 1.5).powf(k / 11.0);
+            col = [l, l, l];
         }
         if let Some((ex, ey, er)) = self.earth {
             let d = ((x - ex).powi(2) + (y - ey).powi(2)).sqrt();
@@ -538,6 +581,27 @@ pub struct Camera {
     pub gain_e_per_dn: f64,
     /// Read noise standard deviation in DN.
     pub read_sigma_dn: f64,
+    /// ADC bits (8, 10 or 12). Values are rounded to the b-bit code grid (FS/(2^b − 1) in DN of
+    /// an 8-bit image); above 8 bits files are 16-bit PNG with the code bit-replicated to 16 bits.
+    pub adc_bits: u32,
+}
+
+/// `v` (8-bit DN) rounded to the code grid of a `bits`-bit ADC and returned in 8-bit DN.
+pub fn quantise(v: f64, bits: u32) -> f64 {
+    if bits == 8 {
+        return v.round();
+    }
+    let l = ((1u32 << bits) - 1) as f64;
+    (v * l / FS).round() * FS / l
+}
+
+/// The 16-bit PNG sample of a `bits`-bit code by bit replication:
+/// `code << (16 − b) | code >> (2b − 16)` (10 and 12 bits; 16 bits is the code itself).
+pub fn replicate16(code: u32, bits: u32) -> u16 {
+    if bits >= 16 {
+        return code.min(65535) as u16;
+    }
+    ((code << (16 - bits)) | (code >> (2 * bits).saturating_sub(16))) as u16
 }
 
 /// Hidden effects, parameterised in realcam's own forms (see the module table).
@@ -1337,7 +1401,8 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
                 let mu = irr.v[i];
                 if saturated[i] || mu >= FS - 0.5 {
                     // A full photosite reads the well (or the end of the ADC range).
-                    out.v[i] = well.map(|(wl, _)| (wl + hot_const_of(fp, i)).min(FS).round()).unwrap_or(FS);
+                    out.v[i] =
+                        well.map(|(wl, _)| quantise((wl + hot_const_of(fp, i)).min(FS), cam.adc_bits)).unwrap_or(FS);
                     continue;
                 }
                 // Electrons: photo (Poisson) + dark (Poisson) + hot-pixel dark (Poisson).
@@ -1357,7 +1422,7 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
                 if let Some(t) = tone {
                     v = FS * t.tone(v / FS);
                 }
-                out.v[i] = v.round();
+                out.v[i] = quantise(v, cam.adc_bits);
             }
         }
     }
@@ -1414,6 +1479,10 @@ pub struct Case {
     /// A fixed bright source (x, y, radius as fractions of the width and height, radius of the
     /// width), in sim and real alike.
     pub sun: Option<(f64, f64, f64)>,
+    /// A step wedge on the bench ([`Scene::wedge`]).
+    pub wedge: bool,
+    /// A lamp-lit lab wall ([`Scene::lamp`]).
+    pub lamp: bool,
 }
 
 impl Case {
@@ -1427,7 +1496,22 @@ impl Case {
             if self.lab { Scene::lab(self.w, self.h, seed) } else { Scene::new(self.w, self.h, seed, self.earth) };
         s.glint_level = FS * self.glint_exposure;
         s.sun = self.sun.map(|(x, y, r)| (x * self.w as f64, y * self.h as f64, r * self.w as f64));
+        s.wedge = self.wedge;
+        s.lamp = self.lamp;
         s
+    }
+
+    /// Same case in front of a lamp-lit lab wall (a smooth hot spot and fall-off).
+    pub fn lamp_lit(mut self) -> Self {
+        self.lab = true;
+        self.lamp = true;
+        self
+    }
+
+    /// Same case with a grey step wedge across the bottom of the frame.
+    pub fn with_wedge(mut self) -> Self {
+        self.wedge = true;
+        self
     }
 
     /// Same case with a fixed saturated source at (`x`, `y`) (fractions of width and height) of
@@ -1448,6 +1532,12 @@ impl Case {
         self.w = w;
         self.h = h;
         self.frames = frames;
+        self
+    }
+
+    /// Same case with a `bits`-bit ADC (10 or 12: 16-bit PNG files by bit replication).
+    pub fn adc_bits(mut self, bits: u32) -> Self {
+        self.camera.adc_bits = bits;
         self
     }
 
@@ -1484,13 +1574,28 @@ impl Case {
             "width": self.w,
             "height": self.h,
             "seed": self.seed,
-            "backdrop": if self.lab { "lab" } else if self.earth { "earth" } else { "space" },
+            "backdrop": match (self.lab, self.earth, self.wedge) {
+                (true, _, true) if self.lamp => "lamp-lit lab with step wedge",
+                (true, _, false) if self.lamp => "lamp-lit lab",
+                (true, _, true) => "lab with step wedge",
+                (true, _, false) => "lab",
+                (false, true, _) => "earth",
+                (false, false, _) => "space",
+            },
             "unpaired_real_scene_seed": self.real_scene_seed,
             "glint_exposure_fs": self.glint_exposure,
             "camera": {
                 "shot_noise": {"gain_e_per_dn": self.camera.gain_e_per_dn},
                 "gaussian_noise": {"sigma_dn": self.camera.read_sigma_dn},
-                "quantisation": "round to integer DN, clip [0,255]; saturated photosites read 255"
+                "quantisation": if self.camera.adc_bits == 8 {
+                    "round to integer DN, clip [0,255]; saturated photosites read 255".to_string()
+                } else {
+                    format!(
+                        "{}-bit ADC: round to the code grid 255/{} DN, clip [0,255]; 16-bit PNG by bit replication",
+                        self.camera.adc_bits,
+                        (1u32 << self.camera.adc_bits) - 1
+                    )
+                }
             },
             "hidden": hidden,
         })
@@ -1517,8 +1622,8 @@ impl Case {
             };
             let real = expose(&real_in, &self.camera, &self.hidden, &fp, &mut rng);
             let name = format!("frame_{i:02}.png");
-            sim.save_png(&sim_dir.join(&name))?;
-            real.save_png(&real_dir.join(&name))?;
+            sim.save_png_bits(&sim_dir.join(&name), self.camera.adc_bits)?;
+            real.save_png_bits(&real_dir.join(&name), self.camera.adc_bits)?;
         }
         let truth = serde_json::to_string_pretty(&self.truth_json()).map_err(|e| e.to_string())?;
         std::fs::write(dir.join("truth.json"), truth).map_err(|e| format!("truth.json: {e}"))
@@ -1535,11 +1640,13 @@ fn case(name: &str, fmt: Fmt, seed: u64, earth: bool, gain: f64, read: f64, hidd
         seed,
         earth,
         lab: false,
-        camera: Camera { gain_e_per_dn: gain, read_sigma_dn: read },
+        camera: Camera { gain_e_per_dn: gain, read_sigma_dn: read, adc_bits: 8 },
         hidden,
         real_scene_seed: None,
         glint_exposure: 1.0,
         sun: None,
+        wedge: false,
+        lamp: false,
     }
 }
 
@@ -1729,6 +1836,76 @@ pub fn corpus() -> Vec<Case> {
             vec![Blooming { full_well: 0.93, decay_px: 1.2 }, Smear { strength: 0.003, vertical: true }],
         )
         .overexposed(2.0),
+    ]
+    .into_iter()
+    .chain(tone_cases_h26())
+    .collect()
+}
+
+// ---- h26tone: tone curves, gain/offset, dark level and stray light side by side ----------------
+
+/// Near-aliases of the level response at held-out-like strengths (at or below the per-pixel
+/// noise, 4 frames, 320x240, 10- and 12-bit data in 16-bit PNG): a generalised sRGB encode on an
+/// RGB lab scene, a dark level under an sRGB curve on a mono lab scene, a power law on the Earth
+/// scene, a gain and offset small enough to look like a tone curve (the negative control of the
+/// tone test), and stray light on the same lab scene and camera as the sRGB case.
+pub fn tone_cases_h26() -> Vec<Case> {
+    use Fmt::{Mono8, Rgb8};
+    use Hidden::*;
+    vec![
+        case("tone_srgb_lab_rgb10", Rgb8, 501, false, 5.0, 1.5, vec![ToneCurve { q: 0.9, a: 0.04, encode: true }])
+            .in_lab()
+            .with_wedge()
+            .sized(320, 240, 4)
+            .adc_bits(10),
+        case(
+            "dark_srgb_lab_mono10",
+            Mono8,
+            502,
+            false,
+            6.0,
+            1.2,
+            vec![DarkCurrent { mean_dn: 2.0, hot_rate: 0.0 }, ToneCurve { q: 0.92, a: 0.03, encode: true }],
+        )
+        .in_lab()
+        .with_wedge()
+        .sized(320, 240, 4)
+        .adc_bits(10),
+        case("gamma_earth_mono12", Mono8, 503, true, 8.0, 1.2, vec![Gamma { gamma: 1.07 }])
+            .sized(320, 240, 4)
+            .adc_bits(12),
+        case("gain_offset_small_mono", Mono8, 504, true, 6.0, 1.5, vec![GainOffset { gain: 1.03, offset_dn: 1.5 }])
+            .sized(320, 240, 4),
+        case(
+            "stray_light_lab_rgb10",
+            Rgb8,
+            505,
+            false,
+            5.0,
+            1.5,
+            vec![StrayLight { amplitude_dn: 5.0, src_x: 380.0, src_y: -50.0, width_px: 160.0 }],
+        )
+        .in_lab()
+        .with_wedge()
+        .sized(320, 240, 4)
+        .adc_bits(10),
+        case("tone_srgb_lamp_rgb10", Rgb8, 506, false, 5.0, 1.5, vec![ToneCurve { q: 0.88, a: 0.04, encode: true }])
+            .lamp_lit()
+            .sized(320, 240, 4)
+            .adc_bits(10),
+        case(
+            "dark_srgb_lamp_mono10",
+            Mono8,
+            507,
+            false,
+            6.0,
+            1.2,
+            vec![DarkCurrent { mean_dn: 2.0, hot_rate: 0.0 }, ToneCurve { q: 0.9, a: 0.04, encode: true }],
+        )
+        .lamp_lit()
+        .with_wedge()
+        .sized(320, 240, 4)
+        .adc_bits(10),
     ]
 }
 
@@ -1947,7 +2124,7 @@ mod tests {
             sim.set(7, y, 0, FS); // 5 saturated pixels in column 7
         }
         sim.set(12, 10, 0, FS); // 1 in column 12
-        let cam = Camera { gain_e_per_dn: 1e6, read_sigma_dn: 0.0 };
+        let cam = Camera { gain_e_per_dn: 1e6, read_sigma_dn: 0.0, adc_bits: 8 };
         let hidden = [Hidden::Smear { strength: 0.01, vertical: true }];
         let fp = FixedPattern::new(w, h, 1, &hidden, 1);
         let out = expose(&sim, &cam, &hidden, &fp, &mut Prng::new(2));
@@ -1970,7 +2147,7 @@ mod tests {
         for v in sim.v.iter_mut() {
             *v = 100.0;
         }
-        let cam = Camera { gain_e_per_dn: 5.0, read_sigma_dn: 1.5 };
+        let cam = Camera { gain_e_per_dn: 5.0, read_sigma_dn: 1.5, adc_bits: 8 };
         let fp = FixedPattern::new(w, h, 1, &[], 1);
         let out = expose(&sim, &cam, &[], &fp, &mut Prng::new(3));
         let (m, v) = mean_var(&out.v);

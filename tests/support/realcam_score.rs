@@ -325,7 +325,7 @@ pub fn effect_visibility(case: &Case) -> (f64, f64, f64) {
     let scene = case.scene(case.seed);
     let sim = scene.render(0, case.frames, case.fmt);
     // Noise-free exposure: enormous gain (no shot noise), no read noise, no per-frame row noise.
-    let cam = crate::realcam::Camera { gain_e_per_dn: 1e9, read_sigma_dn: 0.0 };
+    let cam = crate::realcam::Camera { gain_e_per_dn: 1e9, read_sigma_dn: 0.0, adc_bits: case.camera.adc_bits };
     let hidden: Vec<Hidden> = case
         .hidden
         .iter()
@@ -343,11 +343,13 @@ pub fn effect_visibility(case: &Case) -> (f64, f64, f64) {
             row = *sigma_dn;
         }
     }
+    // Quantisation step of the case's ADC (DN of an 8-bit image).
+    let quant = FS / ((1u32 << case.camera.adc_bits) - 1) as f64;
     let noise_var = sim
         .v
         .iter()
         .filter(|&&v| v < FS)
-        .map(|&v| v / case.camera.gain_e_per_dn + case.camera.read_sigma_dn.powi(2) + 1.0 / 12.0)
+        .map(|&v| v / case.camera.gain_e_per_dn + case.camera.read_sigma_dn.powi(2) + quant * quant / 12.0)
         .sum::<f64>()
         / sim.v.len() as f64;
     ((rms * rms + row * row).sqrt(), mx.max(row), noise_var.sqrt())
