@@ -367,6 +367,7 @@ fn hidden_effects_are_comparable_to_the_noise() {
             for (p, v) in h.canonical() {
                 match h {
                     Hidden::Defocus { .. } => assert!((0.5..=1.2).contains(&v), "{}: {p} {v}", c.name),
+                    Hidden::AiryDefocus { .. } => assert!((0.4..=1.2).contains(&v), "{}: {p} {v}", c.name),
                     Hidden::ChannelShift { .. } => assert!(v.abs() <= 1.2, "{}: {p} {v}", c.name),
                     Hidden::MotionBlur { .. } if p == "length_px" => assert!(v <= 4.0, "{}: {p} {v}", c.name),
                     Hidden::HotPixels { .. } => assert!(v <= 5e-4, "{}: {p} {v}", c.name),
@@ -379,6 +380,7 @@ fn hidden_effects_are_comparable_to_the_noise() {
             bounded |= matches!(
                 h,
                 Hidden::Defocus { .. }
+                    | Hidden::AiryDefocus { .. }
                     | Hidden::ChannelShift { .. }
                     | Hidden::MotionBlur { .. }
                     | Hidden::HotPixels { .. }
