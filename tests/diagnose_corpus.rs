@@ -186,6 +186,23 @@ fn blooming_well_is_read_on_the_saturated_plateau() {
     assert!(problems.is_empty(), "blooming:\n{}", problems.join("\n"));
 }
 
+/// (h26blur) Small non-Gaussian PSFs and short streaks (issue 13: an Airy PSF of 0.42 λN = 0.55 px
+/// read 0.81 px, a pillbox of R = 1.4 px was reported as motion_blur with blooming, an Airy drew a
+/// false gain_offset). Airy patterns (with and without cos⁴ vignetting), small pillboxes and a
+/// 2.2 px streak at 35° beside saturated glints and a sun: each found by its own name, sigma_px
+/// (the PSF's equivalent Gaussian, read on the edge spread) and the streak within tolerance,
+/// nothing else reported. 320x240, 4 frames each: minutes in a debug build, so ignored; run
+/// `cargo test --release --test diagnose_corpus -- --ignored blur_forms`.
+#[test]
+#[ignore = "six 320x240 cases: run in a release build with --ignored"]
+fn blur_forms_are_read_by_their_physics() {
+    let cases: Vec<Case> = corpus().into_iter().filter(|c| c.name.starts_with("h26_")).collect();
+    assert_eq!(cases.len(), 6);
+    let scores = run_all(&cases);
+    let problems = subset_problems(&scores);
+    assert!(problems.is_empty(), "blur forms:\n{}", problems.join("\n"));
+}
+
 /// Unpaired mode on independent-forward-model data: the real frames show another spacecraft at
 /// other poses. A negative control (camera noise only) and a hidden defocus, at a reduced size
 /// so that the test stays fast in a debug build.
