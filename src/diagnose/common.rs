@@ -214,7 +214,7 @@ pub fn blurred_test_pairs(k: &[f64], half: usize, seed: u64) -> Vec<Pair> {
                         let mut v = 20.0 + 0.2 * fx;
                         for (i, &(cx, cy, rad, lv)) in shapes.iter().enumerate() {
                             let cx = cx + 3.0 * frame as f64;
-                            let inside = if i % 3 == 0 {
+                            let inside = if i.is_multiple_of(3) {
                                 (fx - cx).abs() < rad && (fy - cy).abs() < 0.4 * rad
                             } else {
                                 (fx - cx).powi(2) + (fy - cy).powi(2) < rad * rad
