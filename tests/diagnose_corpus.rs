@@ -212,6 +212,23 @@ fn blooming_well_is_read_on_the_saturated_plateau() {
     assert!(problems.is_empty(), "blooming:\n{}", problems.join("\n"));
 }
 
+/// (h26blur) Small non-Gaussian PSFs and short streaks (issue 13: an Airy PSF of 0.42 λN = 0.55 px
+/// read 0.81 px, a pillbox of R = 1.4 px was reported as motion_blur with blooming, an Airy drew a
+/// false gain_offset). Airy patterns (with and without cos⁴ vignetting), small pillboxes and a
+/// 2.2 px streak at 35° beside saturated glints and a sun: each found by its own name, sigma_px
+/// (the PSF's equivalent Gaussian, read on the edge spread) and the streak within tolerance,
+/// nothing else reported. 320x240, 4 frames each: minutes in a debug build, so ignored; run
+/// `cargo test --release --test diagnose_corpus -- --ignored blur_forms`.
+#[test]
+#[ignore = "six 320x240 cases: run in a release build with --ignored"]
+fn blur_forms_are_read_by_their_physics() {
+    let cases: Vec<Case> = corpus().into_iter().filter(|c| c.name.starts_with("h26_")).collect();
+    assert_eq!(cases.len(), 6);
+    let scores = run_all(&cases);
+    let problems = subset_problems(&scores);
+    assert!(problems.is_empty(), "blur forms:\n{}", problems.join("\n"));
+}
+
 /// Unpaired mode on independent-forward-model data: the real frames show another spacecraft at
 /// other poses. A negative control (camera noise only) and a hidden defocus, at a reduced size
 /// so that the test stays fast in a debug build.
@@ -393,6 +410,7 @@ fn hidden_effects_are_comparable_to_the_noise() {
             for (p, v) in h.canonical() {
                 match h {
                     Hidden::Defocus { .. } => assert!((0.5..=1.2).contains(&v), "{}: {p} {v}", c.name),
+                    Hidden::AiryDefocus { .. } => assert!((0.4..=1.2).contains(&v), "{}: {p} {v}", c.name),
                     Hidden::ChannelShift { .. } => assert!(v.abs() <= 1.2, "{}: {p} {v}", c.name),
                     Hidden::MotionBlur { .. } if p == "length_px" => assert!(v <= 4.0, "{}: {p} {v}", c.name),
                     Hidden::HotPixels { .. } => assert!(v <= 5e-4, "{}: {p} {v}", c.name),
@@ -405,6 +423,7 @@ fn hidden_effects_are_comparable_to_the_noise() {
             bounded |= matches!(
                 h,
                 Hidden::Defocus { .. }
+                    | Hidden::AiryDefocus { .. }
                     | Hidden::ChannelShift { .. }
                     | Hidden::MotionBlur { .. }
                     | Hidden::HotPixels { .. }

@@ -4,6 +4,8 @@
 //! [`super::stats`], so that a signature module needs nothing but these (see the dependency rule
 //! in the module doc of `diagnose`).
 
+#[cfg(test)]
+use super::img::Pair;
 use super::img::{FS, Plane, distance_transform};
 use super::stats;
 use super::types::Signature;
@@ -188,4 +190,69 @@ pub fn params_from_signature(sig: &Signature) -> Option<Params> {
         let _ = p.set_choice(n, w);
     }
     Some(p)
+}
+
+#[cfg(test)]
+/// (Tests) A textured scene (anti-aliased discs and bars on a ramp, 3x3 supersampled, never
+/// saturated) as the sim, and the same scene through the PSF `k` plus camera noise as the real
+/// image, two frames.
+pub fn blurred_test_pairs(k: &[f64], half: usize, seed: u64) -> Vec<Pair> {
+    let (w, h) = (160usize, 120usize);
+    let mut r = crate::rng::Rng::new(seed);
+    let shapes: Vec<(f64, f64, f64, f64)> = (0..40)
+        .map(|_| (r.uniform() * w as f64, r.uniform() * h as f64, 2.0 + 8.0 * r.uniform(), 40.0 + 150.0 * r.uniform()))
+        .collect();
+    let mut pairs = Vec::new();
+    for frame in 0..2u64 {
+        let mut sim = Plane::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let mut acc = 0.0;
+                for sy in 0..3 {
+                    for sx in 0..3 {
+                        let (fx, fy) = (x as f64 + (sx as f64 + 0.5) / 3.0, y as f64 + (sy as f64 + 0.5) / 3.0);
+                        let mut v = 20.0 + 0.2 * fx;
+                        for (i, &(cx, cy, rad, lv)) in shapes.iter().enumerate() {
+                            let cx = cx + 3.0 * frame as f64;
+                            let inside = if i.is_multiple_of(3) {
+                                (fx - cx).abs() < rad && (fy - cy).abs() < 0.4 * rad
+                            } else {
+                                (fx - cx).powi(2) + (fy - cy).powi(2) < rad * rad
+                            };
+                            if inside {
+                                v = lv;
+                            }
+                        }
+                        acc += v;
+                    }
+                }
+                sim.data[y * w + x] = (acc / 9.0).round() as f32;
+            }
+        }
+        let n = 2 * half + 1;
+        let mut real = Plane::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let mut acc = 0.0;
+                for j in 0..n {
+                    for i in 0..n {
+                        let v = sim.at_clamped(
+                            x as isize + i as isize - half as isize,
+                            y as isize + j as isize - half as isize,
+                        );
+                        acc += k[j * n + i] * v as f64;
+                    }
+                }
+                let sd = (1.0 + acc / 8.0).sqrt();
+                real.data[y * w + x] = (acc + sd * r.normal()).round().clamp(0.0, 255.0) as f32;
+            }
+        }
+        let f = super::img::frame_from_planes(
+            std::slice::from_ref(&sim),
+            &crate::frame::Frame::new(w as u32, h as u32, crate::frame::PixelFormat::Mono8).unwrap(),
+        );
+        let g = super::img::frame_from_planes(std::slice::from_ref(&real), &f);
+        pairs.push(Pair { name: format!("{frame}"), sim_frame: f, real_frame: g, sim: vec![sim], real: vec![real] });
+    }
+    pairs
 }

@@ -394,7 +394,40 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     let seed = opts.seed;
     let z = opts.z_threshold;
     // ---- deterministic: forward-model selection on the fit frames -------------------------------
-    let cands = candidates(pairs, loc);
+    let mut cands = candidates(pairs, loc);
+    // A motion streak is a blur with a direction: without anisotropy of the measured PSF beyond
+    // its noise (an isotropic blur of any form, e.g. a pillbox or an Airy pattern that the
+    // library's Gaussian does not fit exactly), motion_blur is not a candidate.
+    if let Some(k) = &loc.psf
+        && k.aniso_z < z
+        && cands.iter().any(|c| c.name == "motion_blur")
+    {
+        cands.retain(|c| c.name != "motion_blur");
+        notes.push(format!(
+            "motion_blur not tried: the measured PSF has no direction beyond its noise (anisotropy (λ1 − λ2)/2 = {:.3} px², z = {:.1} < {z})",
+            k.aniso.0.hypot(k.aniso.1),
+            k.aniso_z
+        ));
+    }
+    // A blurred scene changes levels near edges and bright sources by the PSF (its tails carry
+    // light from saturated regions into their surroundings and take contrast from small bright
+    // features). The effects whose forward models can mimic that must show their own signature
+    // beyond the blur: blooming the plateau deficit of saturated interiors deeper than the blur
+    // (or the over-exposure halo), smear the column/row profile of saturated counts, gain_offset
+    // a gain on flat pixels (an offset alone is the dark level's candidate).
+    let sig_z = |name: &str| loc.signature(name).map(|g| g.z).unwrap_or(0.0);
+    if sig_z("defocus") >= z || sig_z("motion_blur") >= z {
+        for (name, own) in
+            [("blooming", sig_z("blooming")), ("smear", sig_z("smear")), ("gain_offset", sig_z("gain_offset"))]
+        {
+            if own < z && cands.iter().any(|c| c.name == name) {
+                cands.retain(|c| c.name != name);
+                notes.push(format!(
+                    "{name} not tried: the scene is blurred and {name}'s own signature is not beyond its noise (z = {own:.1} < {z}); the blur explains the level changes near edges and bright sources"
+                ));
+            }
+        }
+    }
     // Enough pairs for about 300k values per loss evaluation (at least 2, at most fit_frames).
     let per_pair = pairs[0].w() * pairs[0].h() * pairs[0].channels();
     let n_fit = (300_000 / per_pair.max(1)).clamp(2, opts.fit_frames.max(2)).min(opts.fit_frames.max(1));
@@ -654,6 +687,21 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             sig_evidence = format!(
                 "{sig_evidence}; full_well_fraction untestable (null): no saturated plateau in the data, so the well is not constrained (fitted.toml keeps the value that shapes the halo, {:.3})",
                 params.get("full_well_fraction")
+            );
+        }
+        if s.name == "defocus"
+            && !sel.steps.iter().any(|t| t.name == "motion_blur")
+            && let Some(v) = sig.and_then(|g| g.param(super::edges::EDGE_SIGMA_PARAM))
+        {
+            // EFFECTS.md's sigma_px is the PSF's equivalent Gaussian: read where the PSF's core
+            // shapes the edge spread (edges::EDGE_SIGMA_PARAM). The forward fit over the whole
+            // image also weighs the far tails around bright sources, where a non-Gaussian PSF
+            // (Airy rings, a pillbox's flat top) differs from a Gaussian of the same core, and
+            // runs high for those forms.
+            report_as("sigma_px", serde_json::Value::from(round_sig(v, 5)));
+            sig_evidence = format!(
+                "{sig_evidence}; sigma_px read on the edge spread: {v:.3} px (fitted.toml keeps the forward fit's {:.3}, the Gaussian that best reproduces the whole image)",
+                params.get("sigma_px")
             );
         }
         if s.name == "lens_flare"

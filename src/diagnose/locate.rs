@@ -13,7 +13,7 @@ use super::common::{Masks, NoiseModel};
 use super::img::{FS, Pair, Plane};
 use super::noise;
 use super::photometric::{self, Photometric};
-use super::{Options, Signature, edges, fixed, saturation};
+use super::{Options, Signature, edges, fixed, psf, saturation};
 
 /// Everything the signature stage found.
 pub struct Located {
@@ -33,6 +33,8 @@ pub struct Located {
     pub notes: Vec<String>,
     /// Quantisation step of the real data (8-bit DN).
     pub quant: f64,
+    /// The blur kernel measured tap by tap ([`psf`]), when there are enough usable edges.
+    pub psf: Option<psf::Psf>,
 }
 
 impl Located {
@@ -132,7 +134,32 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     dark.profiles.push(dark_profile(&noise));
     // Edges (Taylor regression on the photometric prediction).
     let et = edges::tests(pairs, &masks, &pred, &noise, z);
-    let (defocus, motion, cs) = (et.defocus, et.motion, et.channel_shift);
+    let (mut defocus, mut motion, cs) = (et.defocus, et.motion, et.channel_shift);
+    // The kernel itself, tap by tap: its direction (motion or not) and its best-fitting Gaussian.
+    let psf = psf::measure(pairs, &masks, &pred, &noise, &hot);
+    if let Some(k) = &psf {
+        let [sxx, sxy, syy] = k.moments;
+        defocus.evidence = format!(
+            "{}; measured PSF ({}x{} taps on {} edge pixels): moments Σ = [[{sxx:.3}, {sxy:.3}], [{sxy:.3}, {syy:.3}]] px²",
+            defocus.evidence,
+            2 * psf::HALF + 1,
+            2 * psf::HALF + 1,
+            k.n
+        );
+        motion.set_param(psf::ANISO_Z_PARAM, k.aniso_z);
+        let half_diff = k.aniso.0.hypot(k.aniso.1);
+        motion.evidence = format!(
+            "{}; measured PSF anisotropy (λ1 − λ2)/2 = {half_diff:.3} px² along {:.0}° (chi2 = {:.1} on 2 df, z = {:.1})",
+            motion.evidence, k.angle_deg, k.aniso_chi2, k.aniso_z
+        );
+        if k.aniso_z >= z {
+            // The direction of the measured kernel starts the forward fit (the line scan on the
+            // edges can settle on another local minimum for short streaks); a streak of length L
+            // has (λ1 − λ2) = L²/12.
+            motion.set_param("angle_deg", k.angle_deg);
+            motion.set_param("length_px", (24.0 * half_diff).sqrt());
+        }
+    }
     let mut notes = notes;
     if et.global_shift.0.abs().max(et.global_shift.1.abs()) > 0.2 {
         notes.push(format!(
@@ -146,7 +173,7 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     let smear = saturation::smear(pairs, &masks, &resid, &pred, &noise);
     let flare = saturation::lens_flare(pairs, &masks, &resid, &noise);
     sigs.extend([gain_sig, gamma_sig, vig, stray, dark, defocus, motion, cs, bloom, smear, flare]);
-    Located { masks, noise, photo, pred, resid, hot, signatures: sigs, notes, quant }
+    Located { masks, noise, photo, pred, resid, hot, signatures: sigs, notes, quant, psf }
 }
 
 /// Dark-block additive levels against their base level.

@@ -8,7 +8,8 @@
 //!    edges), a first noise model, then one signature test per effect, each a statistic with a
 //!    null distribution: tone/spatial photometric regression ([`photometric`]: gain_offset,
 //!    gamma, vignetting, stray_light, dark level), edge-derivative regression ([`edges`]:
-//!    defocus, motion_blur, channel_shift), saturation neighbourhoods ([`saturation`]: blooming
+//!    defocus, motion_blur, channel_shift; [`psf`]: the blur kernel's taps measured directly,
+//!    its direction and its best-fitting Gaussian), saturation neighbourhoods ([`saturation`]: blooming
 //!    plateau and halo, smear column/row profiles, lens_flare ghosts on the source–centre line),
 //!    fixed pattern and noise structure ([`fixed`]: prnu by cross-frame covariance, hot pixels
 //!    by recurrence, row noise by split-half covariance), JPEG by the DCT quantisation lattice
@@ -34,7 +35,7 @@
 //!    [`params_from_signature`](common::params_from_signature)) imports `types`, `img`, `stats`;
 //!    [`plot`] imports `types`, `img`.
 //! 2. **Signatures** — [`edges`], [`fixed`], [`glare`], [`jpeg`], [`moments`], [`noise`],
-//!    [`photometric`], [`saturation`], [`tone`], [`levelmap`] and every new file not named below: they import
+//!    [`photometric`], [`psf`], [`saturation`], [`tone`], [`levelmap`] and every new file not named below: they import
 //!    only `types`, `img`, `stats` and `common`, never each other nor an orchestrator. A new
 //!    signature is one new file; only the orchestrators import it.
 //! 3. **Orchestrators**, in this order, each importing the shared and signature modules and the
@@ -57,6 +58,8 @@ pub mod moments;
 pub mod noise;
 pub mod photometric;
 pub mod plot;
+/// Blur kernel measured directly (taps by least squares): direction and best-fitting Gaussian.
+pub mod psf;
 pub mod report;
 pub mod saturation;
 pub mod select;

@@ -611,6 +611,10 @@ pub enum Hidden {
     Vignetting { strength: f64 },
     /// Pillbox PSF of radius `radius_px`.
     Defocus { radius_px: f64 },
+    /// (h26blur) Diffraction-limited (Airy) PSF `[2 J1(π r/λN) / (π r/λN)]²` with `lambda_n_px` =
+    /// λ·N in pixels (first zero at 1.22 λN), pixel-area weights; truth `sigma_px` = 0.42 λN (the
+    /// Gaussian closest to the Airy pattern).
+    AiryDefocus { lambda_n_px: f64 },
     /// Lanczos-3 shift of the red and blue planes (+dx right, +dy down).
     ChannelShift { dx_r: f64, dy_r: f64, dx_b: f64, dy_b: f64 },
     /// Moffat-like lobe from a source at (`src_x`, `src_y`) px (may be outside the frame), core
@@ -663,7 +667,7 @@ impl Hidden {
     pub fn name(&self) -> &'static str {
         match self {
             Hidden::Vignetting { .. } => "vignetting",
-            Hidden::Defocus { .. } => "defocus",
+            Hidden::Defocus { .. } | Hidden::AiryDefocus { .. } => "defocus",
             Hidden::ChannelShift { .. } => "channel_shift",
             Hidden::StrayLight { .. } => "stray_light",
             Hidden::VeilingGlare { .. } => "veiling_glare",
@@ -686,6 +690,7 @@ impl Hidden {
         match *self {
             Hidden::Vignetting { strength } => vec![("strength", strength)],
             Hidden::Defocus { radius_px } => vec![("sigma_px", pillbox_sigma(radius_px))],
+            Hidden::AiryDefocus { lambda_n_px } => vec![("sigma_px", 0.42 * lambda_n_px)],
             Hidden::ChannelShift { dx_r, dy_r, dx_b, dy_b } => {
                 vec![("dx_r", dx_r), ("dy_r", dy_r), ("dx_b", dx_b), ("dy_b", dy_b)]
             }
@@ -721,6 +726,12 @@ impl Hidden {
         match *self {
             Hidden::Vignetting { .. } => "cos^4 law 1/(1+(r/f)^2)^2".into(),
             Hidden::Defocus { radius_px } => format!("pillbox PSF radius {radius_px:.2} px"),
+            Hidden::AiryDefocus { lambda_n_px } => {
+                format!(
+                    "Airy PSF, lambda*N {lambda_n_px:.3} px (first zero {:.2} px), pixel-area weights",
+                    1.22 * lambda_n_px
+                )
+            }
             Hidden::ChannelShift { .. } => "separable Lanczos-3 shift".into(),
             Hidden::StrayLight { src_x, src_y, width_px, .. } => {
                 format!("Moffat(beta=1.5) lobe from ({src_x:.0},{src_y:.0}) width {width_px:.0} px")
@@ -899,6 +910,70 @@ pub fn pillbox_sigma(r: f64) -> f64 {
     }
     m2.sqrt()
 }
+
+// ---- h26blur: Airy PSF ---------------------------------------------------------------------
+
+/// Bessel function J1(x) by its integral `J1(x) = (1/π) ∫₀^π cos(τ − x sin τ) dτ` (midpoint rule
+/// on 256 nodes: the integrand is smooth and periodic-like, so the error is far below 1e-12 for
+/// |x| ≤ 60).
+pub fn bessel_j1(x: f64) -> f64 {
+    const N: usize = 256;
+    let mut s = 0.0;
+    for j in 0..N {
+        let t = (j as f64 + 0.5) * std::f64::consts::PI / N as f64;
+        s += (t - x * t.sin()).cos();
+    }
+    s / N as f64
+}
+
+/// Airy intensity pattern at radius `r` px for λN = `lambda_n` px, 1 at the centre.
+pub fn airy(r: f64, lambda_n: f64) -> f64 {
+    let x = std::f64::consts::PI * r / lambda_n;
+    if x.abs() < 1e-9 {
+        return 1.0;
+    }
+    let a = 2.0 * bessel_j1(x) / x;
+    a * a
+}
+
+/// Pixel-area-weighted Airy kernel (8x8 samples per pixel), radius max(3, ceil(6 λN)) px (about
+/// 96 % of the energy; the rest of the slowly decaying rings is left out), normalised to sum 1.
+pub fn airy_kernel(lambda_n: f64) -> (Vec<f64>, usize) {
+    let half = (6.0 * lambda_n).ceil().max(3.0) as usize;
+    let n = 2 * half + 1;
+    let mut k = vec![0.0; n * n];
+    const SUB: usize = 8;
+    for j in 0..n {
+        for i in 0..n {
+            let mut acc = 0.0;
+            for sj in 0..SUB {
+                for si in 0..SUB {
+                    let x = i as f64 - half as f64 - 0.5 + (si as f64 + 0.5) / SUB as f64;
+                    let y = j as f64 - half as f64 - 0.5 + (sj as f64 + 0.5) / SUB as f64;
+                    acc += airy((x * x + y * y).sqrt(), lambda_n);
+                }
+            }
+            k[j * n + i] = acc;
+        }
+    }
+    let s: f64 = k.iter().sum();
+    k.iter_mut().for_each(|v| *v /= s);
+    (k, half)
+}
+
+/// Per-axis standard deviation of a square kernel of half-size `half`.
+pub fn kernel_sigma(k: &[f64], half: usize) -> f64 {
+    let n = 2 * half + 1;
+    let mut m2 = 0.0;
+    for j in 0..n {
+        for i in 0..n {
+            m2 += k[j * n + i] * (i as f64 - half as f64).powi(2);
+        }
+    }
+    m2.sqrt()
+}
+
+// ---- end h26blur ------------------------------------------------------------------------------
 
 fn convolve2d(img: &Img, k: &[f64], half: usize) -> Img {
     let n = 2 * half + 1;
@@ -1114,6 +1189,7 @@ impl FixedPattern {
                     fp.stray = Some(stray_field(w, h, src_x, src_y, width_px));
                 }
                 Hidden::Defocus { radius_px } => fp.kernel = Some(pillbox_kernel(radius_px)),
+                Hidden::AiryDefocus { lambda_n_px } => fp.kernel = Some(airy_kernel(lambda_n_px)),
                 Hidden::MotionBlur { length_px, angle_deg } => fp.streak = Some(streak_kernel(length_px, angle_deg)),
                 Hidden::LensFlare { ghosts, intensity } => {
                     fp.flare = Some(flare_layout(ghosts, intensity, w, h, seed ^ 0xf1a2e));
@@ -1836,6 +1912,43 @@ pub fn corpus() -> Vec<Case> {
             vec![Blooming { full_well: 0.93, decay_px: 1.2 }, Smear { strength: 0.003, vertical: true }],
         )
         .overexposed(2.0),
+        // ---- h26blur: small non-Gaussian PSFs and short streaks at held-out-like strengths ----
+        // Airy PSFs (truth 0.42 λN), small pillboxes (R 1.0-1.6), an Airy under cos⁴ vignetting and a
+        // short streak at a non-axis angle beside saturated glints and a saturated sun, on
+        // textured scenes (Earth, lab wall), 320x240, 4 frames.
+        case("h26_airy_mono", Mono8, 501, true, 6.0, 1.5, vec![AiryDefocus { lambda_n_px: 0.55 / 0.42 }])
+            .sized(320, 240, 4),
+        case("h26_airy_lab_rgb", Rgb8, 502, false, 6.0, 1.5, vec![AiryDefocus { lambda_n_px: 0.45 / 0.42 }])
+            .in_lab()
+            .sized(320, 240, 4),
+        case(
+            "h26_airy_vignetting_mono",
+            Mono8,
+            503,
+            true,
+            6.0,
+            1.5,
+            vec![AiryDefocus { lambda_n_px: 0.45 / 0.42 }, Vignetting { strength: 0.10 }],
+        )
+        .sized(320, 240, 4),
+        case("h26_pillbox_small_mono", Mono8, 504, true, 6.0, 1.5, vec![Defocus { radius_px: 1.4 }])
+            .with_sun(0.85, 0.2, 0.03)
+            .sized(320, 240, 4),
+        case("h26_pillbox_r1_lab_mono", Mono8, 505, false, 5.0, 1.5, vec![Defocus { radius_px: 1.1 }])
+            .in_lab()
+            .sized(320, 240, 4),
+        case(
+            "h26_motion_glints_mono",
+            Mono8,
+            506,
+            false,
+            6.0,
+            1.5,
+            vec![MotionBlur { length_px: 2.2, angle_deg: 35.0 }],
+        )
+        .with_sun(0.15, 0.8, 0.03)
+        .sized(320, 240, 4),
+        // ---- end h26blur ----
     ]
     .into_iter()
     .chain(tone_cases_h26())
@@ -1988,6 +2101,38 @@ mod tests {
         let n = xs.len() as f64;
         let m = xs.iter().sum::<f64>() / n;
         (m, xs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0))
+    }
+
+    /// (h26blur) J1 by its integral matches tabulated values and its first zero; the Airy
+    /// pattern's first dark ring sits at 1.22 λN; the pixel-area Airy kernel is normalised and
+    /// wider (per-axis std) than its 0.42 λN Gaussian core.
+    #[test]
+    fn airy_kernel_follows_the_bessel_function() {
+        assert!((bessel_j1(1.0) - 0.440_050_585_744_933_5).abs() < 1e-12);
+        assert!((bessel_j1(5.0) - (-0.327_579_137_591_465_2)).abs() < 1e-12);
+        assert!(bessel_j1(3.831_705_970_207_512).abs() < 1e-12);
+        let ln = 1.3;
+        assert!(airy(1.22 * ln, ln) < 1e-5 && airy(0.5 * ln, ln) > 0.3);
+        let (k, half) = airy_kernel(ln);
+        assert!((k.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        let s = kernel_sigma(&k, half);
+        assert!(s > 0.42 * ln, "airy kernel std {s}");
+        eprintln!(
+            "airy 0.45: std {:.3}; airy 0.55: std {:.3}; pillbox 1.0 {:.3} 1.1 {:.3} 1.4 {:.3} 1.6 {:.3} 2.0 {:.3}",
+            {
+                let (k, h) = airy_kernel(0.45 / 0.42);
+                kernel_sigma(&k, h)
+            },
+            {
+                let (k, h) = airy_kernel(0.55 / 0.42);
+                kernel_sigma(&k, h)
+            },
+            pillbox_sigma(1.0),
+            pillbox_sigma(1.1),
+            pillbox_sigma(1.4),
+            pillbox_sigma(1.6),
+            pillbox_sigma(2.0)
+        );
     }
 
     #[test]
