@@ -1515,7 +1515,7 @@ impl Case {
             "seed": self.seed,
             "backdrop": match self.alt_scene {
                 Some(AltScene::StarField { .. }) => "star field",
-                Some(AltScene::Docking) => "docking target",
+                Some(AltScene::Docking { .. }) => "docking target",
                 None if self.lab => "lab",
                 None if self.earth => "earth",
                 None => "space",
@@ -1864,9 +1864,10 @@ pub enum AltScene {
     /// corona (`sun` true). The field drifts by (1.3, −0.8) px per frame.
     StarField { stars: usize, src_x: f64, src_y: f64, sun: bool },
     /// A docking target: dark space, a grey textured plate with high-contrast fiducials (four
-    /// white corner discs, a black square with a white cross) and two saturated specular spots
-    /// (an elliptical glint and a small round retro-reflector at FS). It drifts and rolls slowly.
-    Docking,
+    /// white corner discs and a white cross in a black square, at `white` DN) and saturated
+    /// specular spots (an elliptical glint and, with `retro`, a small round retro-reflector, at
+    /// FS). It drifts and rolls slowly.
+    Docking { white: f64, retro: bool },
 }
 
 /// ADC step in 8-bit DN of `bits`-bit data.
@@ -1974,7 +1975,7 @@ fn star_field_irradiance(w: usize, h: usize, seed: u64, stars: usize, src: (f64,
 }
 
 /// Irradiance (8-bit DN, unclipped, mono) of frame `i` of `n` of the docking target.
-fn docking_irradiance(w: usize, h: usize, seed: u64, i: usize, n: usize) -> Img {
+fn docking_irradiance(w: usize, h: usize, seed: u64, white: f64, with_retro: bool, i: usize, n: usize) -> Img {
     let mut r = Prng::new(seed ^ 0xd0c4);
     let t = i as f64 - (n.max(1) - 1) as f64 / 2.0;
     let (pcx, pcy) = (w as f64 * r.range(0.45, 0.55) + 1.0 * t, h as f64 * r.range(0.45, 0.52) + 0.6 * t);
@@ -1995,11 +1996,11 @@ fn docking_irradiance(w: usize, h: usize, seed: u64, i: usize, n: usize) -> Img 
             for (qx, qy) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {
                 let (fx, fy) = (qx * 0.78 * half, qy * 0.78 * half);
                 if ((lx - fx).powi(2) + (ly - fy).powi(2)).sqrt() <= disc_r {
-                    v = 225.0;
+                    v = white;
                 }
             }
             if lx.abs() <= 0.3 * half && ly.abs() <= 0.3 * half {
-                v = if lx.abs() <= 1.5 || ly.abs() <= 1.5 { 230.0 } else { 6.0 };
+                v = if lx.abs() <= 1.5 || ly.abs() <= 1.5 { white } else { 6.0 };
             }
         }
         // Specular glint (screen-aligned ellipse) and a retro-reflector, both at FS.
@@ -2010,7 +2011,7 @@ fn docking_irradiance(w: usize, h: usize, seed: u64, i: usize, n: usize) -> Img 
             v = v.max(150.0 * (-(e.sqrt() - 1.0) * 1.6).exp());
         }
         let d = ((lx - retro.0).powi(2) + (ly - retro.1).powi(2)).sqrt();
-        if d <= 3.6 {
+        if with_retro && d <= 3.6 {
             v = FS;
         }
         v
@@ -2037,7 +2038,7 @@ pub fn alt_frame(alt: AltScene, w: usize, h: usize, seed: u64, i: usize, n: usiz
         AltScene::StarField { stars, src_x, src_y, sun } => {
             star_field_irradiance(w, h, seed, stars, (src_x, src_y), sun, i, n)
         }
-        AltScene::Docking => docking_irradiance(w, h, seed, i, n),
+        AltScene::Docking { white, retro } => docking_irradiance(w, h, seed, white, retro, i, n),
     };
     irr.v.iter_mut().for_each(|v| *v = ((*v / step).round() * step).max(0.0));
     let mut sim = irr.clone();
@@ -2181,7 +2182,17 @@ pub fn h26flare_cases() -> Vec<Case> {
             1.5,
             vec![Blooming { full_well: 0.93, decay_px: 1.0 }, Smear { strength: 0.0012, vertical: true }],
         )
-        .on(AltScene::Docking),
+        .on(AltScene::Docking { white: 228.0, retro: true }),
+        // Fiducials brighter than the full well (their charge spills in the real camera while
+        // the sim shows them unsaturated) and a single small glint.
+        h26_case(
+            "blooming_smear_bright_docking_mono",
+            505,
+            6.0,
+            1.5,
+            vec![Blooming { full_well: 0.92, decay_px: 1.0 }, Smear { strength: 0.0012, vertical: true }],
+        )
+        .on(AltScene::Docking { white: 242.0, retro: false }),
     ]
 }
 
