@@ -11,7 +11,7 @@
 //! area, not the centroid of all bright pixels, which many small saturated stars pull towards the
 //! centre). Along the line the residual (real − photometric prediction, channel mean) is scanned
 //! with plateau templates: a core disc of radius 0.8 ρ against a ring ρ + 2 .. ρ + 2 + max(4,
-//! 0.4 ρ) around it, for ρ from 1.2 % to 6.8 % of the diagonal, one position per pixel of line.
+//! 0.4 ρ) around it, for ρ from 1.2 % to 6.8 % of the diagonal (steps of about 19 %), one position per pixel of line.
 //! Pixels are weighted by the inverse of the noise model's variance at their predicted level
 //! (the residual of a bright star weighs little), standardised residuals are clipped at ±5, pixels
 //! near saturation (10 px) or next to a sim edge (3 px) are left out, and so are templates whose
@@ -23,9 +23,10 @@
 //! robust spread of the same statistic on control lines through the centre at other angles (their
 //! part near the centre, which every line shares, left out).
 //!
-//! Ghosts are picked greedily by z (each above the threshold, not overlapping one picked before);
-//! each ghost's plateau is read again on its inner part (0.6 ρ) against its ring, weighted over
-//! the frames. `intensity` = the mean plateau of the ghosts found / FS, `ghosts` = their number.
+//! Ghosts are picked greedily by z (each above the threshold and above the control lines' largest
+//! z, not overlapping one picked before); each ghost's plateau is read again on its inner part
+//! (0.6 ρ) against a ring clear of its edge (1.25 ρ + 3 px outwards), at the most significant
+//! position within ρ/2 along the line, weighted over the frames. `intensity` = the mean plateau of the ghosts found / FS, `ghosts` = their number.
 
 use super::common::{Masks, NoiseModel};
 use super::img::{FS, Pair, Plane, luma};
@@ -39,7 +40,7 @@ pub const PLATEAU_PARAM: &str = "plateau_intensity";
 pub const COUNT_PARAM: &str = "ghosts_found";
 
 /// Template radii as shares of the image diagonal.
-const RADII: &[f64] = &[0.012, 0.017, 0.024, 0.034, 0.048, 0.068];
+const RADII: &[f64] = &[0.012, 0.0145, 0.017, 0.02, 0.024, 0.029, 0.034, 0.04, 0.048, 0.057, 0.068];
 /// Line parameter range scanned (centre 0, source 1).
 const U_MIN: f64 = -1.8;
 const U_MAX: f64 = 0.85;
@@ -51,7 +52,11 @@ const MAX_SCENE_STEP: f64 = 40.0;
 const MIN_SCENE_SPREAD: f64 = 4.0;
 /// Pixels this close to saturation (px) or to a sim edge are not used.
 const SAT_MARGIN: f32 = 10.0;
-const EDGE_MARGIN: f32 = 3.0;
+const EDGE_MARGIN: f32 = 1.5;
+/// Shares of a template's core and ring pixels that must be valid: in the scan, and when a ghost's
+/// plateau is read (a ghost half over the scene or a masked region is found but not read).
+const SCAN_COVER: f64 = 0.4;
+const READ_COVER: f64 = 0.7;
 /// Clip of standardised residuals.
 const CLIP: f32 = 5.0;
 /// Control line angles (degrees from the source direction).
@@ -131,12 +136,13 @@ fn disc(s: &Sums, x: f64, y: f64, r: f64) -> [f64; NS] {
     out
 }
 
-/// Plateau excess of a template: (core − ring, its variance) or `None` when the template has too
-/// few valid pixels or its core and ring see scene levels too far apart. A residual proportional
+/// Plateau excess of a template: (core − ring, its variance) or `None` when fewer than `cover` of
+/// the core's or the ring's pixels are valid or its core and ring see scene levels too far apart. A residual proportional
 /// to the scene level (a gain or tone mismatch: r = β s) is fitted together with the two levels
 /// (weighted least squares of r = m_c [core] + m_r [ring] + β s) when the levels within the
 /// template spread enough to tell it; a ghost adds the same to every pixel whatever the scene.
-fn template(s: &Sums, x: f64, y: f64, core_r: f64, ring_in: f64, ring_out: f64) -> Option<(f64, f64)> {
+fn template(s: &Sums, x: f64, y: f64, core_r: f64, ring: (f64, f64), cover: f64) -> Option<(f64, f64)> {
+    let (ring_in, ring_out) = ring;
     let c = disc(s, x, y, core_r);
     let i = disc(s, x, y, ring_in);
     let o = disc(s, x, y, ring_out);
@@ -146,7 +152,7 @@ fn template(s: &Sums, x: f64, y: f64, core_r: f64, ring_in: f64, ring_out: f64) 
     }
     let pi = std::f64::consts::PI;
     let (ac, ar) = (pi * core_r * core_r, pi * (ring_out * ring_out - ring_in * ring_in));
-    if c[5] < 0.4 * ac || ring[5] < 0.4 * ar || c[0] <= 0.0 || ring[0] <= 0.0 {
+    if c[5] < cover * ac || ring[5] < cover * ar || c[0] <= 0.0 || ring[0] <= 0.0 {
         return None;
     }
     let (mc, mr) = (c[2] / c[0], ring[2] / ring[0]);
@@ -265,7 +271,15 @@ fn prefix_sums(w: usize, h: usize, r: &[f32], sd: &[f32], lvl: &[f32]) -> Sums {
 
 /// Combined (over frames) excess and variance of one template at line parameter `u` along the
 /// direction rotated by `ang` from the source direction; `core` = share of ρ of the core radius.
-fn combined(frames: &[FrameScan], u: f64, ang: f64, rho: f64, core: f64, ring: (f64, f64)) -> Option<(f64, f64)> {
+fn combined(
+    frames: &[FrameScan],
+    u: f64,
+    ang: f64,
+    rho: f64,
+    core: f64,
+    ring: (f64, f64),
+    cover: f64,
+) -> Option<(f64, f64)> {
     let (mut sw, mut swe) = (0.0, 0.0);
     for f in frames {
         let (w, h) = (f.sums.w, f.sums.h);
@@ -277,7 +291,7 @@ fn combined(frames: &[FrameScan], u: f64, ang: f64, rho: f64, core: f64, ring: (
         if x < 0.0 || y < 0.0 || x > w as f64 - 1.0 || y > h as f64 - 1.0 {
             continue;
         }
-        if let Some((e, v)) = template(&f.sums, x, y, core * rho, ring.0, ring.1) {
+        if let Some((e, v)) = template(&f.sums, x, y, core * rho, ring, cover) {
             sw += 1.0 / v;
             swe += e / v;
         }
@@ -339,7 +353,7 @@ pub fn lens_flare(
             .map(|&rho| {
                 let ring = ring_of(rho);
                 us.iter()
-                    .map(|&u| match combined(&frames, u, ang, rho, 0.8, ring) {
+                    .map(|&u| match combined(&frames, u, ang, rho, 0.8, ring, SCAN_COVER) {
                         Some((e, v)) => e / v.sqrt(),
                         None => f64::NAN,
                     })
@@ -387,20 +401,54 @@ pub fn lens_flare(
         if ghosts.iter().any(|g| (g.u - u).abs() * len < g.rho + rho) {
             continue;
         }
-        // The plateau on the ghost's inner part against a ring clear of its soft edge.
-        let ring = (rho + 4.0, rho + 4.0 + (0.4 * rho).max(6.0));
+        // The plateau on the ghost's inner part (0.6 ρ) against a ring clear of its soft edge
+        // (from 1.25 ρ + 3 px: the best template's ring may start just inside the edge), at the
+        // position within ρ/2 along the line where it is most significant (the scan's peak can
+        // lean away from masked pixels).
+        let ring = (1.25 * rho + 3.0, 1.25 * rho + 3.0 + (0.4 * rho).max(6.0));
+        let reach = (0.5 * rho / (du * len)).round() as isize;
+        let best = (-reach..=reach)
+            .filter_map(|d| {
+                let uu = u + d as f64 * du;
+                combined(&frames, uu, 0.0, rho, 0.6, ring, READ_COVER).map(|(e, v)| (uu, e, v))
+            })
+            .max_by(|a, b| (a.1 / a.2.sqrt()).total_cmp(&(b.1 / b.2.sqrt())));
         // A ghost's plateau is significant on its own inner part too (a template that only
         // straddles the edge of a brighter ghost is not).
-        if let Some((e, v)) = combined(&frames, u, 0.0, rho, 0.6, ring)
+        if let Some((uu, e, v)) = best
             && e / (v.sqrt() * inflate) >= floor
+            && !ghosts.iter().any(|g| (g.u - uu).abs() * len < g.rho + rho)
         {
-            ghosts.push(Ghost { u, rho, plateau: e, se: v.sqrt(), z });
+            ghosts.push(Ghost { u: uu, rho, plateau: e, se: v.sqrt(), z });
         }
     }
     ghosts.sort_by(|a, b| a.u.total_cmp(&b.u));
-    let zmax = peaks.first().map(|p| p.0).unwrap_or_else(|| {
-        main.iter().flatten().copied().filter(|v| v.is_finite()).fold(0.0, f64::max) / inflate
-    });
+    // Coverage: stretches of the line (inside the frame) where not even the smallest template can
+    // be read (scene edges, saturation) and that no ghost found covers. A ghost could hide there,
+    // so the count is only a lower bound when one is at least a smallest ghost's diameter long.
+    let inside = |u: f64| {
+        frames.iter().any(|f| {
+            let (cx, cy) = ((f.sums.w as f64 - 1.0) / 2.0, (f.sums.h as f64 - 1.0) / 2.0);
+            let (x, y) = (cx + u * (f.src.0 - cx), cy + u * (f.src.1 - cy));
+            x >= 0.0 && y >= 0.0 && x <= f.sums.w as f64 - 1.0 && y <= f.sums.h as f64 - 1.0
+        })
+    };
+    let mut gap = 0.0f64;
+    let mut run = 0.0f64;
+    for (j, &u) in us.iter().enumerate() {
+        let covered = ghosts.iter().any(|g| (g.u - u).abs() * len <= g.rho);
+        if inside(u) && !main[0][j].is_finite() && !covered {
+            run += du * len;
+            gap = gap.max(run);
+        } else {
+            run = 0.0;
+        }
+    }
+    let complete = gap < 2.0 * radii[0];
+    let zmax = peaks
+        .first()
+        .map(|p| p.0)
+        .unwrap_or_else(|| main.iter().flatten().copied().filter(|v| v.is_finite()).fold(0.0, f64::max) / inflate);
     sig.z = zmax;
     sig.where_ = format!(
         "along the line from the brightest source through the centre ({} frame(s), source {:.0} px from the centre)",
@@ -418,21 +466,33 @@ pub fn lens_flare(
         ctrl_max / inflate
     );
     if ghosts.is_empty() {
-        sig.evidence = format!("no ghost plateau above z = {z_thr} on the source–centre line (largest z {zmax:.1}); {ctrl_note}");
+        sig.evidence =
+            format!("no ghost plateau above z = {z_thr} on the source–centre line (largest z {zmax:.1}); {ctrl_note}");
     } else {
         let mean = ghosts.iter().map(|g| g.plateau).sum::<f64>() / ghosts.len() as f64;
         let se = (ghosts.iter().map(|g| g.se * g.se).sum::<f64>()).sqrt() / ghosts.len() as f64;
         sig.size = mean;
-        sig.set_param(COUNT_PARAM, ghosts.len() as f64);
+        if complete {
+            sig.set_param(COUNT_PARAM, ghosts.len() as f64);
+        }
         sig.set_param("intensity", (mean / FS as f64).clamp(0.0, 1.0));
         sig.set_param(PLATEAU_PARAM, (mean / FS as f64).clamp(0.0, 1.0));
         sig.stderr.push(("intensity".into(), se / FS as f64));
         let list: Vec<String> = ghosts
             .iter()
-            .map(|g| format!("t = {:+.2}, radius ~{:.0} px: {:.2} ± {:.2} DN (z = {:.0})", g.u, g.rho, g.plateau, g.se, g.z))
+            .map(|g| {
+                format!("t = {:+.2}, radius ~{:.0} px: {:.2} ± {:.2} DN (z = {:.0})", g.u, g.rho, g.plateau, g.se, g.z)
+            })
             .collect();
+        let count_note = if complete {
+            String::new()
+        } else {
+            format!(
+                " (a stretch of {gap:.0} px of the line cannot be read (scene edges or saturation): the count is a lower bound and is not reported)"
+            )
+        };
         sig.evidence = format!(
-            "{} ghost plateau(s) on the source–centre line: {}; mean plateau {mean:.2} ± {se:.2} DN = {:.4} FS; {ctrl_note}",
+            "{} ghost plateau(s) on the source–centre line{count_note}: {}; mean plateau {mean:.2} ± {se:.2} DN = {:.4} FS; {ctrl_note}",
             ghosts.len(),
             list.join("; "),
             mean / FS as f64
@@ -441,7 +501,9 @@ pub fn lens_flare(
     sig.detected = !ghosts.is_empty() && sig.z >= z_thr && sig.size >= MIN_INTENSITY * FS as f64;
     // Profile: the best template's z along the line, and one control line.
     let best_row = |z: &[Vec<f64>]| -> Vec<f64> {
-        (0..us.len()).map(|j| z.iter().map(|r| r[j]).filter(|v| v.is_finite()).fold(f64::NAN, f64::max) / inflate).collect()
+        (0..us.len())
+            .map(|j| z.iter().map(|r| r[j]).filter(|v| v.is_finite()).fold(f64::NAN, f64::max) / inflate)
+            .collect()
     };
     sig.profiles.push(Profile {
         title: "lens flare: plateau z along the source–centre line (best template radius)".into(),
@@ -491,9 +553,9 @@ mod tests {
         let lvl = vec![3.0f32; w * h];
         let rf: Vec<f32> = r.iter().map(|&v| v as f32).collect();
         let s = prefix_sums(w, h, &rf, &sd, &lvl);
-        let (e, v) = template(&s, 60.0, 50.0, 0.6 * 12.0, 16.0, 24.0).expect("template");
+        let (e, v) = template(&s, 60.0, 50.0, 0.6 * 12.0, (16.0, 24.0), 0.7).expect("template");
         assert!((e - 2.0).abs() < 1e-9 && v > 0.0, "plateau {e}");
-        let (e, _) = template(&s, 25.0, 25.0, 8.0, 12.0, 16.0).expect("template");
+        let (e, _) = template(&s, 25.0, 25.0, 8.0, (12.0, 16.0), 0.7).expect("template");
         assert!(e.abs() < 1e-9, "off the ghost {e}");
     }
 
@@ -503,8 +565,9 @@ mod tests {
         // reads 2 DN on the disc and 0 off it, whereas core minus ring alone would read the
         // scene's texture too.
         let (w, h) = (120usize, 100usize);
-        let lvl: Vec<f32> =
-            (0..w * h).map(|i| (50.0 + 30.0 * ((i % w) as f64 / 3.0).sin() * ((i / w) as f64 / 4.0).cos()) as f32).collect();
+        let lvl: Vec<f32> = (0..w * h)
+            .map(|i| (50.0 + 30.0 * ((i % w) as f64 / 3.0).sin() * ((i / w) as f64 / 4.0).cos()) as f32)
+            .collect();
         let mut r: Vec<f32> = lvl.iter().map(|&s| 0.05 * s).collect();
         for y in 0..h {
             for x in 0..w {
@@ -515,9 +578,9 @@ mod tests {
         }
         let sd = vec![1.0f32; w * h];
         let s = prefix_sums(w, h, &r, &sd, &lvl);
-        let (e, _) = template(&s, 60.0, 50.0, 0.6 * 12.0, 16.0, 24.0).expect("template");
+        let (e, _) = template(&s, 60.0, 50.0, 0.6 * 12.0, (16.0, 24.0), 0.7).expect("template");
         assert!((e - 2.0).abs() < 0.02, "plateau {e}");
-        let (e, _) = template(&s, 25.0, 25.0, 8.0, 12.0, 16.0).expect("template");
+        let (e, _) = template(&s, 25.0, 25.0, 8.0, (12.0, 16.0), 0.7).expect("template");
         assert!(e.abs() < 0.02, "off the ghost {e}");
     }
 }

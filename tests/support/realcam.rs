@@ -1931,7 +1931,16 @@ fn add_star(img: &mut Img, sx: f64, sy: f64, flux: f64) {
 }
 
 /// Irradiance (8-bit DN, unclipped, mono) of frame `i` of `n` of a star field.
-fn star_field_irradiance(w: usize, h: usize, seed: u64, stars: usize, src: (f64, f64), sun: bool, i: usize, n: usize) -> Img {
+fn star_field_irradiance(
+    w: usize,
+    h: usize,
+    seed: u64,
+    stars: usize,
+    src: (f64, f64),
+    sun: bool,
+    i: usize,
+    n: usize,
+) -> Img {
     let mut r = Prng::new(seed ^ 0x57a2f1e1d);
     let t = i as f64 - (n.max(1) - 1) as f64 / 2.0;
     let (ox, oy) = (1.3 * t, -0.8 * t);
