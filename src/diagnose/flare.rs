@@ -146,10 +146,7 @@ fn template(s: &Sums, x: f64, y: f64, core_r: f64, ring: (f64, f64), cover: f64)
     let c = disc(s, x, y, core_r);
     let i = disc(s, x, y, ring_in);
     let o = disc(s, x, y, ring_out);
-    let mut ring = [0.0; NS];
-    for k in 0..NS {
-        ring[k] = o[k] - i[k];
-    }
+    let ring: [f64; NS] = std::array::from_fn(|k| o[k] - i[k]);
     let pi = std::f64::consts::PI;
     let (ac, ar) = (pi * core_r * core_r, pi * (ring_out * ring_out - ring_in * ring_in));
     if c[5] < cover * ac || ring[5] < cover * ar || c[0] <= 0.0 || ring[0] <= 0.0 {
@@ -261,8 +258,8 @@ fn prefix_sums(w: usize, h: usize, r: &[f32], sd: &[f32], lvl: &[f32]) -> Sums {
             } else {
                 [0.0; NS]
             };
-            for k in 0..NS {
-                p[k][b] = p[k][a] + d[k];
+            for (pk, dk) in p.iter_mut().zip(d) {
+                pk[b] = pk[a] + dk;
             }
         }
     }

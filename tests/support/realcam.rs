@@ -1931,6 +1931,7 @@ fn add_star(img: &mut Img, sx: f64, sy: f64, flux: f64) {
 }
 
 /// Irradiance (8-bit DN, unclipped, mono) of frame `i` of `n` of a star field.
+#[allow(clippy::too_many_arguments)]
 fn star_field_irradiance(
     w: usize,
     h: usize,
@@ -2202,6 +2203,15 @@ pub fn h26flare_cases() -> Vec<Case> {
             vec![Blooming { full_well: 0.92, decay_px: 1.0 }, Smear { strength: 0.0012, vertical: true }],
         )
         .on(AltScene::Docking { white: 242.0, retro: false }),
+        // Only one small glint saturates: few saturated cores to read the well on.
+        h26_case(
+            "blooming_smear_glint_docking_mono",
+            506,
+            6.0,
+            1.5,
+            vec![Blooming { full_well: 0.94, decay_px: 1.0 }, Smear { strength: 0.0012, vertical: true }],
+        )
+        .on(AltScene::Docking { white: 228.0, retro: false }),
     ]
 }
 
