@@ -705,7 +705,14 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             );
         }
         if s.name == "lens_flare"
-            && let Some(pl) = sig.and_then(|g| g.param(super::saturation::PLATEAU_PARAM))
+            && let Some(n) = sig.and_then(|g| g.param(super::flare::COUNT_PARAM))
+        {
+            // The number of ghost plateaus found on the source–centre line (the forward fit keeps
+            // the library's layout of 3).
+            report_as("ghosts", serde_json::Value::from(n));
+        }
+        if s.name == "lens_flare"
+            && let Some(pl) = sig.and_then(|g| g.param(super::flare::PLATEAU_PARAM))
             && pl > 0.0
         {
             // EFFECTS.md's intensity is the ghosts' mean plateau: read on the ghost cores by the
@@ -744,6 +751,41 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             alternatives: tone.map(|t| t.alternatives.clone()).unwrap_or_default(),
         });
     }
+    // Lens flare found by its plateau signature while the library's ghost layout (its places and
+    // sizes are not the lens's) did not pay for itself in the forward selection: reported from
+    // the plateau reading (intensity = mean plateau / FS, ghosts = plateaus found). The fitted
+    // config gets the library effect with that intensity and count; it is not part of the
+    // deterministic model (its ghosts would land elsewhere), so the RMSE is that of the rest.
+    if !results.iter().any(|r| r.name == "lens_flare")
+        && let Some(sig) = loc.signature("lens_flare").filter(|s| s.detected)
+        && let Some(pl) = sig.param(super::flare::PLATEAU_PARAM)
+        && let Some(mut p) = registry::find("lens_flare").map(|r| Params::defaults(r.info))
+    {
+        let n = sig.param(super::flare::COUNT_PARAM).unwrap_or(3.0);
+        let _ = p.set("intensity", pl.clamp(0.0, 1.0));
+        let _ = p.set("ghosts", n.clamp(1.0, 16.0));
+        let _ = p.set_choice("tint", "white");
+        let mut canonical = canonical_of(&p);
+        canonical.iter_mut().filter(|(k, _)| k == "intensity").for_each(|(_, v)| *v = round_sig(pl, 5).into());
+        results.push(FittedEffect {
+            name: "lens_flare",
+            canonical,
+            params: Some(p),
+            stderr: sig.stderr.clone(),
+            loss_before: f64::NAN,
+            loss_after: f64::NAN,
+            z: sig.z,
+            where_: sig.where_.clone(),
+            evidence: format!(
+                "{}; not in the forward model: the library's ghost layout does not reproduce the lens's ghost places, so it is reported from the plateau reading",
+                sig.evidence
+            ),
+            method: "matched search for ghost plateaus on the source–centre line (core against ring, noise-model weights, frames combined at the same line parameter)".into(),
+            importance: 1e-6 * sig.z.min(1e4),
+            alternatives: Vec::new(),
+        });
+    }
+    let flare_reported = results.iter().any(|r| r.name == "lens_flare");
     // Hot pixels are part of the dark current when there is one.
     let mut hot_sig = st.hot_sig.clone();
     if hot_sig.detected && dark_params.is_some() {
@@ -819,7 +861,8 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     results.sort_by(|a, b| b.importance.total_cmp(&a.importance));
     // The signature table shows the final decision (taken by the forward-model selection).
     for sig in loc.signatures.iter_mut() {
-        sig.detected = sel.steps.iter().any(|s| !s.fixed && s.name == sig.effect);
+        sig.detected = sel.steps.iter().any(|s| !s.fixed && s.name == sig.effect)
+            || (sig.effect == "lens_flare" && flare_reported);
     }
     for s in [&st.gaussian, &st.shot, &st.prnu, &st.row, &hot_sig, &st.jpeg] {
         loc.signatures.push(s.clone());

@@ -13,7 +13,7 @@ use super::common::{Masks, NoiseModel};
 use super::img::{FS, Pair, Plane};
 use super::noise;
 use super::photometric::{self, Photometric};
-use super::{Options, Signature, edges, fixed, psf, saturation};
+use super::{Options, Signature, edges, fixed, flare, psf, saturation};
 
 /// Everything the signature stage found.
 pub struct Located {
@@ -171,7 +171,7 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     // Saturation neighbourhoods.
     let bloom = saturation::blooming(pairs, &masks, &pred, &resid, &noise, blur_sigma);
     let smear = saturation::smear(pairs, &masks, &resid, &pred, &noise);
-    let flare = saturation::lens_flare(pairs, &masks, &resid, &noise);
+    let flare = flare::lens_flare(pairs, &masks, &pred, &resid, &noise, z);
     sigs.extend([gain_sig, gamma_sig, vig, stray, dark, defocus, motion, cs, bloom, smear, flare]);
     Located { masks, noise, photo, pred, resid, hot, signatures: sigs, notes, quant, psf }
 }

@@ -10,7 +10,8 @@
 //!    gamma, vignetting, stray_light, dark level), edge-derivative regression ([`edges`]:
 //!    defocus, motion_blur, channel_shift; [`psf`]: the blur kernel's taps measured directly,
 //!    its direction and its best-fitting Gaussian), saturation neighbourhoods ([`saturation`]: blooming
-//!    plateau and halo, smear column/row profiles, lens_flare ghosts on the source–centre line),
+//!    plateau and halo, smear column/row profiles), lens_flare ghost plateaus on the source–centre
+//!    line ([`flare`]),
 //!    fixed pattern and noise structure ([`fixed`]: prnu by cross-frame covariance, hot pixels
 //!    by recurrence, row noise by split-half covariance), JPEG by the DCT quantisation lattice
 //!    ([`jpeg`]) and camera noise (variance against signal, [`noise`]).
@@ -34,7 +35,7 @@
 //!    [`common`] ([`Masks`](common::Masks), [`NoiseModel`](common::NoiseModel),
 //!    [`params_from_signature`](common::params_from_signature)) imports `types`, `img`, `stats`;
 //!    [`plot`] imports `types`, `img`.
-//! 2. **Signatures** — [`edges`], [`fixed`], [`glare`], [`jpeg`], [`moments`], [`noise`],
+//! 2. **Signatures** — [`edges`], [`fixed`], [`flare`], [`glare`], [`jpeg`], [`moments`], [`noise`],
 //!    [`photometric`], [`psf`], [`saturation`], [`tone`], [`levelmap`] and every new file not named below: they import
 //!    only `types`, `img`, `stats` and `common`, never each other nor an orchestrator. A new
 //!    signature is one new file; only the orchestrators import it.
@@ -47,6 +48,8 @@ pub mod common;
 pub mod edges;
 pub mod fit;
 pub mod fixed;
+/// Lens flare: matched search for ghost plateaus on the line from the brightest source through the centre.
+pub mod flare;
 /// Veiling glare: signature (sky level against the lit scene convolved with the PSF) and fit.
 pub mod glare;
 pub mod img;

@@ -660,6 +660,10 @@ pub enum Hidden {
     /// round ghosts with logistic edges, placed, sized and levelled by [`flare_layout`]; source =
     /// centroid of the largest saturated blob of the irradiance.
     LensFlare { ghosts: usize, intensity: f64 },
+    /// Lens flare with a bladed iris (h26flare): `ghosts` regular polygons of `sides` sides with a
+    /// raised-cosine edge, placed, sized and levelled by [`polygon_flare_layout`]; source as for
+    /// [`Hidden::LensFlare`].
+    PolygonFlare { ghosts: usize, intensity: f64, sides: usize },
 }
 
 impl Hidden {
@@ -681,7 +685,7 @@ impl Hidden {
             Hidden::Blooming { .. } => "blooming",
             Hidden::HotPixels { .. } => "hot_pixels",
             Hidden::GainOffset { .. } => "gain_offset",
-            Hidden::LensFlare { .. } => "lens_flare",
+            Hidden::LensFlare { .. } | Hidden::PolygonFlare { .. } => "lens_flare",
         }
     }
 
@@ -709,7 +713,9 @@ impl Hidden {
             }
             Hidden::HotPixels { rate } => vec![("rate", rate)],
             Hidden::GainOffset { gain, offset_dn } => vec![("gain", gain), ("offset_dn", offset_dn)],
-            Hidden::LensFlare { ghosts, intensity } => vec![("ghosts", ghosts as f64), ("intensity", intensity)],
+            Hidden::LensFlare { ghosts, intensity } | Hidden::PolygonFlare { ghosts, intensity, .. } => {
+                vec![("ghosts", ghosts as f64), ("intensity", intensity)]
+            }
         }
     }
 
@@ -763,6 +769,9 @@ impl Hidden {
             Hidden::LensFlare { .. } => {
                 "logistic-edged round ghosts on the source-centre line, plateaus with mean intensity*FS".into()
             }
+            Hidden::PolygonFlare { sides, .. } => format!(
+                "regular {sides}-gons with raised-cosine edges on the source-centre line, plateaus with mean intensity*FS"
+            ),
         }
     }
 }
@@ -1152,6 +1161,7 @@ pub struct FixedPattern {
     kernel: Option<(Vec<f64>, usize)>,
     streak: Option<(Vec<f64>, usize)>,
     flare: Option<Vec<FlareGhost>>,
+    poly_flare: Option<Vec<PolyGhost>>,
 }
 
 impl FixedPattern {
@@ -1164,6 +1174,7 @@ impl FixedPattern {
             kernel: None,
             streak: None,
             flare: None,
+            poly_flare: None,
         };
         let mut r = Prng::new(seed ^ 0xf1c5ed);
         for hd in hidden {
@@ -1193,6 +1204,9 @@ impl FixedPattern {
                 Hidden::MotionBlur { length_px, angle_deg } => fp.streak = Some(streak_kernel(length_px, angle_deg)),
                 Hidden::LensFlare { ghosts, intensity } => {
                     fp.flare = Some(flare_layout(ghosts, intensity, w, h, seed ^ 0xf1a2e));
+                }
+                Hidden::PolygonFlare { ghosts, intensity, sides } => {
+                    fp.poly_flare = Some(polygon_flare_layout(ghosts, intensity, sides, w, h, seed ^ 0x6e7a9));
                 }
                 Hidden::HotPixels { rate } => {
                     let mut m = vec![0.0; w * h * c];
@@ -1348,6 +1362,11 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
                 }
             }
         }
+    }
+    if let Some(ghosts) = &fp.poly_flare
+        && let Some((sx, sy)) = brightest_blob(&irr)
+    {
+        add_polygon_ghosts(&mut irr, ghosts, sx, sy);
     }
     for hd in hidden {
         if let Hidden::VeilingGlare { fraction, core_px, beta } = *hd {
@@ -1559,6 +1578,8 @@ pub struct Case {
     pub wedge: bool,
     /// A lamp-lit lab wall ([`Scene::lamp`]).
     pub lamp: bool,
+    /// Another scene than the spacecraft (h26flare: star field, docking target).
+    pub alt_scene: Option<AltScene>,
 }
 
 impl Case {
@@ -1650,14 +1671,17 @@ impl Case {
             "width": self.w,
             "height": self.h,
             "seed": self.seed,
-            "backdrop": match (self.lab, self.earth, self.wedge) {
-                (true, _, true) if self.lamp => "lamp-lit lab with step wedge",
-                (true, _, false) if self.lamp => "lamp-lit lab",
-                (true, _, true) => "lab with step wedge",
-                (true, _, false) => "lab",
-                (false, true, _) => "earth",
-                (false, false, _) => "space",
+            "backdrop": match (self.alt_scene, self.lab, self.earth, self.wedge) {
+                (Some(AltScene::StarField { .. }), ..) => "star field",
+                (Some(AltScene::Docking { .. }), ..) => "docking target",
+                (None, true, _, true) if self.lamp => "lamp-lit lab with step wedge",
+                (None, true, _, false) if self.lamp => "lamp-lit lab",
+                (None, true, _, true) => "lab with step wedge",
+                (None, true, _, false) => "lab",
+                (None, false, true, _) => "earth",
+                (None, false, false, _) => "space",
             },
+            "adc_bits": self.camera.adc_bits,
             "unpaired_real_scene_seed": self.real_scene_seed,
             "glint_exposure_fs": self.glint_exposure,
             "camera": {
@@ -1688,13 +1712,19 @@ impl Case {
         let real_scene = self.real_scene_seed.map(|s| self.scene(s));
         let fp = FixedPattern::new(self.w, self.h, self.fmt.channels(), &self.hidden, self.seed);
         let base = Prng::new(self.seed ^ 0xca3e7a);
+        let step = adc_step(self.camera.adc_bits);
         for i in 0..self.frames {
-            let sim = scene.render(i, self.frames, self.fmt);
             let mut rng = base.fork(i as u64);
-            // Unpaired: the real camera looks at another scene, in reverse pose order.
-            let real_in = match &real_scene {
-                Some(rs) => rs.render_irradiance(self.frames - 1 - i, self.frames, self.fmt),
-                None => scene.render_irradiance(i, self.frames, self.fmt),
+            let (sim, real_in) = match self.alt_scene {
+                Some(alt) => alt_frame(alt, self.w, self.h, self.seed, i, self.frames, step),
+                None => {
+                    // Unpaired: the real camera looks at another scene, in reverse pose order.
+                    let real_in = match &real_scene {
+                        Some(rs) => rs.render_irradiance(self.frames - 1 - i, self.frames, self.fmt),
+                        None => scene.render_irradiance(i, self.frames, self.fmt),
+                    };
+                    (scene.render(i, self.frames, self.fmt), real_in)
+                }
             };
             let real = expose(&real_in, &self.camera, &self.hidden, &fp, &mut rng);
             let name = format!("frame_{i:02}.png");
@@ -1723,6 +1753,7 @@ fn case(name: &str, fmt: Fmt, seed: u64, earth: bool, gain: f64, read: f64, hidd
         sun: None,
         wedge: false,
         lamp: false,
+        alt_scene: None,
     }
 }
 
@@ -1740,7 +1771,7 @@ fn unpaired(name: &str, fmt: Fmt, seed: u64, earth: bool, gain: f64, read: f64, 
 pub fn corpus() -> Vec<Case> {
     use Fmt::{Mono8, Rgb8};
     use Hidden::*;
-    vec![
+    let mut v = vec![
         // Negative controls: camera noise only.
         case("neg_mono_a", Mono8, 101, true, 6.0, 1.5, vec![]),
         case("neg_rgb_b", Rgb8, 102, true, 4.0, 2.0, vec![]),
@@ -1949,10 +1980,10 @@ pub fn corpus() -> Vec<Case> {
         .with_sun(0.15, 0.8, 0.03)
         .sized(320, 240, 4),
         // ---- end h26blur ----
-    ]
-    .into_iter()
-    .chain(tone_cases_h26())
-    .collect()
+    ];
+    v.extend(tone_cases_h26());
+    v.extend(h26flare_cases());
+    v
 }
 
 // ---- h26tone: tone curves, gain/offset, dark level and stray light side by side ----------------
@@ -2087,6 +2118,346 @@ pub fn resized(mut c: Case, size: Option<(usize, usize)>, frames: Option<usize>)
 /// negative control and one unpaired effect case.
 pub fn subset_names() -> &'static [&'static str] {
     &["neg_mono_a", "vignetting_mono", "channel_shift_rgb"]
+}
+
+// =============================================================================================
+// h26flare: star field and docking-target scenes, polygon lens-flare ghosts, b-bit ADC data
+// =============================================================================================
+
+/// A scene other than the spacecraft mock-up (h26flare).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum AltScene {
+    /// Flat dark sky (2.5 DN) with `stars` point sources (Gaussian core σ 0.9 px plus 3 % of the
+    /// flux in a σ 3.5 px wing, integrated over the pixel area) and one flare source at
+    /// (`src_x`, `src_y`) (fractions of width and height): a very bright star (`sun` false,
+    /// saturated to a radius of about 4 px) or a sun-like disc of radius 7 px at 20·FS with a
+    /// corona (`sun` true). The field drifts by (1.3, −0.8) px per frame.
+    StarField { stars: usize, src_x: f64, src_y: f64, sun: bool },
+    /// A docking target: dark space, a grey textured plate with high-contrast fiducials (four
+    /// white corner discs and a white cross in a black square, at `white` DN) and saturated
+    /// specular spots (an elliptical glint and, with `retro`, a small round retro-reflector, at
+    /// FS). It drifts and rolls slowly.
+    Docking { white: f64, retro: bool },
+}
+
+/// ADC step in 8-bit DN of `bits`-bit data.
+pub fn adc_step(bits: u32) -> f64 {
+    FS / ((1u64 << bits.clamp(8, 16)) - 1) as f64
+}
+
+/// Error function (Abramowitz–Stegun 7.1.26, |error| < 1.5e-7).
+fn erf_as(x: f64) -> f64 {
+    let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
+    let y = 1.0
+        - t * (0.254_829_592 + t * (-0.284_496_736 + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))))
+            * (-x * x).exp();
+    if x >= 0.0 { y } else { -y }
+}
+
+/// Share of a 1-D Gaussian (centre `m`, std `s`) falling in the pixel [x, x+1).
+fn gauss_cell(x: f64, m: f64, s: f64) -> f64 {
+    let k = 1.0 / (s * std::f64::consts::SQRT_2);
+    0.5 * (erf_as((x + 1.0 - m) * k) - erf_as((x - m) * k))
+}
+
+/// Add a star of total flux `flux` (DN·px) at (`sx`, `sy`) (pixel-edge coordinates): 97 % in a
+/// Gaussian of σ 0.9 px, 3 % in a wing of σ 3.5 px, pixel-area integrated.
+fn add_star(img: &mut Img, sx: f64, sy: f64, flux: f64) {
+    let reach = if flux > 2e4 { 22 } else { 12 } as isize;
+    let (ix, iy) = (sx.floor() as isize, sy.floor() as isize);
+    for y in (iy - reach).max(0)..(iy + reach + 1).min(img.h as isize) {
+        for x in (ix - reach).max(0)..(ix + reach + 1).min(img.w as isize) {
+            let (xf, yf) = (x as f64, y as f64);
+            let core = gauss_cell(xf, sx, 0.9) * gauss_cell(yf, sy, 0.9);
+            let wing = gauss_cell(xf, sx, 3.5) * gauss_cell(yf, sy, 3.5);
+            let v = img.at(x as usize, y as usize, 0) + flux * (0.97 * core + 0.03 * wing);
+            img.set(x as usize, y as usize, 0, v);
+        }
+    }
+}
+
+/// Irradiance (8-bit DN, unclipped, mono) of frame `i` of `n` of a star field.
+#[allow(clippy::too_many_arguments)]
+fn star_field_irradiance(
+    w: usize,
+    h: usize,
+    seed: u64,
+    stars: usize,
+    src: (f64, f64),
+    sun: bool,
+    i: usize,
+    n: usize,
+) -> Img {
+    let mut r = Prng::new(seed ^ 0x57a2f1e1d);
+    let t = i as f64 - (n.max(1) - 1) as f64 / 2.0;
+    let (ox, oy) = (1.3 * t, -0.8 * t);
+    let mut img = Img::new(w, h, 1);
+    img.v.iter_mut().for_each(|v| *v = 2.5);
+    for _ in 0..stars {
+        let (x, y) = (r.range(-8.0, w as f64 + 8.0), r.range(-8.0, h as f64 + 8.0));
+        // Peak brightness Pareto-distributed from 10 DN (about 4 % of the stars saturate),
+        // capped at 5000 DN (saturated to a radius of about 2 px).
+        let peak = (10.0 / r.unif().max(1e-9)).min(5000.0);
+        let flux = peak * 2.0 * std::f64::consts::PI * 0.81 / 0.97;
+        add_star(&mut img, x + ox, y + oy, flux);
+    }
+    let (sx, sy) = (src.0 * w as f64 + ox, src.1 * h as f64 + oy);
+    if sun {
+        // A sun-like disc of radius 7 px at 20·FS (3x3 supersampled) with a corona.
+        let rad = 7.0;
+        for y in 0..h {
+            for x in 0..w {
+                let (dx, dy) = (x as f64 + 0.5 - sx, y as f64 + 0.5 - sy);
+                let d = (dx * dx + dy * dy).sqrt();
+                if d > rad + 40.0 {
+                    continue;
+                }
+                let mut acc = 0.0;
+                for j in 0..3 {
+                    for k in 0..3 {
+                        let (px, py) = (x as f64 + (k as f64 + 0.5) / 3.0 - sx, y as f64 + (j as f64 + 0.5) / 3.0 - sy);
+                        let dd = (px * px + py * py).sqrt();
+                        acc += if dd <= rad { 20.0 * FS } else { 180.0 * (-(dd - rad) / 3.0).exp() };
+                    }
+                }
+                let v = img.at(x, y, 0) + acc / 9.0;
+                img.set(x, y, 0, v);
+            }
+        }
+    } else {
+        add_star(&mut img, sx, sy, 1.0e6);
+    }
+    img
+}
+
+/// Irradiance (8-bit DN, unclipped, mono) of frame `i` of `n` of the docking target.
+fn docking_irradiance(w: usize, h: usize, seed: u64, white: f64, with_retro: bool, i: usize, n: usize) -> Img {
+    let mut r = Prng::new(seed ^ 0xd0c4);
+    let t = i as f64 - (n.max(1) - 1) as f64 / 2.0;
+    let (pcx, pcy) = (w as f64 * r.range(0.45, 0.55) + 1.0 * t, h as f64 * r.range(0.45, 0.52) + 0.6 * t);
+    let roll = r.range(-0.15, 0.15) + 0.01 * t;
+    let half = 0.32 * h as f64;
+    let plate = r.range(55.0, 75.0);
+    let (s, c) = roll.sin_cos();
+    let disc_r = 0.035 * h as f64;
+    let (ga, gb) = (r.range(2.0, 2.6), r.range(4.5, 5.5));
+    let glint = (r.range(-0.5, 0.5) * half, -0.75 * half);
+    let retro = (0.55 * half, 0.55 * half);
+    let shade = |x: f64, y: f64| -> f64 {
+        let (dx, dy) = (x - pcx, y - pcy);
+        let (lx, ly) = (c * dx + s * dy, -s * dx + c * dy);
+        let mut v = 3.0;
+        if lx.abs() <= half && ly.abs() <= half {
+            v = plate * (0.9 + 0.2 * value_noise(lx / 7.0, ly / 7.0, seed ^ 0x91a7e));
+            for (qx, qy) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {
+                let (fx, fy) = (qx * 0.78 * half, qy * 0.78 * half);
+                if ((lx - fx).powi(2) + (ly - fy).powi(2)).sqrt() <= disc_r {
+                    v = white;
+                }
+            }
+            if lx.abs() <= 0.3 * half && ly.abs() <= 0.3 * half {
+                v = if lx.abs() <= 1.5 || ly.abs() <= 1.5 { white } else { 6.0 };
+            }
+        }
+        // Specular glint (screen-aligned ellipse) and a retro-reflector, both at FS.
+        let e = ((lx - glint.0) / ga).powi(2) + ((ly - glint.1) / gb).powi(2);
+        if e <= 1.0 {
+            v = FS;
+        } else {
+            v = v.max(150.0 * (-(e.sqrt() - 1.0) * 1.6).exp());
+        }
+        let d = ((lx - retro.0).powi(2) + (ly - retro.1).powi(2)).sqrt();
+        if with_retro && d <= 3.6 {
+            v = FS;
+        }
+        v
+    };
+    let mut img = Img::new(w, h, 1);
+    for y in 0..h {
+        for x in 0..w {
+            let mut acc = 0.0;
+            for j in 0..3 {
+                for k in 0..3 {
+                    acc += shade(x as f64 + (k as f64 + 0.5) / 3.0, y as f64 + (j as f64 + 0.5) / 3.0);
+                }
+            }
+            img.set(x, y, 0, acc / 9.0);
+        }
+    }
+    img
+}
+
+/// Sim frame and real irradiance of frame `i` of `n` of an alternative scene, both quantised to
+/// the ADC step `step`; the sim is clipped at FS, the irradiance is not.
+pub fn alt_frame(alt: AltScene, w: usize, h: usize, seed: u64, i: usize, n: usize, step: f64) -> (Img, Img) {
+    let mut irr = match alt {
+        AltScene::StarField { stars, src_x, src_y, sun } => {
+            star_field_irradiance(w, h, seed, stars, (src_x, src_y), sun, i, n)
+        }
+        AltScene::Docking { white, retro } => docking_irradiance(w, h, seed, white, retro, i, n),
+    };
+    irr.v.iter_mut().for_each(|v| *v = ((*v / step).round() * step).max(0.0));
+    let mut sim = irr.clone();
+    sim.v.iter_mut().for_each(|v| *v = v.min(FS));
+    (sim, irr)
+}
+
+impl Case {
+    /// Sim frame `i` as written (8-bit DN values on the ADC's step).
+    pub fn sim_frame(&self, i: usize) -> Img {
+        match self.alt_scene {
+            Some(alt) => alt_frame(alt, self.w, self.h, self.seed, i, self.frames, adc_step(self.camera.adc_bits)).0,
+            None => self.scene(self.seed).render(i, self.frames, self.fmt),
+        }
+    }
+
+    /// Same case on another scene.
+    pub fn on(mut self, alt: AltScene) -> Self {
+        self.alt_scene = Some(alt);
+        self
+    }
+
+    /// Same case written as `bits`-bit data (16-bit PNG by bit replication).
+    pub fn adc(self, bits: u32) -> Self {
+        self.adc_bits(bits)
+    }
+}
+
+/// One polygonal ghost: position along the source–centre line as `t` (centre 0, source 1),
+/// circumradius (px), rotation (rad), full width of the raised-cosine edge (px), plateau (DN).
+#[derive(Clone, Copy, Debug)]
+pub struct PolyGhost {
+    pub t: f64,
+    pub radius: f64,
+    pub rot: f64,
+    pub edge: f64,
+    pub level: f64,
+    pub sides: usize,
+}
+
+/// realcam's polygon ghost layout: ghost k at t = 0.6 − 1.9·(k + 0.5)/n ± 0.08, circumradius
+/// 2.5–4.5 % of the diagonal, edge width 1.5 px + 10 % of the radius, relative level uniform in
+/// [0.5, 1.5] normalised so the plateaus average exactly `intensity`·FS, one rotation per ghost.
+pub fn polygon_flare_layout(n: usize, intensity: f64, sides: usize, w: usize, h: usize, seed: u64) -> Vec<PolyGhost> {
+    let mut r = Prng::new(seed);
+    let diag = ((w * w + h * h) as f64).sqrt();
+    let mut g: Vec<PolyGhost> = (0..n)
+        .map(|k| {
+            let t = 0.6 - 1.9 * (k as f64 + 0.5) / n as f64 + r.range(-0.08, 0.08);
+            let radius = diag * r.range(0.025, 0.045);
+            let rot = r.range(0.0, std::f64::consts::TAU / sides.max(3) as f64);
+            PolyGhost { t, radius, rot, edge: 1.5 + 0.1 * radius, level: r.range(0.5, 1.5), sides: sides.max(3) }
+        })
+        .collect();
+    let mean = g.iter().map(|x| x.level).sum::<f64>() / n.max(1) as f64;
+    for x in g.iter_mut() {
+        x.level *= intensity * FS / mean;
+    }
+    g
+}
+
+/// Signed distance (px, negative inside) from (`dx`, `dy`) (relative to the centre) to a
+/// regular polygon's edges: the largest projection on the edge normals minus the apothem.
+fn polygon_distance(dx: f64, dy: f64, g: &PolyGhost) -> f64 {
+    let n = g.sides as f64;
+    let apothem = g.radius * (std::f64::consts::PI / n).cos();
+    (0..g.sides)
+        .map(|k| {
+            let a = g.rot + (k as f64 + 0.5) * std::f64::consts::TAU / n;
+            dx * a.cos() + dy * a.sin()
+        })
+        .fold(f64::NEG_INFINITY, f64::max)
+        - apothem
+}
+
+/// Add polygonal ghosts (coverage 1 inside, a raised-cosine ramp across the edge, 3x3 samples
+/// per pixel) for a source at (`sx`, `sy`) to a mono or colour irradiance image.
+pub fn add_polygon_ghosts(irr: &mut Img, ghosts: &[PolyGhost], sx: f64, sy: f64) {
+    let (w, h, c) = (irr.w, irr.h, irr.c);
+    let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+    for g in ghosts {
+        let (gx, gy) = (cx + g.t * (sx - cx), cy + g.t * (sy - cy));
+        let reach = g.radius + g.edge + 2.0;
+        let (x0, x1) = ((gx - reach).floor().max(0.0) as usize, ((gx + reach).ceil().max(0.0) as usize).min(w));
+        let (y0, y1) = ((gy - reach).floor().max(0.0) as usize, ((gy + reach).ceil().max(0.0) as usize).min(h));
+        for y in y0..y1 {
+            for x in x0..x1 {
+                let mut a = 0.0;
+                for j in 0..3 {
+                    for k in 0..3 {
+                        let d = polygon_distance(
+                            x as f64 + (k as f64 - 1.0) / 3.0 - gx,
+                            y as f64 + (j as f64 - 1.0) / 3.0 - gy,
+                            g,
+                        );
+                        let u = (d / g.edge).clamp(-0.5, 0.5);
+                        a += 0.5 * (1.0 - (std::f64::consts::PI * u).sin());
+                    }
+                }
+                a /= 9.0;
+                for ch in 0..c {
+                    let v = irr.at(x, y, ch);
+                    irr.set(x, y, ch, v + a * g.level);
+                }
+            }
+        }
+    }
+}
+
+fn h26_case(name: &str, seed: u64, gain: f64, read: f64, hidden: Vec<Hidden>) -> Case {
+    case(name, Fmt::Mono8, seed, false, gain, read, hidden).sized(320, 240, 4)
+}
+
+/// h26flare cases: lens flare on star fields (hexagonal soft-edged ghosts, 10- and 12-bit data,
+/// one with a dark level too), a star field with a saturated star and no flare, and blooming
+/// hidden with frame-transfer smear on a docking target.
+pub fn h26flare_cases() -> Vec<Case> {
+    use Hidden::*;
+    let stars = |src_x, src_y, sun| AltScene::StarField { stars: 400, src_x, src_y, sun };
+    vec![
+        h26_case("flare_stars_mono10", 501, 5.0, 1.6, vec![PolygonFlare { ghosts: 4, intensity: 0.007, sides: 6 }])
+            .on(stars(0.2, 0.25, false))
+            .adc(10)
+            .sized(640, 400, 4),
+        h26_case(
+            "flare_sun_dark_mono12",
+            502,
+            6.0,
+            1.4,
+            vec![PolygonFlare { ghosts: 3, intensity: 0.01, sides: 6 }, DarkCurrent { mean_dn: 2.0, hot_rate: 0.0 }],
+        )
+        .on(stars(0.8, 0.22, true))
+        .adc(12)
+        .sized(640, 400, 4),
+        h26_case("neg_stars_mono10", 503, 5.0, 1.6, vec![]).on(stars(0.75, 0.7, false)).adc(10),
+        h26_case(
+            "blooming_smear_docking_mono",
+            504,
+            6.0,
+            1.5,
+            vec![Blooming { full_well: 0.93, decay_px: 1.0 }, Smear { strength: 0.0012, vertical: true }],
+        )
+        .on(AltScene::Docking { white: 228.0, retro: true }),
+        // Fiducials brighter than the full well (their charge spills in the real camera while
+        // the sim shows them unsaturated) and a single small glint.
+        h26_case(
+            "blooming_smear_bright_docking_mono",
+            505,
+            6.0,
+            1.5,
+            vec![Blooming { full_well: 0.92, decay_px: 1.0 }, Smear { strength: 0.0012, vertical: true }],
+        )
+        .on(AltScene::Docking { white: 242.0, retro: false }),
+        // Only one small glint saturates: few saturated cores to read the well on.
+        h26_case(
+            "blooming_smear_glint_docking_mono",
+            506,
+            6.0,
+            1.5,
+            vec![Blooming { full_well: 0.94, decay_px: 1.0 }, Smear { strength: 0.0012, vertical: true }],
+        )
+        .on(AltScene::Docking { white: 228.0, retro: false }),
+    ]
 }
 
 // ---------------------------------------------------------------------------------------------

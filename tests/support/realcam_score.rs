@@ -322,8 +322,7 @@ pub fn run_case(case: &Case, root: &Path, faultcam: &Path) -> CaseScore {
 /// Size of the hidden signal against the noise for a case, measured on frame 0: RMS and max |Δ|
 /// of the noise-free real-minus-sim difference, and the RMS camera noise over the same image.
 pub fn effect_visibility(case: &Case) -> (f64, f64, f64) {
-    let scene = case.scene(case.seed);
-    let sim = scene.render(0, case.frames, case.fmt);
+    let sim = case.sim_frame(0);
     // Noise-free exposure: enormous gain (no shot noise), no read noise, no per-frame row noise.
     let cam = crate::realcam::Camera { gain_e_per_dn: 1e9, read_sigma_dn: 0.0, adc_bits: case.camera.adc_bits };
     let hidden: Vec<Hidden> = case
