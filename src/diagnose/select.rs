@@ -3,10 +3,7 @@
 //! The sim frames are pushed through the library's effects (`faults::create`, `Effect::apply`) in
 //! physical order, and the output is compared with the real frames by a robust likelihood:
 //! Huber (δ = 3) on the residual standardised by the noise model where real is inside (0, FS),
-//! plus the density's normalisation ln σ (so every term is a negative log-probability and a model
-//! cannot gain by predicting more noise), the exact Poisson–Gaussian probability of the rounded
-//! value at up to [`PG_MAX_ELECTRONS`] photo-electrons (8-bit data), the interval-censored
-//! likelihood where real is clipped. The fit works on 16-bit copies
+//! the interval-censored normal likelihood where real is clipped. The fit works on 16-bit copies
 //! of the sim (one Mono16 frame per channel), so that the library's rounding happens at 1/257 DN
 //! and the loss is smooth in every parameter; `channel_shift`, which needs the three planes of a
 //! colour frame together, runs on an Rgb8 frame assembled from them.
@@ -32,7 +29,6 @@ use super::{DiagnoseError, levelmap, stats, tone};
 use crate::faults::{self, Effect, EffectCtx, ParamKind, Params, Scale, Stage, registry};
 use crate::frame::{Frame, FrameData, PixelFormat};
 use rayon::prelude::*;
-use std::f64::consts::LN_2;
 
 /// Effects fitted by pixel loss, in physical order.
 pub const DETERMINISTIC: &[&str] = &[
@@ -433,54 +429,6 @@ struct LossTables {
     /// `first[r] .. first[r] + rows[r].len()`; empty when the data are not 8-bit.
     interval_first: Vec<usize>,
     interval_rows: Vec<Vec<f64>>,
-    /// ln sd of each level (the normalisation of the Gaussian density; see [`eval_plane`]).
-    ln_sd: Vec<f64>,
-    /// 8-bit real data with shot noise: for the levels of at most [`PG_MAX_ELECTRONS`]
-    /// photo-electrons (levels `0..pg_rows.len()`), the loss of real value `r` for `r` in
-    /// `pg_first[v] .. pg_first[v] + pg_rows[v].len()` from the exact Poisson–Gaussian probability
-    /// of the rounded, clipped value ([`pg_row`]); index 0 of a row starting at 0 is the clipped
-    /// value (real <= 0).
-    pg_first: Vec<usize>,
-    pg_rows: Vec<Vec<f64>>,
-}
-
-/// Photo-electrons up to which the loss takes the exact Poisson–Gaussian probability of a
-/// rounded value instead of its Gaussian approximation. At a few electrons the Poisson skew
-/// moves the level that a Gaussian likelihood prefers by a fraction of a DN (at 12 electrons,
-/// about 0.1 DN up); summed over the millions of dark pixels of a large frame, that bias
-/// outweighs a real effect (a 12 % cos⁴ vignetting on a 1920x1200 frame of dark sky lost to a
-/// plain gain and offset). Above this the skew (1/√λ ≤ 0.13) is left to the Gaussian form.
-const PG_MAX_ELECTRONS: f64 = 60.0;
-
-/// Losses `-ln P(real = r) + ln(q/√(2π))` (r >= 1) and `-ln P(real <= 0)` (r = 0) of 8-bit real
-/// values `r_lo..=r_hi` for the noise-free level `m` (DN): photo-electrons k ~ Poisson(m / b),
-/// each worth `b` DN, plus Gaussian read noise of variance `read_var`, rounded to integers and
-/// clipped at 0.
-fn pg_row(m: f64, b: f64, read_var: f64, r_lo: usize, r_hi: usize) -> Vec<f64> {
-    let lam = (m / b).max(0.0);
-    let s = read_var.max(0.02).sqrt();
-    let k_hi = (lam + 10.0 * lam.sqrt() + 12.0).ceil() as usize;
-    let k_lo = (lam - 10.0 * lam.sqrt() - 2.0).floor().max(0.0) as usize;
-    // P(x < t) for x = k b + n, at the boundaries t = r ± ½.
-    let ln_pk = |k: usize| {
-        if lam <= 0.0 {
-            if k == 0 { 0.0 } else { f64::NEG_INFINITY }
-        } else {
-            k as f64 * lam.ln() - lam - crate::rng::ln_gamma(k as f64 + 1.0)
-        }
-    };
-    let pk: Vec<(f64, f64)> = (k_lo..=k_hi).map(|k| (k as f64 * b, ln_pk(k).exp())).collect();
-    let cdf = |t: f64| pk.iter().map(|&(v, p)| p * stats::norm_cdf((t - v) / s)).sum::<f64>();
-    let shift = (1.0 / (2.0 * std::f64::consts::PI).sqrt()).ln();
-    let mut below = cdf(r_lo as f64 - 0.5);
-    (r_lo..=r_hi)
-        .map(|r| {
-            let above = cdf(r as f64 + 0.5);
-            let l = if r == 0 { -above.max(1e-300).ln() } else { -(above - below).max(1e-300).ln() + shift };
-            below = above;
-            l
-        })
-        .collect()
 }
 
 const LEVELS: usize = 65536;
@@ -519,37 +467,7 @@ impl LossTables {
                 interval_rows.push((lo..=hi).map(|v| interval(rv, level[v] as f64, sd[v], q)).collect());
             }
         }
-        let ln_sd: Vec<f64> = sd.iter().map(|s| s.ln()).collect();
-        let (mut pg_first, mut pg_rows) = (Vec::new(), Vec::new());
-        if q == 1.0 && noise.b > 1e-3 {
-            let n = level.iter().take_while(|&&m| (m as f64) / noise.b <= PG_MAX_ELECTRONS).count();
-            let rows: Vec<(usize, Vec<f64>)> = (0..n)
-                .into_par_iter()
-                .map(|v| {
-                    let m = level[v] as f64;
-                    let r_lo = (m - 4.0 * sd[v]).floor().max(0.0) as usize;
-                    let r_hi = ((m + 5.0 * sd[v]).ceil() as usize).min(254);
-                    (r_lo, pg_row(m, noise.b, noise.a + noise.c * m * m, r_lo, r_hi))
-                })
-                .collect();
-            for (f, r) in rows {
-                pg_first.push(f);
-                pg_rows.push(r);
-            }
-        }
-        LossTables { level, sd, low, high, interval_first, interval_rows, ln_sd, pg_first, pg_rows }
-    }
-
-    /// Exact Poisson–Gaussian loss of real value `r` (integer, 0 = clipped low) at level `v`.
-    #[inline]
-    fn pg_at(&self, r: f64, v: usize) -> Option<f64> {
-        let row = self.pg_rows.get(v)?;
-        let ri = r as usize;
-        let first = self.pg_first[v];
-        if ri < first || ri as f64 != r {
-            return None;
-        }
-        row.get(ri - first).copied()
+        LossTables { level, sd, low, high, interval_first, interval_rows }
     }
 
     /// Level index of a model value, if it is a tabulated level.
@@ -682,10 +600,7 @@ impl LossData<'_> {
                 // that clipping at 0 in dark regions does not bias them.
                 let l = if rv <= 0.0 {
                     let (l, g) = match lv {
-                        Some(v) => {
-                            let (l, g) = tab.low[v];
-                            (tab.pg_at(0.0, v).map_or(l, |p| p.min(l + LN_2)), g)
-                        }
+                        Some(v) => tab.low[v],
                         None => low_term(m, sd, q),
                     };
                     bs[b] += g;
@@ -703,30 +618,16 @@ impl LossData<'_> {
                     let z = (rv - m) / sd;
                     bs[b] += z.clamp(-4.0, 4.0);
                     bc[b] += 1;
-                    // Every term is a negative log-probability of the observed value (up to a
-                    // constant): the Gaussian density's normalisation ln sd is part of it, or a
-                    // model would gain by raising the noise it predicts (a bias of about
-                    // b/2 DN towards brighter levels under shot noise).
-                    let ln_sd = match lv {
-                        Some(v) => tab.ln_sd[v],
-                        None => sd.ln(),
-                    };
-                    let gauss = if (rv < 3.0 * sd || rv > fs - 3.0 * sd) && z.abs() <= 3.0 {
+                    if (rv < 3.0 * sd || rv > fs - 3.0 * sd) && z.abs() <= 3.0 {
                         // Near a clipping bound the rounding interval matters: the exact
                         // probability of the rounded value (consistent with the censored
-                        // likelihood of the clipped ones).
+                        // likelihood of the clipped ones), expressed on the scale of ½z².
                         match lv.and_then(|v| tab.interval_at(rv, v)) {
                             Some(l) => l,
                             None => interval(rv, m, sd, q),
                         }
                     } else {
-                        huber(z) + ln_sd
-                    };
-                    // At a few photo-electrons: the exact Poisson–Gaussian probability (robust
-                    // like the Huber form beyond it).
-                    match lv.and_then(|v| tab.pg_at(rv, v)) {
-                        Some(p) => p.min(huber(z) + ln_sd + LN_2),
-                        None => gauss,
+                        huber(z)
                     }
                 };
                 total += l;
@@ -755,7 +656,7 @@ fn huber(z: f64) -> f64 {
 fn interval(r: f64, m: f64, sd: f64, q: f64) -> f64 {
     let sd_c = (sd * sd - q * q / 12.0).max(0.01 * sd * sd).sqrt();
     let p = stats::norm_cdf((r + 0.5 * q - m) / sd_c) - stats::norm_cdf((r - 0.5 * q - m) / sd_c);
-    -p.max(1e-300).ln() + (q / (2.0 * std::f64::consts::PI).sqrt()).ln()
+    -p.max(1e-300).ln() + (q / (sd * (2.0 * std::f64::consts::PI).sqrt())).ln()
 }
 
 /// Loss of a value clipped at a bound when the model is `t` noise sigmas inside the bound
