@@ -6,7 +6,7 @@
 
 #[cfg(test)]
 use super::img::Pair;
-use super::img::{FS, Plane, distance_transform};
+use super::img::{FS, Plane, SAT_DN, distance_transform};
 use super::stats;
 use super::types::Signature;
 use crate::faults::{ParamKind, Params, registry};
@@ -54,7 +54,7 @@ impl Masks {
                     let g = 0.5 * ((r - l).abs() + (d - u).abs());
                     grad.data[i] = grad.data[i].max(g);
                     lap.data[i] = lap.data[i].max((l + r + u + d - 4.0 * c).abs());
-                    if c >= 254.5 {
+                    if c >= SAT_DN {
                         sat[i] = true;
                     }
                 }

@@ -13,6 +13,14 @@ use std::path::{Path, PathBuf};
 /// Full scale of the analysis unit.
 pub const FS: f32 = 255.0;
 
+/// A sample at or above this level (8-bit DN) is at the top code of its data: saturated. Half a
+/// 16-bit step below FS, so that it holds at every ADC depth read here (8-, 10-, 12-bit data by
+/// bit replication and plain 16-bit data all put their top code at FS exactly, and their next
+/// code at least 1/257 DN lower). A 10-bit code one below the top (254.75 DN) is not saturated:
+/// counting it as such (a threshold of FS − 0.5 for every depth) takes the bright rim of a
+/// saturated spot, or a near-saturated feature, for saturation.
+pub const SAT_DN: f32 = FS - 0.5 / 257.0;
+
 /// One channel, row-major, packed.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Plane {

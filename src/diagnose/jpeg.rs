@@ -8,7 +8,7 @@
 //! a grid shifted by (4, 4) is the control: the lattice exists only on the true grid. The quality
 //! is the libjpeg quality whose scaled standard luminance table maximises the aligned score.
 
-use super::img::{Pair, Plane};
+use super::img::{Pair, Plane, SAT_DN};
 use super::types::{Profile, Signature};
 
 /// The standard JPEG luminance quantisation table (ITU T.81 Annex K), natural order.
@@ -93,7 +93,7 @@ fn coefficient_hist(images: &[&[Plane]], off: (usize, usize)) -> CoefHist {
                 for y in 0..8 {
                     for x in 0..8 {
                         let v = y_plane[(by + y) * w + bx + x] as f64;
-                        if v >= 254.5 {
+                        if v >= SAT_DN as f64 {
                             sat = true;
                         }
                         block[y * 8 + x] = v - 128.0;

@@ -3,7 +3,7 @@
 //! Lens flare has its own signature ([`super`]`::flare`, ghost plateaus on the source–centre line).
 
 use super::common::{Masks, NoiseModel};
-use super::img::{FS, Pair, Plane};
+use super::img::{FS, Pair, Plane, SAT_DN};
 use super::stats::{self, Wls};
 use super::types::{Profile, Signature};
 
@@ -74,7 +74,7 @@ pub fn blooming(
             for c in 0..p.channels() {
                 let s = &p.sim[c].data;
                 for i in 0..s.len() {
-                    if s[i] >= 254.5 && m.dist_in[i] >= depth {
+                    if s[i] >= SAT_DN && m.dist_in[i] >= depth {
                         rv.push(p.real[c].data[i] as f64);
                         pv.push((q[k][c].data[i] as f64).min(FS as f64));
                     }
@@ -236,7 +236,7 @@ pub fn smear(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], q: &[Vec<Plane>
                     let mut dark_q = 0.0f64;
                     for t in 0..len {
                         let i = if vertical { t * w + l } else { l * w + t };
-                        if s[i] >= 254.5 {
+                        if s[i] >= SAT_DN {
                             nsat += 1;
                         }
                         if m.dist_sat[i] <= 12.0 || m.dist_edge[i] <= 3.0 {
@@ -343,9 +343,9 @@ pub fn smear(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], q: &[Vec<Plane>
         for &l in &px {
             let l = l as usize;
             let n = if vertical {
-                (0..h).filter(|&t| p.sim[0].data[t * w + l] >= 254.5).count()
+                (0..h).filter(|&t| p.sim[0].data[t * w + l] >= SAT_DN).count()
             } else {
-                (0..w).filter(|&t| p.sim[0].data[l * w + t] >= 254.5).count()
+                (0..w).filter(|&t| p.sim[0].data[l * w + t] >= SAT_DN).count()
             };
             sat_counts.push(n as f64 * beta);
         }

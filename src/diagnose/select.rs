@@ -685,13 +685,16 @@ pub struct FitCtx<'a> {
 }
 
 /// Keep coupled parameters consistent: after blooming, saturated pixels read the full well, so
-/// smear must count pixels at the well (the library's documented `sat_level` rule).
+/// smear must count pixels at the well (the library's documented `sat_level` rule). Without
+/// blooming a saturated pixel is one at the top code of the 16-bit work frames (where every ADC
+/// depth puts its top code, see [`super::img::SAT_DN`]): a lower level would count bright but
+/// unsaturated features (fiducials at 250 DN, the rim of a glint) and read the smear too weak.
 fn sync_coupled(steps: &mut [Step]) {
     let well = steps.iter().find(|s| s.name == "blooming").map(|s| s.params.get("full_well_fraction"));
     for s in steps.iter_mut().filter(|s| s.name == "smear") {
         let lvl = match well {
             Some(f) => (f - 0.75 / 255.0).clamp(0.5, 1.0),
-            None => 0.98,
+            None => 1.0 - 0.5 / 65535.0,
         };
         let _ = s.params.set("sat_level", lvl);
     }
@@ -1747,6 +1750,37 @@ mod tests {
         assert!(!above_floor(&b), "a well 1.3 % below full scale is clipping, not overflow");
         b.set("full_well_fraction", 0.94).unwrap();
         assert!(above_floor(&b));
+    }
+
+    /// Without blooming the forward model's smear counts only samples at the top code: on 10-bit
+    /// data (bit-replicated into 16 bits) code 1023 feeds the streak, code 1022 (254.75 DN, a
+    /// bright but unsaturated feature) does not, and neither does anything at 0.98·FS.
+    #[test]
+    fn smear_without_blooming_counts_only_the_top_code() {
+        use crate::frame::{Frame, FrameData, PixelFormat};
+        let (w, h) = (8usize, 6usize);
+        let code16 = |c: u32| ((c << 6) | (c >> 4)) as u16; // 10-bit code → 16-bit
+        let mut data = vec![code16(200); w * h];
+        data[w + 2] = code16(1023);
+        data[3 * w + 2] = code16(1023);
+        for y in 0..h {
+            data[y * w + 5] = code16(1022);
+            data[y * w + 6] = code16(1003); // 0.98·FS
+        }
+        let f = Frame::from_data(w as u32, h as u32, w, PixelFormat::Mono16, FrameData::U16(data)).unwrap();
+        let base = planes_of(&f).remove(0);
+        let mut p = Params::defaults(registry::find("smear").unwrap().info);
+        p.set("strength", 0.01).unwrap();
+        let mut steps = vec![Step::fixed("smear", p).unwrap()];
+        let out = apply_steps(&mut steps, &f, 0, 1).unwrap().remove(0);
+        let d = |x: usize, y: usize| out.data[y * w + x] - base.data[y * w + x];
+        // Two saturated samples in column 2: every unsaturated sample there gains 2 · 0.01 · FS.
+        assert!((d(2, 0) - 2.0 * 0.01 * FS).abs() < 0.02, "column 2 gains {}", d(2, 0));
+        for y in 0..h {
+            assert_eq!(d(5, y), 0.0, "code 1022 is not saturated (row {y})");
+            assert_eq!(d(6, y), 0.0, "0.98·FS is not saturated (row {y})");
+            assert_eq!(d(0, y), 0.0);
+        }
     }
 
     #[test]

@@ -24,7 +24,7 @@
 
 use super::common::{NoiseBin, NoiseModel};
 use super::fit::{FitMetrics, canonical_of, mean_metrics, round_sig};
-use super::img::{FS, Plane, distance_transform, luma, planes_of};
+use super::img::{FS, Plane, SAT_DN, distance_transform, luma, planes_of};
 use super::report::{Alternative, Finding, FitSummary, Report, TestRow, UnpairedReport};
 use super::{DiagnoseError, Options, Profile, Signature, jpeg, stats};
 use crate::config::FaultConfig;
@@ -90,7 +90,7 @@ fn measure(planes: &[Plane], noise_sd: f64) -> ImStats {
     let grey = luma(planes);
     let mut st =
         ImStats { pixels: w * h, halo_sum: vec![0.0; HALO + 1], halo_n: vec![0.0; HALO + 1], ..Default::default() };
-    let sat: Vec<bool> = (0..w * h).map(|i| planes.iter().any(|p| p.data[i] >= 254.5)).collect();
+    let sat: Vec<bool> = (0..w * h).map(|i| planes.iter().any(|p| p.data[i] >= SAT_DN)).collect();
     st.sat = sat.iter().filter(|&&s| s).count();
     let dist = distance_transform(&sat, w, h);
     // ---- noise floor: 8x8 blocks of the 5-point high-pass, every channel ----

@@ -1422,7 +1422,9 @@ pub fn expose(sim: &Img, cam: &Camera, hidden: &[Hidden], fp: &FixedPattern, rng
         }
     }
     // Saturated photosites: expected signal at or above full scale (or the full well).
-    let sat_level = well.map(|(wl, _)| wl - 0.5).unwrap_or(FS - 0.5);
+    // (a photosite is saturated when its signal rounds to the ADC's top code: half a code below
+    // FS, whatever the depth)
+    let sat_level = well.map(|(wl, _)| wl - 0.5).unwrap_or(FS - 0.5 * adc_step(cam.adc_bits));
     let saturated: Vec<bool> = irr.v.iter().map(|&v| v >= sat_level).collect();
     for hd in hidden {
         if let Hidden::Smear { strength, vertical } = *hd {
@@ -1983,6 +1985,7 @@ pub fn corpus() -> Vec<Case> {
     ];
     v.extend(tone_cases_h26());
     v.extend(h26flare_cases());
+    v.extend(h27smear_cases());
     v
 }
 
@@ -2457,6 +2460,22 @@ pub fn h26flare_cases() -> Vec<Case> {
             vec![Blooming { full_well: 0.94, decay_px: 1.0 }, Smear { strength: 0.0012, vertical: true }],
         )
         .on(AltScene::Docking { white: 228.0, retro: false }),
+    ]
+}
+
+/// h27smear cases: frame-transfer smear on a docking target whose white fiducials are bright but
+/// not saturated (252 DN on 8-bit data, 254 DN — one 10-bit code below full scale less a
+/// fraction — on 10-bit data), beside a saturated glint and retro-reflector. Only the saturated
+/// photosites (at the ADC's top code) feed the smear; a model that counts the near-saturated
+/// fiducials too reads the smear several times too weak.
+pub fn h27smear_cases() -> Vec<Case> {
+    use Hidden::*;
+    vec![
+        h26_case("smear_docking_bright_mono8", 509, 6.0, 1.5, vec![Smear { strength: 0.0015, vertical: true }])
+            .on(AltScene::Docking { white: 252.0, retro: true }),
+        h26_case("smear_docking_bright_mono10", 510, 12.0, 1.0, vec![Smear { strength: 0.0015, vertical: true }])
+            .on(AltScene::Docking { white: 254.0, retro: true })
+            .adc(10),
     ]
 }
 
