@@ -175,6 +175,24 @@ fn tone_curves_are_told_apart_from_gain_and_offset() {
     assert!(problems.is_empty(), "tone curves:\n{}", problems.join("\n"));
 }
 
+/// h27like: a 12 % cos⁴ vignetting on a spacecraft over dark sky at a camera size (960x600, 4
+/// frames). With the Gaussian form of the likelihood (no ln σ, no exact Poisson–Gaussian
+/// probability at a few photo-electrons) the level it preferred on the millions of dark-sky
+/// pixels was biased by hundredths of a DN, which outweighed the vignetting: it was missed here
+/// and read as a false `gain_offset` at 1920x1200. Now found with its strength within tolerance
+/// and nothing else reported. Release only (about a minute):
+/// `cargo test --release --test diagnose_corpus -- --ignored vignetting_is_found_on_large`.
+#[test]
+#[ignore = "4 frames of 960x600: run in a release build with --ignored"]
+fn vignetting_is_found_on_large_frames_of_dark_sky() {
+    let cases: Vec<Case> =
+        corpus().into_iter().filter(|c| c.name == "vignetting_mono").map(|c| c.sized(960, 600, 4)).collect();
+    assert_eq!(cases.len(), 1);
+    let scores = run_all(&cases);
+    let problems = subset_problems(&scores);
+    assert!(problems.is_empty(), "vignetting at 960x600:\n{}", problems.join("\n"));
+}
+
 /// h26tone: tone curve against stray light and veiling glare (issue 13: "a generalised sRGB
 /// tone curve on an RGB 10-bit lab scene was not found and a false stray_light was reported
 /// instead"). On a lamp-lit lab wall (10-bit data in 16-bit PNG) the curve's change is a smooth

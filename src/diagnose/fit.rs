@@ -384,6 +384,16 @@ fn noise_through_model(
     Ok((a.sqrt(), if use_b { Some(1.0 / b) } else { None }))
 }
 
+/// Exponent of the fitted `gamma` step, if the selection holds one (a tone curve the noise
+/// passed through).
+fn tone_gamma_of(steps: &[select::Step]) -> Option<f64> {
+    steps
+        .iter()
+        .find(|s| !s.fixed && s.name == "gamma")
+        .map(|s| s.params.get("gamma"))
+        .filter(|g| g.is_finite() && (g - 1.0).abs() > 1e-6)
+}
+
 fn det_names_of(sel: &select::Selection) -> Vec<&'static str> {
     sel.steps.iter().filter(|s| !s.fixed).map(|s| s.name).collect()
 }
@@ -530,15 +540,30 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         .iter()
         .map(|&l| (renoise.var(l) / ctx.loss.noise().var(l) - 1.0).abs())
         .fold(0.0f64, f64::max);
-    if change > 0.15 {
-        notes.push(format!(
-            "noise model re-measured on the residual of the fitted model (variance changed by up to {:.0} %): selection repeated with it",
-            100.0 * change
-        ));
-        ctx.loss.set_noise(renoise);
+    // The proper likelihood trusts the noise model's level dependence, which a tone curve the
+    // library's power law does not match bends (see `LossData::set_exact`): with a tone curve
+    // selected, the selection is repeated in the Gaussian form.
+    let tone = tone_gamma_of(&sel.steps).is_some();
+    if tone {
+        ctx.loss.set_exact(false);
+        notes.push(
+            "a tone curve (gamma) was selected: the selection is repeated with the Gaussian form of the likelihood (without the density's normalisation and the exact Poisson–Gaussian probability at few electrons), which does not trust the noise model's level dependence under a curve the power law does not match".into(),
+        );
+    }
+    if change > 0.15 || tone {
+        if change > 0.15 {
+            notes.push(format!(
+                "noise model re-measured on the residual of the fitted model (variance changed by up to {:.0} %): selection repeated with it",
+                100.0 * change
+            ));
+            ctx.loss.set_noise(renoise);
+        }
+        // In the other form the selection starts again from the fixed steps (the effects chosen
+        // in the proper form are candidates again, not a start).
         let start: Vec<select::Step> = sel
             .steps
             .iter()
+            .filter(|s| !tone || s.fixed)
             .map(|s| {
                 let mut c = s.boxed_clone();
                 if c.dither.is_some() {
@@ -549,7 +574,11 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             .collect();
         let first_tests = std::mem::take(&mut sel.tests);
         let prior = sel.best_z.clone();
-        super::progress("noise model changed: selection repeated");
+        super::progress(if tone {
+            "tone curve selected: selection repeated"
+        } else {
+            "noise model changed: selection repeated"
+        });
         sel = select::select(&ctx, &cands, z, start, Some(&prior))?;
         selection_done(&ctx);
         let mut all = first_tests;

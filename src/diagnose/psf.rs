@@ -118,74 +118,33 @@ pub fn measure(
         }
         x[N * N] = 1.0;
     };
-    let mut xtx = vec![0.0f64; K * K];
-    let mut xty = vec![0.0f64; K];
+    // Cluster-robust standard errors over 16x16 blocks of one frame: the clusters get dense ids
+    // in frame, block order (the samples are in frame, row, column order, so the fit is the same
+    // on any thread count).
+    let mut first_block = Vec::with_capacity(pairs.len() + 1);
+    let mut nblocks = 0u64;
+    for p in pairs {
+        first_block.push(nblocks);
+        nblocks += (p.w().div_ceil(16) * p.h().div_ceil(16)) as u64;
+    }
+    let cluster_id = |k: usize, i: usize| -> Option<u32> {
+        let w = pairs[k].w();
+        u32::try_from(first_block[k] + (((i / w) / 16) * w.div_ceil(16) + (i % w) / 16) as u64).ok()
+    };
+    let mut wls = stats::Wls::new(K);
     let mut x = [0.0f64; K];
     for &(k, i, wt) in &pts {
         let (k, i) = (k as usize, i as usize);
         row(k, i, &mut x);
-        let y = pairs[k].real[c].data[i] as f64;
-        for a in 0..K {
-            let wa = wt * x[a];
-            xty[a] += wa * y;
-            for b in 0..=a {
-                xtx[a * K + b] += wa * x[b];
-            }
-        }
+        wls.push(&x, pairs[k].real[c].data[i] as f64, wt, cluster_id(k, i)?);
     }
+    let fit = wls.fit()?;
+    let beta = fit.beta;
+    // The cluster-robust covariance is floored at the model covariance: a tap whose robust
+    // variance is below it gets its row and column scaled up to it (keeping the correlations).
+    let mut cov = fit.cov;
     for a in 0..K {
-        for b in 0..a {
-            xtx[b * K + a] = xtx[a * K + b];
-        }
-    }
-    let inv = stats::invert_spd(&xtx, K)?;
-    let beta: Vec<f64> = (0..K).map(|a| (0..K).map(|b| inv[a * K + b] * xty[b]).sum()).collect();
-    // Cluster-robust covariance: scores summed over 16x16 blocks of one frame (fixed order: the
-    // samples are in frame, row, column order, so a block's scores are summed in that order and
-    // the blocks are kept in a sorted map).
-    let mut scores: std::collections::BTreeMap<u64, Vec<f64>> = std::collections::BTreeMap::new();
-    let mut rss = 0.0;
-    for &(k, i, wt) in &pts {
-        let (k, i) = (k as usize, i as usize);
-        row(k, i, &mut x);
-        let y = pairs[k].real[c].data[i] as f64;
-        let pred: f64 = x.iter().zip(&beta).map(|(a, b)| a * b).sum();
-        let e = y - pred;
-        rss += wt * e * e;
-        let w = pairs[k].w();
-        let key = ((k as u64) << 40) | ((((i / w) / 16) * w.div_ceil(16) + (i % w) / 16) as u64);
-        let s = scores.entry(key).or_insert_with(|| vec![0.0; K]);
-        for a in 0..K {
-            s[a] += wt * x[a] * e;
-        }
-    }
-    let n = pts.len();
-    let dispersion = rss / (n - K) as f64;
-    let g = scores.len();
-    let mut meat = vec![0.0f64; K * K];
-    for s in scores.values() {
-        for a in 0..K {
-            for b in 0..K {
-                meat[a * K + b] += s[a] * s[b];
-            }
-        }
-    }
-    let corr = if g > 1 { g as f64 / (g - 1) as f64 } else { 1.0 };
-    // cov = inv · meat · inv (elementwise max with the model covariance on the diagonal below).
-    let mut tmp = vec![0.0f64; K * K];
-    for a in 0..K {
-        for b in 0..K {
-            tmp[a * K + b] = (0..K).map(|j| inv[a * K + j] * meat[j * K + b]).sum();
-        }
-    }
-    let mut cov = vec![0.0f64; K * K];
-    for a in 0..K {
-        for b in 0..K {
-            cov[a * K + b] = corr * (0..K).map(|j| tmp[a * K + j] * inv[j * K + b]).sum::<f64>();
-        }
-    }
-    for a in 0..K {
-        let model = inv[a * K + a] * dispersion.max(1.0);
+        let model = fit.cov_model[a * K + a];
         if cov[a * K + a] < model {
             let scale = (model / cov[a * K + a].max(1e-300)).sqrt();
             for b in 0..K {
@@ -253,7 +212,7 @@ pub fn measure(
         aniso_chi2: chi2,
         aniso_z,
         angle_deg,
-        n,
+        n: fit.n,
     })
 }
 

@@ -363,7 +363,9 @@ impl Wls {
         let beta: Vec<f64> = (0..k).map(|i| (0..k).map(|j| inv[i * k + j] * xty[j]).sum()).collect();
         // Residuals, dispersion and cluster scores.
         let mut rss = 0.0;
-        let mut scores: std::collections::HashMap<u32, Vec<f64>> = std::collections::HashMap::new();
+        // Scores per cluster in a sorted map: the meat is summed in cluster order, so the
+        // covariance is the same bits on every run and thread count.
+        let mut scores: std::collections::BTreeMap<u32, Vec<f64>> = std::collections::BTreeMap::new();
         for i in 0..n {
             let x = &self.xs[i * k..(i + 1) * k];
             let pred: f64 = x.iter().zip(&beta).map(|(a, b)| a * b).sum();
