@@ -92,7 +92,7 @@ pub const FIR_MAX_SIGMA: f64 = 3.0;
 pub const BOX_MAX_ERROR_DN: f64 = 4.0;
 
 /// Largest kernel radius (sigma_px = 20: ceil(80) + 1).
-const MAX_R: usize = 81;
+pub(crate) const MAX_R: usize = 81;
 
 #[derive(Default)]
 pub struct Defocus {
@@ -195,12 +195,13 @@ fn blur_u8(
 ) {
     let r = q.len() - 1;
     let rl = w * ch;
-    let n = 2 * r + 1;
+    // Ring of 2r + 2 row-pass rows: two output rows per column step (`fir16::sym_fir2`).
+    let n = 2 * r + 2;
     let padw = (w + 2 * r) * ch;
     let rows_per = BLUR_BAND.max(6 * r);
     let nb = h.div_ceil(rows_per);
     let per_halo = 3 * r * rl;
-    let per_work = n * rl + padw + rl;
+    let per_work = n * rl + padw + 2 * rl;
     if halo.len() < per_halo * nb {
         halo.resize(per_halo * nb, 0);
     }
@@ -256,15 +257,31 @@ fn blur_u8(
                 produce(yv, band, ring);
             }
             let mut offs = [(0usize, 0usize); MAX_R + 1];
-            for y in y0..y1 {
+            let mut rows = [0usize; 2 * MAX_R + 2];
+            let mut y = y0;
+            while y < y1 {
                 let yi = y as isize;
+                let i = y - y0;
                 produce(yi + r as isize, band, ring);
+                if y + 1 < y1 {
+                    // Two output rows from 2r + 2 ring rows.
+                    produce(yi + 1 + r as isize, band, ring);
+                    for (t, o) in rows.iter_mut().enumerate().take(2 * r + 2) {
+                        *o = slot(yi - r as isize + t as isize) * rl;
+                    }
+                    let (a0, a1) = acc.split_at_mut(rl);
+                    fir16::sym_fir2(a0, a1, ring, &rows[..2 * r + 2], q);
+                    fir16::q6_to_u8(&mut band[i * stride..i * stride + rl], a0);
+                    fir16::q6_to_u8(&mut band[(i + 1) * stride..(i + 1) * stride + rl], a1);
+                    y += 2;
+                    continue;
+                }
                 for (k, o) in offs.iter_mut().enumerate().take(r + 1) {
                     *o = (slot(yi - k as isize) * rl, slot(yi + k as isize) * rl);
                 }
-                fir16::sym_fir(acc, ring, slot(yi) * rl, &offs[..=r], q);
-                let i = y - y0;
-                fir16::q6_to_u8(&mut band[i * stride..i * stride + rl], acc);
+                fir16::sym_fir(&mut acc[..rl], ring, slot(yi) * rl, &offs[..=r], q);
+                fir16::q6_to_u8(&mut band[i * stride..i * stride + rl], &acc[..rl]);
+                y += 1;
             }
         });
 }

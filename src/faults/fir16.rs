@@ -85,6 +85,32 @@ pub fn sym_fir(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usi
     fir_scalar(out, base, center, offs, q, 0)
 }
 
+/// Two outputs of the same filter on consecutive centre rows, sharing the loads: `rows[t]` is
+/// the offset in `base` of row `t - r` relative to the first centre (`t = 0..2r + 2`, `r + 1 =
+/// q.len()`), `out0` is [`sym_fir`] centred on `rows[r]`, `out1` centred on `rows[r + 1]`. The
+/// same integer operations in the same order as [`sym_fir`], so the same values; each row is
+/// loaded once for both outputs (half the loads of two [`sym_fir`] calls).
+pub fn sym_fir2(out0: &mut [i16], out1: &mut [i16], base: &[i16], rows: &[usize], q: &[i16]) {
+    let n = out0.len();
+    let r = q.len() - 1;
+    assert!(out1.len() == n && rows.len() == 2 * r + 2 && !q.is_empty());
+    for &o in rows {
+        assert!(o + n <= base.len(), "fir: rows inside the buffer");
+    }
+    let offs = |c: usize| -> [(usize, usize); 2 * (super::defocus::MAX_R + 1)] {
+        std::array::from_fn(|k| if k <= r && k > 0 { (rows[c - k], rows[c + k]) } else { (0, 0) })
+    };
+    let (o0, o1) = (offs(r), offs(r + 1));
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx2() {
+        // SAFETY: AVX2 present (checked); reads are in bounds (asserted above).
+        done = unsafe { simd::fir2_avx2(out0, out1, base, rows, q) };
+    }
+    fir_scalar(&mut out0[done..], base, rows[r] + done, &o0[..=r], q, done);
+    fir_scalar(&mut out1[done..], base, rows[r + 1] + done, &o1[..=r], q, done);
+}
+
 /// Scalar reference of [`sym_fir`] (outputs from `skip` on: tap offsets are shifted by it).
 fn fir_scalar(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usize)], q: &[i16], skip: usize) {
     for (i, o) in out.iter_mut().enumerate() {
@@ -142,6 +168,49 @@ mod simd {
             i += 64;
         }
         let _ = mulhrs;
+        n
+    }
+
+    /// [`super::sym_fir2`] on whole chunks of 32 outputs; returns how many were written.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn fir2_avx2(out0: &mut [i16], out1: &mut [i16], base: &[i16], rows: &[usize], q: &[i16]) -> usize {
+        let n = out0.len() / 32 * 32;
+        let r = q.len() - 1;
+        let bp = base.as_ptr();
+        let mut i = 0;
+        while i < n {
+            // SAFETY (block): rows[t] + i + 32 <= rows[t] + n <= base.len() (checked by the
+            // caller); out0 and out1 hold n >= i + 32 values.
+            unsafe {
+                let ld = |p: usize| _mm256_loadu_si256(bp.add(p + i) as *const __m256i);
+                let q0 = _mm256_set1_epi16(q[0]);
+                let (x0a, x0b) = (ld(rows[r]), ld(rows[r] + 16));
+                let (x1a, x1b) = (ld(rows[r + 1]), ld(rows[r + 1] + 16));
+                let mut a0a = _mm256_mulhrs_epi16(x0a, q0);
+                let mut a0b = _mm256_mulhrs_epi16(x0b, q0);
+                let mut a1a = _mm256_mulhrs_epi16(x1a, q0);
+                let mut a1b = _mm256_mulhrs_epi16(x1b, q0);
+                // pl = row r + 1 - k (out1's low tap), ph = row r + k (out0's high tap).
+                let (mut pla, mut plb, mut pha, mut phb) = (x0a, x0b, x1a, x1b);
+                for k in 1..=r {
+                    let qk = _mm256_set1_epi16(q[k]);
+                    let (la, lb) = (ld(rows[r - k]), ld(rows[r - k] + 16));
+                    let (ha, hb) = (ld(rows[r + 1 + k]), ld(rows[r + 1 + k] + 16));
+                    a0a = _mm256_add_epi16(a0a, _mm256_mulhrs_epi16(_mm256_add_epi16(la, pha), qk));
+                    a0b = _mm256_add_epi16(a0b, _mm256_mulhrs_epi16(_mm256_add_epi16(lb, phb), qk));
+                    a1a = _mm256_add_epi16(a1a, _mm256_mulhrs_epi16(_mm256_add_epi16(pla, ha), qk));
+                    a1b = _mm256_add_epi16(a1b, _mm256_mulhrs_epi16(_mm256_add_epi16(plb, hb), qk));
+                    (pla, plb, pha, phb) = (la, lb, ha, hb);
+                }
+                let p0 = out0.as_mut_ptr().add(i) as *mut __m256i;
+                let p1 = out1.as_mut_ptr().add(i) as *mut __m256i;
+                _mm256_storeu_si256(p0, a0a);
+                _mm256_storeu_si256(p0.add(1), a0b);
+                _mm256_storeu_si256(p1, a1a);
+                _mm256_storeu_si256(p1.add(1), a1b);
+            }
+            i += 32;
+        }
         n
     }
 
@@ -218,6 +287,18 @@ mod tests {
             sym_fir(&mut fast, &base, 50, &offs, &q);
             fir_scalar(&mut slow, &base, 50, &offs, &q, 0);
             assert_eq!(fast, slow, "{n}");
+        }
+        // Two centres at once: the same values as two single calls.
+        for n in [0usize, 1, 31, 32, 33, 95, 700] {
+            let rows: Vec<usize> = (0..10).map(|t| (t * 211) % 2000).collect();
+            let (mut f0, mut f1) = (vec![0i16; n], vec![0i16; n]);
+            sym_fir2(&mut f0, &mut f1, &base, &rows, &q);
+            for (c, f) in [(4usize, &f0), (5, &f1)] {
+                let offs: Vec<(usize, usize)> = (0..5).map(|k| (rows[c - k], rows[c + k])).collect();
+                let mut slow = vec![0i16; n];
+                fir_scalar(&mut slow, &base, rows[c], &offs, &q, 0);
+                assert_eq!(*f, slow, "{n} centre {c}");
+            }
         }
         // mulhrs is round-to-nearest (ties up) of a * b / 2^15.
         for &(a, b) in &[(16320i16, 32767i16), (1, 16384), (3, 16384), (-5, 9000), (32640, 1)] {
