@@ -1054,11 +1054,32 @@ pub fn tone_replacement(rs: &[tone::Reading], chosen: &[&str]) -> Option<tone::R
     let same = |a: &[&str], b: &[&str]| a.len() == b.len() && a.iter().all(|x| b.contains(x));
     let cur = tone::reading_of(rs, chosen)?;
     let b = rs.iter().find(|r| tone_reading_valid(r) || same(r.shape.effects(), chosen))?;
-    (!same(b.shape.effects(), chosen)
+    if !same(b.shape.effects(), chosen)
         && matches!(b.shape, tone::Shape::Tone | tone::Shape::DarkTone)
-        && cur.bic - b.bic > TONE_REPLACE_BIC)
-        .then(|| b.clone())
+        && cur.bic - b.bic > TONE_REPLACE_BIC
+    {
+        return Some(b.clone());
+    }
+    // A gain and offset moves full scale (m(FS) = g·FS + o); a tone curve, alone or over a dark
+    // level, fixes it. Where the level response does not show the moved full scale beyond what
+    // the tone-curve family explains, gain_offset's own signature is not there: the tone-curve
+    // reading replaces it (and the gain and offset stays listed as an alternative).
+    if chosen.contains(&"gain_offset") {
+        let t = rs
+            .iter()
+            .find(|r| matches!(r.shape, tone::Shape::Tone | tone::Shape::DarkTone) && tone_reading_valid(r))?;
+        if t.bic - cur.bic < TONE_GAIN_FS_BIC {
+            return Some(t.clone());
+        }
+    }
+    None
 }
+
+/// BIC advantage a reading with gain_offset needs over the best tone-curve reading (which fixes
+/// full scale) for gain_offset to stand: "strong" evidence on Kass and Raftery's scale that
+/// full scale moved, since a tone curve and a dark level are what every camera's level response
+/// has, and a gain and offset is the extra claim.
+pub const TONE_GAIN_FS_BIC: f64 = 6.0;
 
 /// Replace the steps `remove` selects (fixed steps stay) by the effects of the level-response
 /// reading `b` with its parameters, refit the other effects and recompute every effect's
@@ -1158,6 +1179,30 @@ pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Re
     Ok(())
 }
 
+/// Largest 3x3 range (8-bit DN) of the model level at which a pixel off the interior mask still
+/// reads the level response: textured regions (cloud tops, a planet's surface, a lit wall's grain)
+/// carry the bright and mid levels that tell a tone curve (full scale fixed) from a gain and
+/// offset (full scale moved), while on steep edges a small error of the model's blur or
+/// registration would move a bin's mean by more than its noise.
+pub const TONE_SMOOTH_RANGE_DN: f32 = 24.0;
+
+/// Whether the 3x3 neighbourhood of pixel `i` of `plane` spans at most [`TONE_SMOOTH_RANGE_DN`].
+fn smooth_at(plane: &Plane, i: usize) -> bool {
+    let (w, h) = (plane.w, plane.h);
+    let (x, y) = (i % w, i / w);
+    if x == 0 || y == 0 || x + 1 >= w || y + 1 >= h {
+        return false;
+    }
+    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+    for yy in y - 1..=y + 1 {
+        for &v in &plane.data[yy * w + x - 1..=yy * w + x + 1] {
+            lo = lo.min(v);
+            hi = hi.max(v);
+        }
+    }
+    hi - lo <= TONE_SMOOTH_RANGE_DN
+}
+
 /// Level-response check of the tone effects the selection chose (`dark_current`, `gain_offset`,
 /// `gamma`): the real level against the level of the model without them, read as each physical
 /// shape ([`super::tone::readings`]). When a tone-curve reading (a tone curve that fixes 0 and
@@ -1185,7 +1230,7 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
         for (c, plane) in mp.iter().enumerate() {
             let r = &p.real[c].data;
             for (i, &m) in plane.data.iter().enumerate() {
-                if ctx.loss.skip[k][i] || !ctx.loss.interior[k][i] {
+                if ctx.loss.skip[k][i] || !(ctx.loss.interior[k][i] || smooth_at(plane, i)) {
                     continue;
                 }
                 acc.push(m as f64, r[i] as f64);
@@ -1195,6 +1240,14 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
     }
     let pts = tone::level_response(&acc, ctx.loss.noise());
     let rs = tone::readings(&pts, n_values);
+    if std::env::var_os("FAULTCAM_DIAG_DEBUG").is_some() {
+        for p in &pts {
+            eprintln!("level response: s {:.1} m {:.2} se {:.3} n {}", p.s, p.m, p.se, p.n);
+        }
+        for r in &rs {
+            eprintln!("reading: {}", r.describe());
+        }
+    }
     let Some(cur) = tone::reading_of(&rs, &chosen).cloned() else {
         return Ok(());
     };
