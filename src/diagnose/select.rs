@@ -1120,8 +1120,11 @@ pub const SPATIAL_ALIASES: [&str; 3] = ["stray_light", "veiling_glare", "vignett
 /// `veiling_glare`, `vignetting`): the residual of the model without them and without the tone
 /// effects is regressed on a free level response and on the position terms
 /// ([`super::levelmap::test`]). When the position terms are not significant given the level
-/// response while its curvature is, the change depends on each pixel's level and not on where it
-/// is: a tone curve, which the spatial effects only imitated through the scene's smooth lighting.
+/// response, the spatial effects' own signature (a change that depends on the place, whatever the
+/// level there) is absent: the change depends on each pixel's level — a tone curve, a dark level
+/// or a gain and offset, which the spatial effects only imitated through the scene's lighting
+/// (a smooth lamp-lit wall, a frame-filling planetary surface under a veiling glare's nearly
+/// uniform pedestal, fiducials of one level in the corners).
 /// They are then replaced (with the tone effects) by the best reading of the level response
 /// ([`super::tone::readings`]), whose shape [`tone_check`] judges next.
 pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), DiagnoseError> {
@@ -1144,14 +1147,14 @@ pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Re
     if std::env::var_os("FAULTCAM_DIAG_DEBUG").is_some() {
         eprintln!("{line}");
     }
-    if lp.z_position < z_thr && lp.z_curve >= z_thr {
+    if lp.z_position < z_thr {
         let mut acc = tone::LevelAcc::default();
         let mut n_values = 0usize;
         for (k, mp) in planes.iter().enumerate() {
             for (c, plane) in mp.iter().enumerate() {
                 let r = &real[k][c].data;
                 for (i, &m) in plane.data.iter().enumerate() {
-                    if keep[k][i] {
+                    if keep[k][i] || (!ctx.loss.skip[k][i] && smooth_at(plane, i)) {
                         acc.push(m as f64, r[i] as f64);
                         n_values += 1;
                     }
