@@ -1053,7 +1053,7 @@ fn tone_reading_valid(r: &tone::Reading) -> bool {
 pub fn tone_replacement(rs: &[tone::Reading], chosen: &[&str]) -> Option<tone::Reading> {
     let same = |a: &[&str], b: &[&str]| a.len() == b.len() && a.iter().all(|x| b.contains(x));
     let cur = tone::reading_of(rs, chosen)?;
-    let b = rs.iter().find(|r| tone_reading_valid(r) || same(r.shape.effects(), chosen))?;
+    let b = best_reading(rs, &|r| tone_reading_valid(r) || same(r.shape.effects(), chosen))?;
     if !same(b.shape.effects(), chosen)
         && matches!(b.shape, tone::Shape::Tone | tone::Shape::DarkTone)
         && cur.bic - b.bic > TONE_REPLACE_BIC
@@ -1073,6 +1073,16 @@ pub fn tone_replacement(rs: &[tone::Reading], chosen: &[&str]) -> Option<tone::R
         }
     }
     None
+}
+
+/// The best reading among those `ok` accepts, a reading with gain_offset counted
+/// [`TONE_GAIN_FS_BIC`] worse (its moved full scale is the extra claim it must show: a power law
+/// of a gain and offset clipped at full scale otherwise passes for a dark level under a tone
+/// curve).
+fn best_reading<'a>(rs: &'a [tone::Reading], ok: &dyn Fn(&tone::Reading) -> bool) -> Option<&'a tone::Reading> {
+    let cost =
+        |r: &tone::Reading| r.bic + if r.shape.effects().contains(&"gain_offset") { TONE_GAIN_FS_BIC } else { 0.0 };
+    rs.iter().filter(|r| ok(r)).min_by(|a, b| cost(a).total_cmp(&cost(b)))
 }
 
 /// BIC advantage a reading with gain_offset needs over the best tone-curve reading (which fixes
@@ -1163,7 +1173,7 @@ pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Re
         }
         let pts = tone::level_response(&acc, ctx.loss.noise());
         let rs = tone::readings(&pts, n_values);
-        if let Some(b) = rs.iter().find(|r| tone_reading_valid(r)).cloned()
+        if let Some(b) = best_reading(&rs, &tone_reading_valid).cloned()
             && replace_by_reading(ctx, sel, &removed, &b, z_thr)?
         {
             sel.notes.push(format!(
@@ -1783,6 +1793,28 @@ mod tests {
         let r = tone_replacement(&rs, &["gain_offset"]).expect("dark under tone replaces gain_offset");
         assert_eq!(r.shape.effects(), ["dark_current", "gamma"]);
         assert!((r.d - 2.5).abs() < 0.2, "dark {}", r.d);
+    }
+
+    /// h27tone: a dark level under an sRGB curve seen only on levels inside the curve's linear
+    /// toe is exactly a gain and offset there; full scale is not seen to move, so gain_offset
+    /// (whose own signature that is) gives way to the tone-curve reading. A true gain and
+    /// offset seen up to bright levels moves full scale and stands.
+    #[test]
+    fn gain_offset_stands_only_where_full_scale_moves() {
+        use super::super::tone::{LevelPoint, readings, tone_curve};
+        let fs = FS as f64;
+        let pts = |f: &dyn Fn(f64) -> f64, hi: usize| -> Vec<LevelPoint> {
+            (2..hi).step_by(2).map(|s| LevelPoint { s: s as f64, m: f(s as f64), se: 0.3, n: 300 }).collect()
+        };
+        // Toe of (q 0.88, a 0.05) ends at x 0.35 (89 DN): levels 2..80 DN only.
+        let dark_tone = |s: f64| fs * tone_curve((s + 2.5) / fs, 0.88, 0.05, true);
+        let rs = readings(&pts(&dark_tone, 80), 100_000);
+        let cur = super::super::tone::reading_of(&rs, &["gain_offset"]).unwrap();
+        assert!(cur.chi2 < 5.0, "the toe is a straight line: {}", cur.describe());
+        let r = tone_replacement(&rs, &["gain_offset"]).expect("no moved full scale: tone reading replaces");
+        assert!(r.shape.effects().contains(&"gamma"), "{}", r.describe());
+        let rs = readings(&pts(&|s| 1.03 * s + 1.5, 240), 100_000);
+        assert!(tone_replacement(&rs, &["gain_offset"]).is_none(), "a gain of 1.03 up to 240 DN moves full scale");
     }
 
     #[test]

@@ -493,6 +493,32 @@ mod tests {
         assert!((ls_power(&|x| x.powf(0.9)) - 0.9).abs() < 1e-4);
     }
 
+    /// h27tone: bins whose real values are partly clipped (at 0 below, at full scale above) are
+    /// read as censored means, so the level near full scale — where a tone curve and a gain and
+    /// offset differ most — is measured without the clipping's bias.
+    #[test]
+    fn clipped_bins_are_read_as_censored_means_at_both_ends() {
+        let noise = NoiseModel::prior(1.0);
+        let mut rng = crate::rng::Rng::new(27);
+        let mut acc = LevelAcc::default();
+        for (s, mu) in [(2.0, 1.5), (250.0, 252.0), (120.0, 121.0)] {
+            let sd = noise.sd(mu);
+            for _ in 0..20_000 {
+                let r = (mu + sd * rng.normal()).round().clamp(0.0, FS as f64);
+                acc.push(s, r);
+            }
+        }
+        let pts = level_response(&acc, &noise);
+        assert_eq!(pts.len(), 3);
+        for (p, mu) in pts.iter().zip([1.5, 121.0, 252.0]) {
+            let raw = acc.sum_r[p.s.round() as usize] / acc.n[p.s.round() as usize] as f64;
+            assert!((p.m - mu).abs() < 0.25, "bin {}: censored mean {:.2} vs truth {mu} (raw {raw:.2})", p.s, p.m);
+        }
+        // The raw mean of the top bin is biased low by the clipping, the censored one is not.
+        let raw_top = acc.sum_r[250] / acc.n[250] as f64;
+        assert!(252.0 - raw_top > 0.5, "raw top mean {raw_top:.2}");
+    }
+
     /// Each shape, made exactly, is read as itself; a gain and offset is not read as a tone
     /// curve and a tone curve not as a gain and offset.
     #[test]
