@@ -1806,12 +1806,14 @@ mod tests {
         let pts = |f: &dyn Fn(f64) -> f64, hi: usize| -> Vec<LevelPoint> {
             (2..hi).step_by(2).map(|s| LevelPoint { s: s as f64, m: f(s as f64), se: 0.3, n: 300 }).collect()
         };
-        // Toe of (q 0.88, a 0.05) ends at x 0.35 (89 DN): levels 2..80 DN only.
+        // Toe of (q 0.88, a 0.05) ends at x 0.35 (89 DN): levels 2..200 DN, the toe and the
+        // bend (on the toe alone both read χ² 0 and the tone curve's extra parameter costs
+        // ln n in BIC: there gain_offset stays, a limit).
         let dark_tone = |s: f64| fs * tone_curve((s + 2.5) / fs, 0.88, 0.05, true);
-        let rs = readings(&pts(&dark_tone, 80), 100_000);
-        let cur = super::super::tone::reading_of(&rs, &["gain_offset"]).unwrap();
-        assert!(cur.chi2 < 5.0, "the toe is a straight line: {}", cur.describe());
-        let r = tone_replacement(&rs, &["gain_offset"]).expect("no moved full scale: tone reading replaces");
+        let rs = readings(&pts(&dark_tone, 200), 100_000);
+        let r = tone_replacement(&rs, &["gain_offset"]).unwrap_or_else(|| {
+            panic!("no moved full scale: {:?}", rs.iter().map(|r| r.describe()).collect::<Vec<_>>())
+        });
         assert!(r.shape.effects().contains(&"gamma"), "{}", r.describe());
         let rs = readings(&pts(&|s| 1.03 * s + 1.5, 240), 100_000);
         assert!(tone_replacement(&rs, &["gain_offset"]).is_none(), "a gain of 1.03 up to 240 DN moves full scale");
