@@ -1186,12 +1186,43 @@ fn tone_reading_valid(r: &tone::Reading) -> bool {
 pub fn tone_replacement(rs: &[tone::Reading], chosen: &[&str]) -> Option<tone::Reading> {
     let same = |a: &[&str], b: &[&str]| a.len() == b.len() && a.iter().all(|x| b.contains(x));
     let cur = tone::reading_of(rs, chosen)?;
-    let b = rs.iter().find(|r| tone_reading_valid(r) || same(r.shape.effects(), chosen))?;
-    (!same(b.shape.effects(), chosen)
+    let b = best_reading(rs, &|r| tone_reading_valid(r) || same(r.shape.effects(), chosen))?;
+    if !same(b.shape.effects(), chosen)
         && matches!(b.shape, tone::Shape::Tone | tone::Shape::DarkTone)
-        && cur.bic - b.bic > TONE_REPLACE_BIC)
-        .then(|| b.clone())
+        && cur.bic - b.bic > TONE_REPLACE_BIC
+    {
+        return Some(b.clone());
+    }
+    // A gain and offset moves full scale (m(FS) = g·FS + o); a tone curve, alone or over a dark
+    // level, fixes it. Where the level response does not show the moved full scale beyond what
+    // the tone-curve family explains, gain_offset's own signature is not there: the tone-curve
+    // reading replaces it (and the gain and offset stays listed as an alternative).
+    if chosen.contains(&"gain_offset") {
+        let t = rs
+            .iter()
+            .find(|r| matches!(r.shape, tone::Shape::Tone | tone::Shape::DarkTone) && tone_reading_valid(r))?;
+        if t.bic - cur.bic < TONE_GAIN_FS_BIC {
+            return Some(t.clone());
+        }
+    }
+    None
 }
+
+/// The best reading among those `ok` accepts, a reading with gain_offset counted
+/// [`TONE_GAIN_FS_BIC`] worse (its moved full scale is the extra claim it must show: a power law
+/// of a gain and offset clipped at full scale otherwise passes for a dark level under a tone
+/// curve).
+fn best_reading<'a>(rs: &'a [tone::Reading], ok: &dyn Fn(&tone::Reading) -> bool) -> Option<&'a tone::Reading> {
+    let cost =
+        |r: &tone::Reading| r.bic + if r.shape.effects().contains(&"gain_offset") { TONE_GAIN_FS_BIC } else { 0.0 };
+    rs.iter().filter(|r| ok(r)).min_by(|a, b| cost(a).total_cmp(&cost(b)))
+}
+
+/// BIC advantage a reading with gain_offset needs over the best tone-curve reading (which fixes
+/// full scale) for gain_offset to stand: "strong" evidence on Kass and Raftery's scale that
+/// full scale moved, since a tone curve and a dark level are what every camera's level response
+/// has, and a gain and offset is the extra claim.
+pub const TONE_GAIN_FS_BIC: f64 = 6.0;
 
 /// Replace the steps `remove` selects (fixed steps stay) by the effects of the level-response
 /// reading `b` with its parameters, refit the other effects and recompute every effect's
@@ -1232,8 +1263,11 @@ pub const SPATIAL_ALIASES: [&str; 3] = ["stray_light", "veiling_glare", "vignett
 /// `veiling_glare`, `vignetting`): the residual of the model without them and without the tone
 /// effects is regressed on a free level response and on the position terms
 /// ([`super::levelmap::test`]). When the position terms are not significant given the level
-/// response while its curvature is, the change depends on each pixel's level and not on where it
-/// is: a tone curve, which the spatial effects only imitated through the scene's smooth lighting.
+/// response, the spatial effects' own signature (a change that depends on the place, whatever the
+/// level there) is absent: the change depends on each pixel's level — a tone curve, a dark level
+/// or a gain and offset, which the spatial effects only imitated through the scene's lighting
+/// (a smooth lamp-lit wall, a frame-filling planetary surface under a veiling glare's nearly
+/// uniform pedestal, fiducials of one level in the corners).
 /// They are then replaced (with the tone effects) by the best reading of the level response
 /// ([`super::tone::readings`]), whose shape [`tone_check`] judges next.
 pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), DiagnoseError> {
@@ -1256,14 +1290,14 @@ pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Re
     if std::env::var_os("FAULTCAM_DIAG_DEBUG").is_some() {
         eprintln!("{line}");
     }
-    if lp.z_position < z_thr && lp.z_curve >= z_thr {
+    if lp.z_position < z_thr {
         let mut acc = tone::LevelAcc::default();
         let mut n_values = 0usize;
         for (k, mp) in planes.iter().enumerate() {
             for (c, plane) in mp.iter().enumerate() {
                 let r = &real[k][c].data;
                 for (i, &m) in plane.data.iter().enumerate() {
-                    if keep[k][i] {
+                    if keep[k][i] || (!ctx.loss.skip[k][i] && smooth_at(plane, i)) {
                         acc.push(m as f64, r[i] as f64);
                         n_values += 1;
                     }
@@ -1272,7 +1306,7 @@ pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Re
         }
         let pts = tone::level_response(&acc, ctx.loss.noise());
         let rs = tone::readings(&pts, n_values);
-        if let Some(b) = rs.iter().find(|r| tone_reading_valid(r)).cloned()
+        if let Some(b) = best_reading(&rs, &tone_reading_valid).cloned()
             && replace_by_reading(ctx, sel, &removed, &b, z_thr)?
         {
             sel.notes.push(format!(
@@ -1289,6 +1323,30 @@ pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Re
     }
     sel.level_position = Some(line);
     Ok(())
+}
+
+/// Largest 3x3 range (8-bit DN) of the model level at which a pixel off the interior mask still
+/// reads the level response: textured regions (cloud tops, a planet's surface, a lit wall's grain)
+/// carry the bright and mid levels that tell a tone curve (full scale fixed) from a gain and
+/// offset (full scale moved), while on steep edges a small error of the model's blur or
+/// registration would move a bin's mean by more than its noise.
+pub const TONE_SMOOTH_RANGE_DN: f32 = 24.0;
+
+/// Whether the 3x3 neighbourhood of pixel `i` of `plane` spans at most [`TONE_SMOOTH_RANGE_DN`].
+fn smooth_at(plane: &Plane, i: usize) -> bool {
+    let (w, h) = (plane.w, plane.h);
+    let (x, y) = (i % w, i / w);
+    if x == 0 || y == 0 || x + 1 >= w || y + 1 >= h {
+        return false;
+    }
+    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+    for yy in y - 1..=y + 1 {
+        for &v in &plane.data[yy * w + x - 1..=yy * w + x + 1] {
+            lo = lo.min(v);
+            hi = hi.max(v);
+        }
+    }
+    hi - lo <= TONE_SMOOTH_RANGE_DN
 }
 
 /// Level-response check of the tone effects the selection chose (`dark_current`, `gain_offset`,
@@ -1318,7 +1376,7 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
         for (c, plane) in mp.iter().enumerate() {
             let r = &p.real[c].data;
             for (i, &m) in plane.data.iter().enumerate() {
-                if ctx.loss.skip[k][i] || !ctx.loss.interior[k][i] {
+                if ctx.loss.skip[k][i] || !(ctx.loss.interior[k][i] || smooth_at(plane, i)) {
                     continue;
                 }
                 acc.push(m as f64, r[i] as f64);
@@ -1328,6 +1386,14 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
     }
     let pts = tone::level_response(&acc, ctx.loss.noise());
     let rs = tone::readings(&pts, n_values);
+    if std::env::var_os("FAULTCAM_DIAG_DEBUG").is_some() {
+        for p in &pts {
+            eprintln!("level response: s {:.1} m {:.2} se {:.3} n {}", p.s, p.m, p.se, p.n);
+        }
+        for r in &rs {
+            eprintln!("reading: {}", r.describe());
+        }
+    }
     let Some(cur) = tone::reading_of(&rs, &chosen).cloned() else {
         return Ok(());
     };
@@ -1860,6 +1926,30 @@ mod tests {
         let r = tone_replacement(&rs, &["gain_offset"]).expect("dark under tone replaces gain_offset");
         assert_eq!(r.shape.effects(), ["dark_current", "gamma"]);
         assert!((r.d - 2.5).abs() < 0.2, "dark {}", r.d);
+    }
+
+    /// h27tone: a dark level under an sRGB curve seen only on levels inside the curve's linear
+    /// toe is exactly a gain and offset there; full scale is not seen to move, so gain_offset
+    /// (whose own signature that is) gives way to the tone-curve reading. A true gain and
+    /// offset seen up to bright levels moves full scale and stands.
+    #[test]
+    fn gain_offset_stands_only_where_full_scale_moves() {
+        use super::super::tone::{LevelPoint, readings, tone_curve};
+        let fs = FS as f64;
+        let pts = |f: &dyn Fn(f64) -> f64, hi: usize| -> Vec<LevelPoint> {
+            (2..hi).step_by(2).map(|s| LevelPoint { s: s as f64, m: f(s as f64), se: 0.3, n: 300 }).collect()
+        };
+        // Toe of (q 0.88, a 0.05) ends at x 0.35 (89 DN): levels 2..200 DN, the toe and the
+        // bend (on the toe alone both read χ² 0 and the tone curve's extra parameter costs
+        // ln n in BIC: there gain_offset stays, a limit).
+        let dark_tone = |s: f64| fs * tone_curve((s + 2.5) / fs, 0.88, 0.05, true);
+        let rs = readings(&pts(&dark_tone, 200), 100_000);
+        let r = tone_replacement(&rs, &["gain_offset"]).unwrap_or_else(|| {
+            panic!("no moved full scale: {:?}", rs.iter().map(|r| r.describe()).collect::<Vec<_>>())
+        });
+        assert!(r.shape.effects().contains(&"gamma"), "{}", r.describe());
+        let rs = readings(&pts(&|s| 1.03 * s + 1.5, 240), 100_000);
+        assert!(tone_replacement(&rs, &["gain_offset"]).is_none(), "a gain of 1.03 up to 240 DN moves full scale");
     }
 
     #[test]

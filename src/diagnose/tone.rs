@@ -47,12 +47,19 @@ pub struct LevelAcc {
     sum_s: Vec<f64>,
     sum_r: Vec<f64>,
     zeros: Vec<usize>,
+    fulls: Vec<usize>,
     n: Vec<usize>,
 }
 
 impl Default for LevelAcc {
     fn default() -> Self {
-        LevelAcc { sum_s: vec![0.0; 256], sum_r: vec![0.0; 256], zeros: vec![0; 256], n: vec![0; 256] }
+        LevelAcc {
+            sum_s: vec![0.0; 256],
+            sum_r: vec![0.0; 256],
+            zeros: vec![0; 256],
+            fulls: vec![0; 256],
+            n: vec![0; 256],
+        }
     }
 }
 
@@ -67,19 +74,29 @@ impl LevelAcc {
         if r <= 0.0 {
             self.zeros[b] += 1;
         }
+        if r >= FS as f64 {
+            self.fulls[b] += 1;
+        }
     }
 }
 
-/// Mean of `max(round(X), 0)` for X ~ N(μ, σ²), censored at `c` (half a quantisation step).
-fn censored_mean(mu: f64, sd: f64, c: f64) -> f64 {
-    let t = (c - mu) / sd;
-    mu * (1.0 - stats::norm_cdf(t)) + sd * stats::norm_pdf(t)
+/// Mean of the read value of X ~ N(μ, σ²) when values below `c` read 0 and values above `h` read
+/// full scale (the ADC's range; `c` and `h` half a quantisation step inside it).
+fn censored_mean(mu: f64, sd: f64, c: f64, h: f64) -> f64 {
+    let (a, b) = ((c - mu) / sd, (h - mu) / sd);
+    let (pa, pb) = (stats::norm_cdf(a), stats::norm_cdf(b));
+    mu * (pb - pa) + sd * (stats::norm_pdf(a) - stats::norm_pdf(b)) + FS as f64 * (1.0 - pb)
 }
 
 /// The level response from the accumulated pixels. Bins with fewer than 30 pixels, and bins
-/// whose real values reach full scale (within 3 noise sigmas), are left out.
+/// where more than half of the real values are clipped (at 0 or at full scale), are left out;
+/// in the others the clipped values are censored observations (a two-sided Tobit mean), so that
+/// the offset at zero signal is measured on black regions and the response near full scale on
+/// bright ones — where a gain and offset (which moves full scale) and a tone curve (which fixes
+/// it) differ most.
 pub fn level_response(acc: &LevelAcc, noise: &NoiseModel) -> Vec<LevelPoint> {
     let c = 0.5 * noise.quant;
+    let h = FS as f64 - 0.5 * noise.quant;
     let mut out = Vec::new();
     for b in 0..256 {
         let n = acc.n[b];
@@ -88,16 +105,17 @@ pub fn level_response(acc: &LevelAcc, noise: &NoiseModel) -> Vec<LevelPoint> {
         }
         let s = acc.sum_s[b] / n as f64;
         let mean = acc.sum_r[b] / n as f64;
-        let sd = noise.sd(mean.max(0.0)).max(0.3);
-        if mean > FS as f64 - 3.0 * sd - 1.0 {
+        let sd = noise.sd(mean.clamp(0.0, FS as f64)).max(0.3);
+        let clipped = acc.zeros[b] + acc.fulls[b];
+        if 2 * clipped > n {
             continue;
         }
-        let m = if acc.zeros[b] > 0 {
+        let m = if clipped > 0 {
             // Solve censored_mean(μ) = mean for μ (monotone increasing).
-            let (mut lo, mut hi) = (-10.0 * sd, mean + 1.0);
-            for _ in 0..60 {
+            let (mut lo, mut hi) = (-10.0 * sd, FS as f64 + 10.0 * sd);
+            for _ in 0..80 {
                 let mid = 0.5 * (lo + hi);
-                if censored_mean(mid, sd, c) < mean {
+                if censored_mean(mid, sd, c, h) < mean {
                     lo = mid;
                 } else {
                     hi = mid;
@@ -108,7 +126,7 @@ pub fn level_response(acc: &LevelAcc, noise: &NoiseModel) -> Vec<LevelPoint> {
             mean
         };
         // Clipped values carry less information: inflate by the censored fraction.
-        let frac = acc.zeros[b] as f64 / n as f64;
+        let frac = clipped as f64 / n as f64;
         let se = sd / (n as f64 * (1.0 - frac).max(0.05)).sqrt();
         out.push(LevelPoint { s, m, se: (se * se + SYS_DN * SYS_DN).sqrt(), n });
     }
@@ -473,6 +491,32 @@ mod tests {
             }
         }
         assert!((ls_power(&|x| x.powf(0.9)) - 0.9).abs() < 1e-4);
+    }
+
+    /// h27tone: bins whose real values are partly clipped (at 0 below, at full scale above) are
+    /// read as censored means, so the level near full scale — where a tone curve and a gain and
+    /// offset differ most — is measured without the clipping's bias.
+    #[test]
+    fn clipped_bins_are_read_as_censored_means_at_both_ends() {
+        let noise = NoiseModel::prior(1.0);
+        let mut rng = crate::rng::Rng::new(27);
+        let mut acc = LevelAcc::default();
+        for (s, mu) in [(2.0, 1.5), (250.0, 252.0), (120.0, 121.0)] {
+            let sd = noise.sd(mu);
+            for _ in 0..20_000 {
+                let r = (mu + sd * rng.normal()).round().clamp(0.0, FS as f64);
+                acc.push(s, r);
+            }
+        }
+        let pts = level_response(&acc, &noise);
+        assert_eq!(pts.len(), 3);
+        for (p, mu) in pts.iter().zip([1.5, 121.0, 252.0]) {
+            let raw = acc.sum_r[p.s.round() as usize] / acc.n[p.s.round() as usize] as f64;
+            assert!((p.m - mu).abs() < 0.25, "bin {}: censored mean {:.2} vs truth {mu} (raw {raw:.2})", p.s, p.m);
+        }
+        // The raw mean of the top bin is biased low by the clipping, the censored one is not.
+        let raw_top = acc.sum_r[250] / acc.n[250] as f64;
+        assert!(252.0 - raw_top > 0.5, "raw top mean {raw_top:.2}");
     }
 
     /// Each shape, made exactly, is read as itself; a gain and offset is not read as a tone

@@ -1676,6 +1676,7 @@ impl Case {
             "backdrop": match (self.alt_scene, self.lab, self.earth, self.wedge) {
                 (Some(AltScene::StarField { .. }), ..) => "star field",
                 (Some(AltScene::Docking { .. }), ..) => "docking target",
+                (Some(AltScene::Planet { .. }), ..) => "planetary surface",
                 (None, true, _, true) if self.lamp => "lamp-lit lab with step wedge",
                 (None, true, _, false) if self.lamp => "lamp-lit lab",
                 (None, true, _, true) => "lab with step wedge",
@@ -1986,6 +1987,7 @@ pub fn corpus() -> Vec<Case> {
     v.extend(tone_cases_h26());
     v.extend(h26flare_cases());
     v.extend(h27smear_cases());
+    v.extend(h27tone_cases());
     v
 }
 
@@ -2124,6 +2126,177 @@ pub fn subset_names() -> &'static [&'static str] {
 }
 
 // =============================================================================================
+// h27tone: a dark level under a generalised sRGB curve, and near-linear sRGB curves, on other
+// scenes, bit depths and cameras
+// =============================================================================================
+
+/// Irradiance (8-bit DN, unclipped, mono) of frame `i` of `n` of a planetary surface (h27tone):
+/// albedo from three octaves of value noise, ~14 craters of radius 6–28 px (floor at 0.75 of
+/// the albedo, a raised rim lit on the sun side at 1.25 and shadowed on the far side at 0.55),
+/// mapped to `lo`..`hi` DN and box-integrated over the pixel (3x3).
+fn planet_irradiance(w: usize, h: usize, seed: u64, lo: f64, hi: f64, i: usize, n: usize) -> Img {
+    let mut r = Prng::new(seed ^ 0x9a1e7);
+    let t = i as f64 - (n.max(1) - 1) as f64 / 2.0;
+    let (ox, oy) = (0.9 * t, 0.5 * t);
+    let craters: Vec<(f64, f64, f64)> = (0..14)
+        .map(|_| (r.range(-20.0, w as f64 + 20.0), r.range(-20.0, h as f64 + 20.0), r.range(6.0, 28.0)))
+        .collect();
+    // Sun from the upper left.
+    let (sx, sy) = (-std::f64::consts::FRAC_1_SQRT_2, -std::f64::consts::FRAC_1_SQRT_2);
+    let shade = |x: f64, y: f64| -> f64 {
+        let (u, v) = (x - ox, y - oy);
+        let alb = 0.5 * value_noise(u / 40.0, v / 40.0, seed ^ 0x11)
+            + 0.3 * value_noise(u / 12.0, v / 12.0, seed ^ 0x22)
+            + 0.2 * value_noise(u / 3.5, v / 3.5, seed ^ 0x33);
+        let mut k = 1.0;
+        for &(cx, cy, cr) in &craters {
+            let (dx, dy) = (u - cx, v - cy);
+            let d = (dx * dx + dy * dy).sqrt() / cr;
+            if d < 0.85 {
+                k *= 0.75;
+            } else if d < 1.15 {
+                // Rim: lit where its normal faces the sun.
+                let cosang = -(dx * sx + dy * sy) / (d * cr).max(1e-9);
+                k *= if cosang > 0.0 { 1.0 + 0.25 * cosang } else { 1.0 + 0.45 * cosang };
+            }
+        }
+        lo + (hi - lo) * (alb * k).clamp(0.0, 1.2)
+    };
+    let mut img = Img::new(w, h, 1);
+    for y in 0..h {
+        for x in 0..w {
+            let mut acc = 0.0;
+            for j in 0..3 {
+                for k in 0..3 {
+                    acc += shade(x as f64 + (k as f64 + 0.5) / 3.0, y as f64 + (j as f64 + 0.5) / 3.0);
+                }
+            }
+            img.set(x, y, 0, acc / 9.0);
+        }
+    }
+    img
+}
+
+fn h27_case(name: &str, fmt: Fmt, seed: u64, gain: f64, read: f64, hidden: Vec<Hidden>) -> Case {
+    case(name, fmt, seed, false, gain, read, hidden).sized(320, 240, 4)
+}
+
+/// h27tone cases: a dark level (1–3 DN, at or below the noise) under a generalised sRGB curve,
+/// encode and decode, and generalised sRGB curves whose least-squares power law is nearly linear
+/// (0.98–1.02) while the toe and offset shape is there; on a docking target, a planetary
+/// surface, the Earth limb scene and the lab wall; 8-, 10- and 12-bit, mono and RGB, read noise
+/// 1–2.4 DN and 2.5–40 e-/DN.
+pub fn h27tone_cases() -> Vec<Case> {
+    use Fmt::{Mono8, Rgb8};
+    use Hidden::*;
+    let planet = AltScene::Planet { lo: 25.0, hi: 215.0 };
+    vec![
+        h27_case(
+            "h27_dark_srgb_docking_mono10",
+            Mono8,
+            601,
+            6.0,
+            1.2,
+            vec![DarkCurrent { mean_dn: 1.5, hot_rate: 0.0 }, ToneCurve { q: 0.9, a: 0.04, encode: true }],
+        )
+        .on(AltScene::Docking { white: 228.0, retro: false })
+        .adc_bits(10),
+        h27_case(
+            "h27_dark_srgb_planet_mono12",
+            Mono8,
+            602,
+            10.0,
+            1.5,
+            vec![DarkCurrent { mean_dn: 2.0, hot_rate: 0.0 }, ToneCurve { q: 0.92, a: 0.03, encode: true }],
+        )
+        .on(planet)
+        .adc_bits(12),
+        h27_case(
+            "h27_dark_srgb_earth_rgb10",
+            Rgb8,
+            603,
+            5.0,
+            1.5,
+            vec![DarkCurrent { mean_dn: 2.5, hot_rate: 0.0 }, ToneCurve { q: 0.9, a: 0.03, encode: true }],
+        )
+        .adc_bits(10),
+        h27_case(
+            "h27_dark_decode_lab_mono",
+            Mono8,
+            604,
+            6.0,
+            1.5,
+            vec![DarkCurrent { mean_dn: 2.0, hot_rate: 0.0 }, ToneCurve { q: 1.1, a: 0.03, encode: false }],
+        )
+        .in_lab(),
+        h27_case(
+            "h27_dark_srgb_noisy_lab_rgb",
+            Rgb8,
+            605,
+            2.5,
+            2.4,
+            vec![DarkCurrent { mean_dn: 1.2, hot_rate: 0.0 }, ToneCurve { q: 0.9, a: 0.02, encode: true }],
+        )
+        .in_lab()
+        .with_wedge(),
+        h27_case(
+            "h27_dark_decode_planet_mono10",
+            Mono8,
+            606,
+            40.0,
+            1.0,
+            vec![DarkCurrent { mean_dn: 3.0, hot_rate: 0.0 }, ToneCurve { q: 1.15, a: 0.04, encode: false }],
+        )
+        .on(planet)
+        .adc_bits(10),
+        h27_case("h27_nearlin_srgb_lab_rgb10", Rgb8, 607, 5.0, 1.5, vec![ToneCurve { q: 0.85, a: 0.12, encode: true }])
+            .in_lab()
+            .with_wedge()
+            .adc_bits(10),
+        h27_case(
+            "h27_nearlin_decode_earth_rgb10",
+            Rgb8,
+            608,
+            8.0,
+            1.2,
+            vec![ToneCurve { q: 1.3, a: 0.22, encode: false }],
+        )
+        .adc_bits(10),
+        h27_case(
+            "h27_nearlin_srgb_planet_mono12",
+            Mono8,
+            609,
+            10.0,
+            1.2,
+            vec![ToneCurve { q: 0.88, a: 0.08, encode: true }],
+        )
+        .on(planet)
+        .adc_bits(12),
+        h27_case(
+            "h27_dark_nearlin_lamp_rgb10",
+            Rgb8,
+            610,
+            5.0,
+            1.5,
+            vec![DarkCurrent { mean_dn: 1.5, hot_rate: 0.0 }, ToneCurve { q: 0.85, a: 0.12, encode: true }],
+        )
+        .lamp_lit()
+        .adc_bits(10),
+        h27_case(
+            "h27_dark_srgb_docking_mono8",
+            Mono8,
+            611,
+            4.0,
+            2.0,
+            vec![DarkCurrent { mean_dn: 2.5, hot_rate: 0.0 }, ToneCurve { q: 0.88, a: 0.05, encode: true }],
+        )
+        .on(AltScene::Docking { white: 242.0, retro: true }),
+        h27_case("h27_neg_planet_mono10", Mono8, 612, 8.0, 1.4, vec![]).on(planet).adc_bits(10),
+    ]
+}
+// ---- end h27tone ------------------------------------------------------------------------------
+
+// =============================================================================================
 // h26flare: star field and docking-target scenes, polygon lens-flare ghosts, b-bit ADC data
 // =============================================================================================
 
@@ -2141,6 +2314,10 @@ pub enum AltScene {
     /// specular spots (an elliptical glint and, with `retro`, a small round retro-reflector, at
     /// FS). It drifts and rolls slowly.
     Docking { white: f64, retro: bool },
+    /// (h27tone) A planetary surface filling the frame: multi-octave albedo texture with
+    /// craters (dark floors, a bright sunlit rim on one side, a shadowed rim on the other), lit
+    /// obliquely so the level spans about `lo`..`hi` DN. It drifts by (0.9, 0.5) px per frame.
+    Planet { lo: f64, hi: f64 },
 }
 
 /// ADC step in 8-bit DN of `bits`-bit data.
@@ -2298,6 +2475,7 @@ pub fn alt_frame(alt: AltScene, w: usize, h: usize, seed: u64, i: usize, n: usiz
             star_field_irradiance(w, h, seed, stars, (src_x, src_y), sun, i, n)
         }
         AltScene::Docking { white, retro } => docking_irradiance(w, h, seed, white, retro, i, n),
+        AltScene::Planet { lo, hi } => planet_irradiance(w, h, seed, lo, hi, i, n),
     };
     irr.v.iter_mut().for_each(|v| *v = ((*v / step).round() * step).max(0.0));
     let mut sim = irr.clone();
