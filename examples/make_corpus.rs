@@ -11,10 +11,16 @@ mod realcam;
 
 fn main() -> std::process::ExitCode {
     let mut args = std::env::args().skip(1);
+    const USAGE: &str = "usage: make_corpus OUT_DIR [--size WxH] [--frames N] [CASE ...]";
     let Some(out) = args.next() else {
-        eprintln!("usage: make_corpus OUT_DIR [CASE ...]");
+        eprintln!("{USAGE}");
         return std::process::ExitCode::from(2);
     };
+    // An option in the place of OUT_DIR (e.g. `--help`) is not a directory to write a corpus to.
+    if out.starts_with('-') {
+        eprintln!("{USAGE}");
+        return std::process::ExitCode::from(if out == "--help" || out == "-h" { 0 } else { 2 });
+    }
     let mut wanted: Vec<String> = Vec::new();
     let mut size: Option<(usize, usize)> = None;
     let mut frames: Option<usize> = None;
@@ -22,6 +28,10 @@ fn main() -> std::process::ExitCode {
         match a.as_str() {
             "--size" => size = args.next().and_then(|v| realcam::parse_size(&v)),
             "--frames" => frames = args.next().and_then(|v| v.parse().ok()),
+            _ if a.starts_with('-') => {
+                eprintln!("make_corpus: unknown option {a}\n{USAGE}");
+                return std::process::ExitCode::from(2);
+            }
             _ => wanted.push(a),
         }
     }
