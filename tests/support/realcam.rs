@@ -2244,7 +2244,9 @@ pub fn h27tone_cases() -> Vec<Case> {
             Mono8,
             606,
             40.0,
-            1.0,
+            // read noise 1.3 DN (1.0 put the effect at 2.07x the camera noise, above the
+            // corpus's bound of 2x: hidden_effects_are_comparable_to_the_noise)
+            1.3,
             vec![DarkCurrent { mean_dn: 3.0, hot_rate: 0.0 }, ToneCurve { q: 1.15, a: 0.04, encode: false }],
         )
         .on(planet)
