@@ -412,7 +412,8 @@ pub fn row_noise(
     let n = prods.len() as f64;
     let m = prods.iter().map(|p| p.0.clamp(lo_q, hi_q)).sum::<f64>() / n;
     // Cluster-robust standard error of the mean.
-    let mut cs: std::collections::HashMap<usize, f64> = std::collections::HashMap::new();
+    // Sorted by cluster, so that the sum of squares is the same bits on every run.
+    let mut cs: std::collections::BTreeMap<usize, f64> = std::collections::BTreeMap::new();
     for &(v, cl) in &prods {
         *cs.entry(cl).or_insert(0.0) += v.clamp(lo_q, hi_q) - m;
     }

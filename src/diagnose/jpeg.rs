@@ -65,8 +65,9 @@ fn cos_table() -> [[f64; 8]; 8] {
 
 /// Histograms of DCT coefficients per frequency (bins of 1/16) for one grid offset.
 struct CoefHist {
-    /// Per frequency: map bin -> count.
-    bins: Vec<std::collections::HashMap<i32, u32>>,
+    /// Per frequency: (bin, count), sorted by bin (the scores sum over the bins in that order, so
+    /// they are the same bits on every run; a hash map's order changes from run to run).
+    bins: Vec<Vec<(i32, u32)>>,
 }
 
 const RES: f64 = 16.0;
@@ -110,6 +111,14 @@ fn coefficient_hist(images: &[&[Plane]], off: (usize, usize)) -> CoefHist {
             by += 8;
         }
     }
+    let bins = bins
+        .into_iter()
+        .map(|m| {
+            let mut v: Vec<(i32, u32)> = m.into_iter().collect();
+            v.sort_unstable();
+            v
+        })
+        .collect();
     CoefHist { bins }
 }
 
@@ -117,7 +126,7 @@ fn coefficient_hist(images: &[&[Plane]], off: (usize, usize)) -> CoefHist {
 fn score(h: &CoefHist, f: usize, q: f64) -> (f64, f64) {
     let mut s = 0.0;
     let mut n = 0.0;
-    for (&b, &c) in &h.bins[f] {
+    for &(b, c) in &h.bins[f] {
         let v = b as f64 / RES;
         if v.abs() >= q / 2.0 {
             s += c as f64 * (2.0 * std::f64::consts::PI * v / q).cos();

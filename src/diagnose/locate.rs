@@ -14,6 +14,7 @@ use super::img::{FS, Pair, Plane};
 use super::noise;
 use super::photometric::{self, Photometric};
 use super::{Options, Signature, edges, fixed, flare, psf, saturation};
+use rayon::prelude::*;
 
 /// Everything the signature stage found.
 pub struct Located {
@@ -99,7 +100,8 @@ pub fn quantisation(pairs: &[Pair]) -> f64 {
 pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     let notes = Vec::new();
     let quant = quantisation(pairs);
-    let masks: Vec<Masks> = pairs.iter().map(|p| Masks::compute(&p.sim)).collect();
+    // Each pair's masks on its own (in parallel; collected in pair order).
+    let masks: Vec<Masks> = pairs.par_iter().map(|p| Masks::compute(&p.sim)).collect();
     let sims: Vec<Vec<Plane>> = pairs.iter().map(|p| p.sim.clone()).collect();
     // First pass: noise and photometric model; hot pixels; second pass without them.
     let noise0 = noise::estimate(pairs, &masks, &sims, quant, 0.0, None);
@@ -107,7 +109,11 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     let (pred0, _) = predict_planes(pairs, &photo0);
     let quiet: Vec<Vec<bool>> = masks.iter().map(|m| m.quiet.clone()).collect();
     let (_, hot, _) = fixed::hot_pixels(pairs, &masks, &quiet, &pred0, &noise0);
+    // The first pass's planes are done with: a frame's worth of memory per pair less at the
+    // peak of the signature tests below.
+    drop((pred0, quiet));
     let noise = noise::estimate(pairs, &masks, &sims, quant, 0.0, Some(&hot));
+    drop(sims);
     let photo = photometric::fit(pairs, &masks, &noise);
     let (pred, resid) = predict_planes(pairs, &photo);
     let z = opts.z_threshold;
