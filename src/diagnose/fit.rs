@@ -384,14 +384,13 @@ fn noise_through_model(
     Ok((a.sqrt(), if use_b { Some(1.0 / b) } else { None }))
 }
 
-/// Exponent of the fitted `gamma` step, if the selection holds one (a tone curve the noise
+/// Whether the selection holds a fitted `gamma` step away from identity (a tone curve the noise
 /// passed through).
-fn tone_gamma_of(steps: &[select::Step]) -> Option<f64> {
-    steps
-        .iter()
-        .find(|s| !s.fixed && s.name == "gamma")
-        .map(|s| s.params.get("gamma"))
-        .filter(|g| g.is_finite() && (g - 1.0).abs() > 1e-6)
+fn tone_selected(steps: &[select::Step]) -> bool {
+    steps.iter().filter(|s| !s.fixed && s.name == "gamma").any(|s| {
+        let g = s.params.get("gamma");
+        g.is_finite() && (g - 1.0).abs() > 1e-6
+    })
 }
 
 fn det_names_of(sel: &select::Selection) -> Vec<&'static str> {
@@ -543,7 +542,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     // The proper likelihood trusts the noise model's level dependence, which a tone curve the
     // library's power law does not match bends (see `LossData::set_exact`): with a tone curve
     // selected, the selection is repeated in the Gaussian form.
-    let tone = tone_gamma_of(&sel.steps).is_some();
+    let tone = tone_selected(&sel.steps);
     if tone {
         ctx.loss.set_exact(false);
         notes.push(

@@ -696,10 +696,6 @@ impl<'a> LossData<'a> {
         self.exact = exact;
     }
 
-    pub fn exact(&self) -> bool {
-        self.exact
-    }
-
     /// Replace the noise model (and its tables).
     pub fn set_noise(&mut self, noise: NoiseModel) {
         self.tables = LossTables::new(&noise);
