@@ -452,7 +452,9 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     // JPEG is found by its own test (the quantisation lattice does not depend on any model);
     // when present it is part of every model, so that its softening and blocking are not taken
     // for blur or anything else.
+    super::progress("fit: frames chosen");
     let mut jp = jpeg::test(pairs);
+    super::progress("fit: jpeg test");
     jp.detected = jp.z > (z - 1.0).max(8.0) && jp.param("quality").unwrap_or(100.0) < 98.0;
     let mut start = Vec::new();
     if jp.detected
@@ -534,6 +536,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     for (k, p) in pairs.iter().enumerate() {
         model_planes.push(select::apply_steps(&mut sel.steps, &p.sim_frame, k as u64, seed)?);
     }
+    super::progress("fit: model planes");
     let renoise = noise::estimate(pairs, &loc.masks, &model_planes, loc.quant, 0.0, Some(&loc.hot));
     let change = [2.0, 30.0, 100.0, 200.0]
         .iter()
@@ -590,6 +593,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     }
     // The tone effects read by the shape of the level response (a tone curve fixes 0 and full
     // scale, a gain and offset does not).
+    super::progress("fit: before tone check");
     let before_tone: Vec<&str> = sel.steps.iter().map(|s| s.name).collect();
     select::tone_check(&ctx, &mut sel, z)?;
     if sel.steps.iter().map(|s| s.name).ne(before_tone.iter().copied()) {
@@ -613,6 +617,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             / pairs.len().max(1) as f64
     };
     let mut rmse_after = rmse_model(&model_planes);
+    super::progress("fit: rmse");
     while rmse_after > rmse_before && sel.steps.iter().any(|s| !s.fixed) {
         let mut best: Option<(usize, f64, Vec<Vec<Plane>>)> = None;
         for j in (0..sel.steps.len()).filter(|&j| !sel.steps[j].fixed) {
@@ -658,6 +663,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     // ---- stochastic tests on the residual of the deterministic model ----------------------------
     super::progress("tone check and RMSE check done; stochastic tests");
     let (mut st, _hot) = stochastic_tests(pairs, loc, &model_planes, z, jp.detected);
+    super::progress("fit: stochastic tests done");
     st.jpeg = jp;
     // ---- findings --------------------------------------------------------------------------------
     let mut results: Vec<FittedEffect> = Vec::new();
@@ -920,6 +926,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         after.push(m);
     }
     notes.extend(sel.notes.iter().filter(|n| !n.contains("backward check")).cloned());
+    super::progress("fit: metrics");
     Ok(Fitted {
         effects: results,
         config,

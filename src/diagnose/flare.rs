@@ -32,6 +32,7 @@ use super::common::{Masks, NoiseModel};
 use super::img::{FS, Pair, Plane, luma};
 use super::stats;
 use super::types::{Profile, Signature};
+use rayon::prelude::*;
 
 /// Signature parameter holding the ghosts' plateau / FS (not a library parameter, so the fit's
 /// initial values do not see it; the report's `intensity` is this reading).
@@ -182,9 +183,8 @@ struct FrameScan {
 
 /// Residual (channel mean) with columns and rows of significant median offset removed,
 /// weights and the prefix sums.
-fn prepare(p: &Pair, m: &Masks, pred: &[Plane], resid: &[Plane], noise: &NoiseModel) -> Option<FrameScan> {
+fn prepare(p: &Pair, m: &Masks, pred: &[Plane], resid: &[Plane], noise: &NoiseModel, src: (f64, f64)) -> FrameScan {
     let (w, h) = (p.w(), p.h());
-    let src = brightest_source(&luma(&p.sim))?;
     let nc = resid.len() as f32;
     let mut r = vec![f32::NAN; w * h];
     let mut sd = vec![0f32; w * h];
@@ -237,7 +237,7 @@ fn prepare(p: &Pair, m: &Masks, pred: &[Plane], resid: &[Plane], noise: &NoiseMo
             }
         }
     }
-    Some(FrameScan { sums: prefix_sums(w, h, &r, &sd, &lvl), src })
+    FrameScan { sums: prefix_sums(w, h, &r, &sd, &lvl), src }
 }
 
 /// Row prefix sums ([`Sums`]) of a residual `r` (NaN = not used) with noise sd `sd` and predicted
@@ -266,10 +266,11 @@ fn prefix_sums(w: usize, h: usize, r: &[f32], sd: &[f32], lvl: &[f32]) -> Sums {
     Sums { w, h, p }
 }
 
-/// Combined (over frames) excess and variance of one template at line parameter `u` along the
-/// direction rotated by `ang` from the source direction; `core` = share of ρ of the core radius.
-fn combined(
-    frames: &[FrameScan],
+/// Excess and variance of one template on one frame at line parameter `u` along the direction
+/// rotated by `ang` from the source direction; `core` = share of ρ of the core radius. `None`
+/// off the frame or where [`template`] cannot read it.
+fn frame_template(
+    f: &FrameScan,
     u: f64,
     ang: f64,
     rho: f64,
@@ -277,24 +278,66 @@ fn combined(
     ring: (f64, f64),
     cover: f64,
 ) -> Option<(f64, f64)> {
-    let (mut sw, mut swe) = (0.0, 0.0);
-    for f in frames {
-        let (w, h) = (f.sums.w, f.sums.h);
-        let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
-        let (vx, vy) = (f.src.0 - cx, f.src.1 - cy);
-        let (ca, sa) = (ang.cos(), ang.sin());
-        let (dx, dy) = (vx * ca - vy * sa, vx * sa + vy * ca);
-        let (x, y) = (cx + u * dx, cy + u * dy);
-        if x < 0.0 || y < 0.0 || x > w as f64 - 1.0 || y > h as f64 - 1.0 {
-            continue;
-        }
-        if let Some((e, v)) = template(&f.sums, x, y, core * rho, ring, cover) {
-            sw += 1.0 / v;
-            swe += e / v;
+    let (w, h) = (f.sums.w, f.sums.h);
+    let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+    let (vx, vy) = (f.src.0 - cx, f.src.1 - cy);
+    let (ca, sa) = (ang.cos(), ang.sin());
+    let (dx, dy) = (vx * ca - vy * sa, vx * sa + vy * ca);
+    let (x, y) = (cx + u * dx, cy + u * dy);
+    if x < 0.0 || y < 0.0 || x > w as f64 - 1.0 || y > h as f64 - 1.0 {
+        return None;
+    }
+    template(&f.sums, x, y, core * rho, ring, cover)
+}
+
+/// Inverse-variance combination over frames of one template: the sums (Σ 1/v, Σ e/v), to which
+/// the frames are added in pair order ([`Combined::add`]) so that the result has the same bits
+/// however the frames were grouped and on however many threads they were read.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct Combined {
+    sw: f64,
+    swe: f64,
+}
+
+impl Combined {
+    fn add(&mut self, ev: Option<(f64, f64)>) {
+        if let Some((e, v)) = ev {
+            self.sw += 1.0 / v;
+            self.swe += e / v;
         }
     }
-    (sw > 0.0).then(|| (swe / sw, 1.0 / sw))
+    /// Combined excess and its variance, `None` when no frame could read the template.
+    fn get(&self) -> Option<(f64, f64)> {
+        (self.sw > 0.0).then(|| (self.swe / self.sw, 1.0 / self.sw))
+    }
 }
+
+/// Frames prepared (prefix sums, [`prepare`]) a few at a time, in parallel within a group, each
+/// evaluated by `eval` into one value per query and then dropped; the values are added into `acc`
+/// frame by frame in pair order. Only a group's prefix sums (six f64 per pixel and frame) are
+/// held at once, not every frame's.
+fn stream_frames<F>(
+    frames: &[(usize, (f64, f64))],
+    prep: &(dyn Fn(usize, (f64, f64)) -> FrameScan + Sync),
+    eval: F,
+    acc: &mut [Combined],
+) where
+    F: Fn(&FrameScan) -> Vec<Option<(f64, f64)>> + Sync,
+{
+    for group in frames.chunks(STREAM_GROUP) {
+        let vals: Vec<Vec<Option<(f64, f64)>>> = group.par_iter().map(|&(k, src)| eval(&prep(k, src))).collect();
+        for v in vals {
+            debug_assert_eq!(v.len(), acc.len());
+            for (a, ev) in acc.iter_mut().zip(v) {
+                a.add(ev);
+            }
+        }
+    }
+}
+
+/// Frames prepared at once by [`stream_frames`] (a fixed number, so that the grouping and with it
+/// the result do not depend on the thread count).
+const STREAM_GROUP: usize = 4;
 
 /// A ghost found: line parameter, template radius (px), plateau (DN), its standard error, z.
 #[derive(Debug, Clone, Copy)]
@@ -320,37 +363,54 @@ pub fn lens_flare(
     // reported as COUNT_PARAM.
     sig.set_param("ghosts", 3.0);
     sig.set_param("intensity", 0.0);
-    let frames: Vec<FrameScan> = pairs
+    // The brightest source of every frame (in parallel; pair order kept), then only off-centre ones.
+    let srcs: Vec<Option<(f64, f64)>> = pairs.par_iter().map(|p| brightest_source(&luma(&p.sim))).collect();
+    let frames: Vec<(usize, (f64, f64))> = srcs
         .iter()
         .enumerate()
-        .filter_map(|(k, p)| prepare(p, &masks[k], &pred[k], &resid[k], noise))
-        .filter(|f| {
-            let (cx, cy) = ((f.sums.w as f64 - 1.0) / 2.0, (f.sums.h as f64 - 1.0) / 2.0);
-            ((f.src.0 - cx).powi(2) + (f.src.1 - cy).powi(2)).sqrt() >= 0.05 * f.sums.w.min(f.sums.h) as f64
+        .filter_map(|(k, s)| s.map(|s| (k, s)))
+        .filter(|&(k, src)| {
+            let (w, h) = (pairs[k].w(), pairs[k].h());
+            let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+            ((src.0 - cx).powi(2) + (src.1 - cy).powi(2)).sqrt() >= 0.05 * w.min(h) as f64
         })
         .collect();
     if frames.is_empty() {
         sig.evidence = "no off-centre bright source (no blob at 95 % of full scale away from the centre): lens flare cannot be tested".into();
         return sig;
     }
-    let (w, h) = (frames[0].sums.w, frames[0].sums.h);
+    let prep = |k: usize, src: (f64, f64)| prepare(&pairs[k], &masks[k], &pred[k], &resid[k], noise, src);
+    let (w, h) = (pairs[frames[0].0].w(), pairs[frames[0].0].h());
     let diag = ((w * w + h * h) as f64).sqrt();
     let len = frames
         .iter()
-        .map(|f| ((f.src.0 - (w as f64 - 1.0) / 2.0).powi(2) + (f.src.1 - (h as f64 - 1.0) / 2.0).powi(2)).sqrt())
+        .map(|&(_, src)| ((src.0 - (w as f64 - 1.0) / 2.0).powi(2) + (src.1 - (h as f64 - 1.0) / 2.0).powi(2)).sqrt())
         .sum::<f64>()
         / frames.len() as f64;
     let du = 1.0 / len;
     let us: Vec<f64> = (0..).map(|j| U_MIN + j as f64 * du).take_while(|&u| u <= U_MAX).collect();
     let radii: Vec<f64> = RADII.iter().map(|r| (r * diag).max(3.0)).collect();
-    // z of every template on a line at angle `ang`: per radius, per position.
-    let scan = |ang: f64| -> Vec<Vec<f64>> {
-        radii
-            .iter()
-            .map(|&rho| {
+    // z of every template on the lines at angles 0 (the main line) and CONTROL_DEG: per angle,
+    // per radius, per position; every frame is read once for all of them.
+    let angles: Vec<f64> = std::iter::once(0.0).chain(CONTROL_DEG.iter().map(|a| a.to_radians())).collect();
+    let (nr, nu) = (radii.len(), us.len());
+    let mut acc = vec![Combined::default(); angles.len() * nr * nu];
+    let eval_scan = |f: &FrameScan| -> Vec<Option<(f64, f64)>> {
+        let mut out = Vec::with_capacity(angles.len() * nr * nu);
+        for &ang in &angles {
+            for &rho in &radii {
                 let ring = ring_of(rho);
-                us.iter()
-                    .map(|&u| match combined(&frames, u, ang, rho, 0.8, ring, SCAN_COVER) {
+                out.extend(us.iter().map(|&u| frame_template(f, u, ang, rho, 0.8, ring, SCAN_COVER)));
+            }
+        }
+        out
+    };
+    stream_frames(&frames, &prep, eval_scan, &mut acc);
+    let scan = |a: usize| -> Vec<Vec<f64>> {
+        (0..nr)
+            .map(|ri| {
+                (0..nu)
+                    .map(|j| match acc[(a * nr + ri) * nu + j].get() {
                         Some((e, v)) => e / v.sqrt(),
                         None => f64::NAN,
                     })
@@ -358,13 +418,13 @@ pub fn lens_flare(
             })
             .collect()
     };
-    let main = scan(0.0);
+    let main = scan(0);
     // Calibration: the spread of the same statistic on control lines, away from the centre
     // (where every line through the centre meets the same pixels).
     let mut ctrl = Vec::new();
     let mut ctrl_max = f64::NEG_INFINITY;
-    for &a in CONTROL_DEG {
-        let z = scan(a.to_radians());
+    for a in 1..angles.len() {
+        let z = scan(a);
         for (ri, row) in z.iter().enumerate() {
             let keep = 2.0 * (ring_of(radii[ri]).1) / len;
             for (j, &v) in row.iter().enumerate() {
@@ -390,10 +450,34 @@ pub fn lens_flare(
     // Each ghost must stand above the largest z of the control lines (the scan maximum where no
     // ghost can be) as well as above the threshold.
     let floor = z_thr.max(ctrl_max / inflate);
-    for &(z, ri, j) in &peaks {
-        if z < floor {
-            continue;
-        }
+    // The plateau readings the picking below can ask for: every position within ρ/2 of every
+    // peak above the floor, read on all frames in a second pass (only when there is such a peak).
+    let reach_of = |rho: f64| (0.5 * rho / (du * len)).round() as isize;
+    let read_ring = |rho: f64| (1.25 * rho + 3.0, 1.25 * rho + 3.0 + (0.4 * rho).max(6.0));
+    let cands: Vec<(f64, usize, usize)> = peaks.iter().copied().filter(|p| p.0 >= floor).collect();
+    let mut offsets = Vec::with_capacity(cands.len() + 1);
+    offsets.push(0usize);
+    for &(_, ri, _) in &cands {
+        offsets.push(offsets.last().copied().unwrap_or(0) + (2 * reach_of(radii[ri]) + 1) as usize);
+    }
+    let mut reads = vec![Combined::default(); offsets.last().copied().unwrap_or(0)];
+    if !reads.is_empty() {
+        let n_reads = reads.len();
+        let eval_reads = |f: &FrameScan| -> Vec<Option<(f64, f64)>> {
+            let mut out = Vec::with_capacity(n_reads);
+            for &(_, ri, j) in &cands {
+                let (u, rho) = (us[j], radii[ri]);
+                let reach = reach_of(rho);
+                out.extend((-reach..=reach).map(|d| {
+                    let uu = u + d as f64 * du;
+                    frame_template(f, uu, 0.0, rho, 0.6, read_ring(rho), READ_COVER)
+                }));
+            }
+            out
+        };
+        stream_frames(&frames, &prep, eval_reads, &mut reads);
+    }
+    for (ci, &(z, ri, j)) in cands.iter().enumerate() {
         let (u, rho) = (us[j], radii[ri]);
         if ghosts.iter().any(|g| (g.u - u).abs() * len < g.rho + rho) {
             continue;
@@ -402,12 +486,12 @@ pub fn lens_flare(
         // (from 1.25 ρ + 3 px: the best template's ring may start just inside the edge), at the
         // position within ρ/2 along the line where it is most significant (the scan's peak can
         // lean away from masked pixels).
-        let ring = (1.25 * rho + 3.0, 1.25 * rho + 3.0 + (0.4 * rho).max(6.0));
-        let reach = (0.5 * rho / (du * len)).round() as isize;
+        let reach = reach_of(rho);
         let best = (-reach..=reach)
-            .filter_map(|d| {
+            .zip(&reads[offsets[ci]..offsets[ci + 1]])
+            .filter_map(|(d, c)| {
                 let uu = u + d as f64 * du;
-                combined(&frames, uu, 0.0, rho, 0.6, ring, READ_COVER).map(|(e, v)| (uu, e, v))
+                c.get().map(|(e, v)| (uu, e, v))
             })
             .max_by(|a, b| (a.1 / a.2.sqrt()).total_cmp(&(b.1 / b.2.sqrt())));
         // A ghost's plateau is significant on its own inner part too (a template that only
@@ -424,10 +508,11 @@ pub fn lens_flare(
     // be read (scene edges, saturation) and that no ghost found covers. A ghost could hide there,
     // so the count is only a lower bound when one is at least a smallest ghost's diameter long.
     let inside = |u: f64| {
-        frames.iter().any(|f| {
-            let (cx, cy) = ((f.sums.w as f64 - 1.0) / 2.0, (f.sums.h as f64 - 1.0) / 2.0);
-            let (x, y) = (cx + u * (f.src.0 - cx), cy + u * (f.src.1 - cy));
-            x >= 0.0 && y >= 0.0 && x <= f.sums.w as f64 - 1.0 && y <= f.sums.h as f64 - 1.0
+        frames.iter().any(|&(k, src)| {
+            let (fw, fh) = (pairs[k].w(), pairs[k].h());
+            let (cx, cy) = ((fw as f64 - 1.0) / 2.0, (fh as f64 - 1.0) / 2.0);
+            let (x, y) = (cx + u * (src.0 - cx), cy + u * (src.1 - cy));
+            x >= 0.0 && y >= 0.0 && x <= fw as f64 - 1.0 && y <= fh as f64 - 1.0
         })
     };
     let mut gap = 0.0f64;

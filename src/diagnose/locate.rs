@@ -22,10 +22,6 @@ pub struct Located {
     /// Noise model measured on real - sim (used by the signatures and the forward-model fit).
     pub noise: NoiseModel,
     pub photo: Photometric,
-    /// Q: sim through the photometric model, per pair and channel.
-    pub pred: Vec<Vec<Plane>>,
-    /// real - Q.
-    pub resid: Vec<Vec<Plane>>,
     /// Per-frame hot-pixel candidate masks (left out of every loss and statistic).
     pub hot: Vec<Vec<bool>>,
     /// All signature tests, in test order (deterministic effects first; the stochastic effects
@@ -47,11 +43,15 @@ impl Located {
     }
 }
 
-/// Prediction and residual planes under a photometric model.
+/// Prediction (Q: sim through the photometric model) and residual (real − Q) planes under a
+/// photometric model, per pair and channel (pairs in parallel, collected in pair order).
 pub fn predict_planes(pairs: &[Pair], ph: &Photometric) -> (Vec<Vec<Plane>>, Vec<Vec<Plane>>) {
-    let mut pred = Vec::new();
-    let mut resid = Vec::new();
-    for p in pairs {
+    pairs.par_iter().map(|p| predict_pair(p, ph)).unzip()
+}
+
+/// [`predict_planes`] of one pair.
+fn predict_pair(p: &Pair, ph: &Photometric) -> (Vec<Plane>, Vec<Plane>) {
+    {
         let (w, h) = (p.w(), p.h());
         let mut pq = Vec::new();
         let mut pr = Vec::new();
@@ -84,10 +84,8 @@ pub fn predict_planes(pairs: &[Pair], ph: &Photometric) -> (Vec<Vec<Plane>>, Vec
             pq.push(q);
             pr.push(r);
         }
-        pred.push(pq);
-        resid.push(pr);
+        (pq, pr)
     }
-    (pred, resid)
 }
 
 /// Quantisation step (8-bit DN) of the real data (see [`super::img::code_step`]).
@@ -104,10 +102,12 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     let masks: Vec<Masks> = pairs.par_iter().map(|p| Masks::compute(&p.sim)).collect();
     let sims: Vec<Vec<Plane>> = pairs.iter().map(|p| p.sim.clone()).collect();
     // First pass: noise and photometric model; hot pixels; second pass without them.
+    super::progress("locate: masks");
     let noise0 = noise::estimate(pairs, &masks, &sims, quant, 0.0, None);
     let photo0 = photometric::fit(pairs, &masks, &noise0);
     let (pred0, _) = predict_planes(pairs, &photo0);
     let quiet: Vec<Vec<bool>> = masks.iter().map(|m| m.quiet.clone()).collect();
+    super::progress("locate: first pass");
     let (_, hot, _) = fixed::hot_pixels(pairs, &masks, &quiet, &pred0, &noise0);
     // The first pass's planes are done with: a frame's worth of memory per pair less at the
     // peak of the signature tests below.
@@ -116,6 +116,7 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     drop(sims);
     let photo = photometric::fit(pairs, &masks, &noise);
     let (pred, resid) = predict_planes(pairs, &photo);
+    super::progress("locate: second pass");
     let z = opts.z_threshold;
 
     let mut sigs: Vec<Signature> = Vec::new();
@@ -139,9 +140,11 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     dark.evidence = format!("additive level {off:.3} ± {off_se:.3} DN from {off_src} (z = {off_z:.1})");
     dark.profiles.push(dark_profile(&noise));
     // Edges (Taylor regression on the photometric prediction).
+    super::progress("locate: photometric tests");
     let et = edges::tests(pairs, &masks, &pred, &noise, z);
     let (mut defocus, mut motion, cs) = (et.defocus, et.motion, et.channel_shift);
     // The kernel itself, tap by tap: its direction (motion or not) and its best-fitting Gaussian.
+    super::progress("locate: edges");
     let psf = psf::measure(pairs, &masks, &pred, &noise, &hot);
     if let Some(k) = &psf {
         let [sxx, sxy, syy] = k.moments;
@@ -175,11 +178,16 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     }
     let blur_sigma = defocus.size.max(0.0);
     // Saturation neighbourhoods.
+    super::progress("locate: psf");
     let bloom = saturation::blooming(pairs, &masks, &pred, &resid, &noise, blur_sigma);
     let smear = saturation::smear(pairs, &masks, &resid, &pred, &noise);
+    super::progress("locate: saturation");
     let flare = flare::lens_flare(pairs, &masks, &pred, &resid, &noise, z);
     sigs.extend([gain_sig, gamma_sig, vig, stray, dark, defocus, motion, cs, bloom, smear, flare]);
-    Located { masks, noise, photo, pred, resid, hot, signatures: sigs, notes, quant, psf }
+    // The prediction and residual planes are not used after this stage (the fit works on the
+    // forward models' own planes): released here, a frame per pair and channel each.
+    drop((pred, resid));
+    Located { masks, noise, photo, hot, signatures: sigs, notes, quant, psf }
 }
 
 /// Dark-block additive levels against their base level.

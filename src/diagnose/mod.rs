@@ -93,7 +93,9 @@ pub fn diagnose_dirs(sim: &Path, real: &Path, out: &Path, opts: &Options) -> Res
     let fitted = fit::fit(&pairs, &mut located, opts)?;
     progress("fitted; writing the report");
     let rep = report::build(&pairs, &located, &fitted, notes, opts);
+    progress("report built");
     report::write(&rep, &pairs, &located, &fitted, out, opts)?;
+    progress("report written");
     Ok(rep)
 }
 

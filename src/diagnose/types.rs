@@ -112,11 +112,29 @@ impl Signature {
 }
 
 /// Progress of a diagnosis on stderr (`faultcam diagnose: <stage> at <s> s`), seconds since the
-/// first call of the process. Set `FAULTCAM_DIAG_QUIET` to silence it.
+/// first call of the process. Set `FAULTCAM_DIAG_QUIET` to silence it; set `FAULTCAM_DIAG_MEM`
+/// to append the process's resident memory now and at its peak so far (`VmRSS`, `VmHWM` of
+/// /proc/self/status, Linux only).
 pub fn progress(stage: &str) {
     static START: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
     let t0 = *START.get_or_init(std::time::Instant::now);
     if std::env::var_os("FAULTCAM_DIAG_QUIET").is_none() {
-        eprintln!("faultcam diagnose: {stage} at {:.1} s", t0.elapsed().as_secs_f64());
+        let mem = if std::env::var_os("FAULTCAM_DIAG_MEM").is_some() { memory_status() } else { String::new() };
+        eprintln!("faultcam diagnose: {stage} at {:.1} s{mem}", t0.elapsed().as_secs_f64());
+    }
+}
+
+/// `" (RSS <a> MB, peak <b> MB)"` from /proc/self/status, empty where it cannot be read.
+fn memory_status() -> String {
+    let Ok(status) = std::fs::read_to_string("/proc/self/status") else {
+        return String::new();
+    };
+    let kb = |key: &str| -> Option<f64> {
+        let line = status.lines().find(|l| l.starts_with(key))?;
+        line[key.len()..].trim().trim_end_matches("kB").trim().parse::<f64>().ok()
+    };
+    match (kb("VmRSS:"), kb("VmHWM:")) {
+        (Some(rss), Some(hwm)) => format!(" (RSS {:.0} MB, peak {:.0} MB)", rss / 1024.0, hwm / 1024.0),
+        _ => String::new(),
     }
 }
