@@ -18,20 +18,107 @@ pub const QUIET_LAPLACIAN: f32 = 2.0;
 #[derive(Debug, Clone)]
 pub struct Masks {
     /// Any channel at full scale.
-    pub sat: Vec<bool>,
+    pub sat: BitMask,
     /// Distance to the nearest saturated pixel (px; infinite without saturation).
-    pub dist_sat: Vec<f32>,
+    pub dist_sat: DistMap,
     /// Inside saturated regions: distance to the nearest unsaturated pixel.
-    pub dist_in: Vec<f32>,
+    pub dist_in: DistMap,
     /// Smooth (gradient <= 4 DN/px and |Laplacian| <= 4 DN over the 3x3 neighbourhood): blur and
     /// sub-pixel shifts change these pixels by little, so the photometric regression uses them.
-    pub smooth: Vec<bool>,
+    pub smooth: BitMask,
     /// Quiet (|Laplacian| <= 2 DN over the 3x3 neighbourhood): high-pass noise measurements.
-    pub quiet: Vec<bool>,
+    pub quiet: BitMask,
     /// Distance to the nearest edge pixel (gradient > 8 DN/px).
-    pub dist_edge: Vec<f32>,
+    pub dist_edge: DistMap,
     /// Distance to the nearest edge pixel that is not the border of a saturated region.
-    pub dist_edge_unsat: Vec<f32>,
+    pub dist_edge_unsat: DistMap,
+}
+
+/// A per-pixel yes/no mask packed 64 pixels to a word (an eighth of a `Vec<bool>`: the masks of
+/// every pair are held through the whole diagnosis).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BitMask {
+    words: Vec<u64>,
+    len: usize,
+}
+
+impl BitMask {
+    pub fn from_bools(v: &[bool]) -> BitMask {
+        let mut words = vec![0u64; v.len().div_ceil(64)];
+        for (i, _) in v.iter().enumerate().filter(|(_, b)| **b) {
+            words[i / 64] |= 1 << (i % 64);
+        }
+        BitMask { words, len: v.len() }
+    }
+    #[inline]
+    pub fn get(&self, i: usize) -> bool {
+        assert!(i < self.len, "BitMask index {i} out of range (length {})", self.len);
+        self.words[i / 64] >> (i % 64) & 1 == 1
+    }
+    pub fn len(&self) -> usize {
+        self.len
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+    /// Any pixel set.
+    pub fn any(&self) -> bool {
+        self.words.iter().any(|&w| w != 0)
+    }
+    pub fn to_bools(&self) -> Vec<bool> {
+        (0..self.len).map(|i| self.get(i)).collect()
+    }
+}
+
+/// A distance map of [`distance_transform`] held compactly with the same values: that transform's
+/// distances are 3-4 chamfer integers divided by 3, so they are kept as the integer (u16, a half
+/// of the f32 map) and divided on reading, which gives the f32 the transform computed bit for bit.
+/// A map with a value the integer cannot hold exactly (an image side above 16383 px) is kept as
+/// f32.
+#[derive(Debug, Clone, PartialEq)]
+pub enum DistMap {
+    /// Chamfer integers; [`DistMap::INF`] for an infinite distance (no such pixel in the image).
+    Chamfer(Vec<u16>),
+    Full(Vec<f32>),
+}
+
+impl DistMap {
+    /// Marks an infinite distance in [`DistMap::Chamfer`].
+    pub const INF: u16 = u16::MAX;
+
+    pub fn from_f32(d: Vec<f32>) -> DistMap {
+        let code = |v: f32| -> Option<u16> {
+            if v == f32::INFINITY {
+                return Some(Self::INF);
+            }
+            let c = (v as f64 * 3.0).round();
+            (c >= 0.0 && c < Self::INF as f64 && (c as u16) as f32 / 3.0 == v).then_some(c as u16)
+        };
+        match d.iter().map(|&v| code(v)).collect::<Option<Vec<u16>>>() {
+            Some(c) => DistMap::Chamfer(c),
+            None => DistMap::Full(d),
+        }
+    }
+    /// Distance (px) at pixel `i`.
+    #[inline]
+    pub fn get(&self, i: usize) -> f32 {
+        match self {
+            DistMap::Chamfer(c) => match c[i] {
+                Self::INF => f32::INFINITY,
+                v => v as f32 / 3.0,
+            },
+            DistMap::Full(d) => d[i],
+        }
+    }
+    pub fn len(&self) -> usize {
+        match self {
+            DistMap::Chamfer(c) => c.len(),
+            DistMap::Full(d) => d.len(),
+        }
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
 }
 
 impl Masks {
@@ -71,7 +158,15 @@ impl Masks {
         let dist_edge = distance_transform(&edge, w, h);
         let edge_unsat: Vec<bool> = (0..n).map(|i| edge[i] && dist_sat[i] > 3.0).collect();
         let dist_edge_unsat = distance_transform(&edge_unsat, w, h);
-        Masks { sat, dist_sat, dist_in, smooth, quiet, dist_edge, dist_edge_unsat }
+        Masks {
+            sat: BitMask::from_bools(&sat),
+            dist_sat: DistMap::from_f32(dist_sat),
+            dist_in: DistMap::from_f32(dist_in),
+            smooth: BitMask::from_bools(&smooth),
+            quiet: BitMask::from_bools(&quiet),
+            dist_edge: DistMap::from_f32(dist_edge),
+            dist_edge_unsat: DistMap::from_f32(dist_edge_unsat),
+        }
     }
 }
 
@@ -255,4 +350,63 @@ pub fn blurred_test_pairs(k: &[f64], half: usize, seed: u64) -> Vec<Pair> {
         pairs.push(Pair { name: format!("{frame}"), sim_frame: f, real_frame: g, sim: vec![sim], real: vec![real] });
     }
     pairs
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bit_mask_round_trips() {
+        // A length that is not a multiple of 64 and a pattern with runs and isolated pixels.
+        for n in [0usize, 1, 63, 64, 65, 1000] {
+            let v: Vec<bool> = (0..n).map(|i| (i * 7919) % 13 < 4 || i % 64 == 63).collect();
+            let m = BitMask::from_bools(&v);
+            assert_eq!(m.len(), n);
+            assert_eq!(m.to_bools(), v);
+            assert_eq!(m.any(), v.iter().any(|&b| b));
+            assert!((0..n).all(|i| m.get(i) == v[i]));
+        }
+    }
+
+    #[test]
+    fn distance_map_holds_the_transform_bit_for_bit() {
+        let (w, h) = (97usize, 61usize);
+        let mask: Vec<bool> = (0..w * h).map(|i| (i * 31) % 211 == 0 || (i / w == 30 && i % w < 40)).collect();
+        let d = distance_transform(&mask, w, h);
+        let m = DistMap::from_f32(d.clone());
+        assert!(matches!(m, DistMap::Chamfer(_)), "chamfer distances are held as integers");
+        assert_eq!(m.len(), d.len());
+        assert!((0..d.len()).all(|i| m.get(i).to_bits() == d[i].to_bits()));
+        // No pixel of the kind: infinite everywhere, kept as such.
+        let none = distance_transform(&vec![false; w * h], w, h);
+        let m = DistMap::from_f32(none.clone());
+        assert!((0..none.len()).all(|i| m.get(i) == f32::INFINITY));
+        // A value that is not a chamfer integer / 3 is kept as it is.
+        let odd = vec![0.0, 0.1, 2.0 / 3.0, f32::INFINITY];
+        let m = DistMap::from_f32(odd.clone());
+        assert!(matches!(m, DistMap::Full(_)));
+        assert!((0..odd.len()).all(|i| m.get(i).to_bits() == odd[i].to_bits()));
+    }
+
+    #[test]
+    fn masks_of_a_scene_with_saturation_match_the_transform() {
+        // The compact masks read back as the f32 maps and bool masks they replace.
+        let (w, h) = (80usize, 50usize);
+        let mut p = Plane::filled(w, h, 40.0);
+        for y in 10..20 {
+            for x in 30..45 {
+                p.data[y * w + x] = FS;
+            }
+        }
+        for x in 0..w {
+            p.data[35 * w + x] = 120.0;
+        }
+        let m = Masks::compute(std::slice::from_ref(&p));
+        let sat: Vec<bool> = p.data.iter().map(|&v| v >= SAT_DN).collect();
+        assert_eq!(m.sat.to_bools(), sat);
+        let d = distance_transform(&sat, w, h);
+        assert!((0..w * h).all(|i| m.dist_sat.get(i).to_bits() == d[i].to_bits()));
+        assert!(m.dist_sat.get(15 * w + 37) == 0.0 && m.dist_sat.get(15 * w + 50) > 4.0);
+    }
 }

@@ -92,7 +92,7 @@ fn select(pairs: &[Pair], masks: &[Masks], q: &[Vec<Plane>], noise: &NoiseModel,
             for y in 2..h.saturating_sub(2) {
                 for x in 2..w.saturating_sub(2) {
                     let i = y * w + x;
-                    if m.dist_edge[i] > 2.0 || m.dist_sat[i] <= 6.0 {
+                    if m.dist_edge.get(i) > 2.0 || m.dist_sat.get(i) <= 6.0 {
                         continue;
                     }
                     let v = qd[i];

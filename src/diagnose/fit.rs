@@ -87,7 +87,7 @@ pub fn candidates(pairs: &[Pair], loc: &Located) -> Vec<Candidate> {
         }
     };
     let channels = pairs[0].channels();
-    let any_sat = loc.masks.iter().any(|m| m.sat.iter().any(|&s| s));
+    let any_sat = loc.masks.iter().any(|m| m.sat.any());
     let set = |p: &mut Params, n: &str, v: f64| {
         if let Some((_, spec)) = p.info().param(n) {
             let _ = p.set(n, v.clamp(spec.min, spec.max));
@@ -472,9 +472,9 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         .map(|&k| {
             let (hot, m) = (&loc.hot[k], &loc.masks[k]);
             match halo_px {
-                Some(r) => {
-                    (0..hot.len()).map(|i| hot[i] || (m.dist_sat[i] > 0.5 && m.dist_sat[i] <= r as f32)).collect()
-                }
+                Some(r) => (0..hot.len())
+                    .map(|i| hot[i] || (m.dist_sat.get(i) > 0.5 && m.dist_sat.get(i) <= r as f32))
+                    .collect(),
                 None => hot.clone(),
             }
         })
@@ -504,7 +504,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             fidx.iter()
                 .map(|&k| {
                     let m = &loc.masks[k];
-                    (0..m.sat.len()).map(|i| m.dist_edge[i] > 2.0 && m.dist_sat[i] > 4.0).collect()
+                    (0..m.sat.len()).map(|i| m.dist_edge.get(i) > 2.0 && m.dist_sat.get(i) > 4.0).collect()
                 })
                 .collect(),
             loc.noise.clone(),

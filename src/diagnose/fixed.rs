@@ -42,7 +42,7 @@ pub fn prnu(
                             let i = y * w + x;
                             let cross = [i, i - 1, i + 1, i - w, i + w];
                             if !quiet[k][i]
-                                || masks[k].dist_sat[i] <= 3.0
+                                || masks[k].dist_sat.get(i) <= 3.0
                                 || s[i] < 30.0
                                 || cross.iter().any(|&j| hot[k][j] || r[j] <= 0.0 || r[j] >= FS)
                             {
@@ -142,7 +142,7 @@ pub fn hot_pixels(
         for y in 1..h - 1 {
             for x in 1..w - 1 {
                 let i = y * w + x;
-                if !quiet[k][i] || m.dist_sat[i] <= 3.0 || m.dist_edge[i] <= 2.0 {
+                if !quiet[k][i] || m.dist_sat.get(i) <= 3.0 || m.dist_edge.get(i) <= 2.0 {
                     continue;
                 }
                 el[i] = true;
@@ -293,7 +293,9 @@ pub fn row_offsets(pairs: &[Pair], masks: &[Masks], resid: &[Vec<Plane>], hot: &
                         .map(|y| {
                             let v: Vec<f64> = (0..w)
                                 .map(|x| y * w + x)
-                                .filter(|&i| real[i] > 0.0 && real[i] < FS && !hot[k][i] && masks[k].dist_sat[i] > 3.0)
+                                .filter(|&i| {
+                                    real[i] > 0.0 && real[i] < FS && !hot[k][i] && masks[k].dist_sat.get(i) > 3.0
+                                })
                                 .map(|i| rr[i] as f64)
                                 .collect();
                             if v.len() >= 8 { stats::median(&v) } else { f64::NAN }
@@ -355,7 +357,7 @@ pub fn row_noise(
                 let (mut se, mut ne, mut so, mut no) = (0.0, 0usize, 0.0, 0usize);
                 for x in 0..w {
                     let i = y * w + x;
-                    if !quiet[k][i] || m.dist_sat[i] <= 6.0 {
+                    if !quiet[k][i] || m.dist_sat.get(i) <= 6.0 {
                         continue;
                     }
                     let qv = qq[i] as f64;

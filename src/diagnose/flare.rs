@@ -190,7 +190,7 @@ fn prepare(p: &Pair, m: &Masks, pred: &[Plane], resid: &[Plane], noise: &NoiseMo
     let mut sd = vec![0f32; w * h];
     let mut lvl = vec![0f32; w * h];
     for i in 0..w * h {
-        if m.dist_sat[i] <= SAT_MARGIN || m.dist_edge[i] <= EDGE_MARGIN {
+        if m.dist_sat.get(i) <= SAT_MARGIN || m.dist_edge.get(i) <= EDGE_MARGIN {
             continue;
         }
         let mut v = 0.0;
@@ -639,6 +639,51 @@ mod tests {
         assert!((e - 2.0).abs() < 1e-9 && v > 0.0, "plateau {e}");
         let (e, _) = template(&s, 25.0, 25.0, 8.0, (12.0, 16.0), 0.7).expect("template");
         assert!(e.abs() < 1e-9, "off the ghost {e}");
+    }
+
+    #[test]
+    fn streamed_frames_combine_as_the_whole_set_in_pair_order() {
+        // Seven frames (more than a group) with ghosts of different levels: the streamed sums
+        // equal the frame-by-frame sums in pair order bit for bit, on 1 and on 2 threads.
+        let (w, h) = (90usize, 70usize);
+        let scans: Vec<FrameScan> = (0..7)
+            .map(|k| {
+                let r: Vec<f32> = (0..w * h)
+                    .map(|i| {
+                        let (x, y) = ((i % w) as f64, (i / w) as f64);
+                        let g = if (x - 30.0).hypot(y - 40.0) <= 9.0 { 1.0 + 0.3 * k as f64 } else { 0.0 };
+                        (g + 0.1 * ((i * (k + 3)) % 17) as f64 - 0.8) as f32
+                    })
+                    .collect();
+                let sd: Vec<f32> = (0..w * h).map(|i| 1.0 + 0.01 * (i % 7) as f32).collect();
+                let lvl = vec![20.0f32; w * h];
+                FrameScan { sums: prefix_sums(w, h, &r, &sd, &lvl), src: (70.0 + k as f64, 10.0) }
+            })
+            .collect();
+        let frames: Vec<(usize, (f64, f64))> = scans.iter().enumerate().map(|(k, f)| (k, f.src)).collect();
+        let us: Vec<f64> = (0..40).map(|j| -1.5 + 0.06 * j as f64).collect();
+        let eval = |f: &FrameScan| -> Vec<Option<(f64, f64)>> {
+            us.iter().map(|&u| frame_template(f, u, 0.3, 9.0, 0.8, ring_of(9.0), SCAN_COVER)).collect()
+        };
+        let mut whole = vec![Combined::default(); us.len()];
+        for f in &scans {
+            for (a, ev) in whole.iter_mut().zip(eval(f)) {
+                a.add(ev);
+            }
+        }
+        assert!(whole.iter().filter(|c| c.get().is_some()).count() > 10, "templates read");
+        let copy = |k: usize, _src: (f64, f64)| FrameScan {
+            sums: Sums { w: scans[k].sums.w, h: scans[k].sums.h, p: scans[k].sums.p.clone() },
+            src: scans[k].src,
+        };
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
+            let mut acc = vec![Combined::default(); us.len()];
+            pool.install(|| stream_frames(&frames, &copy, eval, &mut acc));
+            for (a, b) in acc.iter().zip(&whole) {
+                assert_eq!((a.sw.to_bits(), a.swe.to_bits()), (b.sw.to_bits(), b.swe.to_bits()), "{threads} thread(s)");
+            }
+        }
     }
 
     #[test]

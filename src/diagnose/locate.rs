@@ -106,7 +106,7 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     let noise0 = noise::estimate(pairs, &masks, &sims, quant, 0.0, None);
     let photo0 = photometric::fit(pairs, &masks, &noise0);
     let (pred0, _) = predict_planes(pairs, &photo0);
-    let quiet: Vec<Vec<bool>> = masks.iter().map(|m| m.quiet.clone()).collect();
+    let quiet: Vec<Vec<bool>> = masks.iter().map(|m| m.quiet.to_bools()).collect();
     super::progress("locate: first pass");
     let (_, hot, _) = fixed::hot_pixels(pairs, &masks, &quiet, &pred0, &noise0);
     // The first pass's planes are done with: a frame's worth of memory per pair less at the

@@ -88,7 +88,7 @@ fn collect(
                 for x in 1..w - 1 {
                     let i = y * w + x;
                     let l = lap[k][i];
-                    if l > TEXTURED_LAPLACIAN || m.dist_sat[i] <= 3.0 {
+                    if l > TEXTURED_LAPLACIAN || m.dist_sat.get(i) <= 3.0 {
                         continue;
                     }
                     let nb = [i - 1, i + 1, i - w, i + w];
@@ -195,8 +195,8 @@ fn low_blocks(
                             let i = y * w + x;
                             if s[i] as f64 > low_level
                                 || lap[k][i] > QUIET_LAPLACIAN
-                                || m.dist_sat[i] <= 12.0
-                                || m.dist_edge[i] <= 3.0
+                                || m.dist_sat.get(i) <= 12.0
+                                || m.dist_edge.get(i) <= 3.0
                                 || skip.is_some_and(|sk| sk[k][i])
                             {
                                 continue;

@@ -150,7 +150,7 @@ pub fn fit(pairs: &[Pair], masks: &[Masks], noise: &NoiseModel) -> Photometric {
                         }
                         let i = y * w + x;
                         let sv = s[i] as f64;
-                        if !m.smooth[i] || m.dist_sat[i] <= 8.0 || sv < lo || sv > hi {
+                        if !m.smooth.get(i) || m.dist_sat.get(i) <= 8.0 || sv < lo || sv > hi {
                             continue;
                         }
                         let rv = r[i] as f64;
@@ -338,7 +338,7 @@ fn radial_profile(ph: &Photometric, pairs: &[Pair], masks: &[Masks]) -> Profile 
             for y in (0..h).step_by(2) {
                 for x in (0..w).step_by(2) {
                     let i = y * w + x;
-                    if !m.smooth[i] || m.dist_sat[i] <= 12.0 || s[i] < 20.0 || r[i] >= FS {
+                    if !m.smooth.get(i) || m.dist_sat.get(i) <= 12.0 || s[i] < 20.0 || r[i] >= FS {
                         continue;
                     }
                     let (xn, yn, rho2) = coords(x, y, w, h);

@@ -84,7 +84,7 @@ pub fn measure(
         for y in margin..h - margin {
             for x in margin..w - margin {
                 let i = y * w + x;
-                if m.dist_edge[i] > (HALF + 1) as f32 || m.dist_sat[i] <= (HALF as f32) * 1.5 + 1.0 {
+                if m.dist_edge.get(i) > (HALF + 1) as f32 || m.dist_sat.get(i) <= (HALF as f32) * 1.5 + 1.0 {
                     continue;
                 }
                 if skip.get(k).is_some_and(|s| s.get(i).copied().unwrap_or(false)) {

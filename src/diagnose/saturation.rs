@@ -74,7 +74,7 @@ pub fn blooming(
             for c in 0..p.channels() {
                 let s = &p.sim[c].data;
                 for i in 0..s.len() {
-                    if s[i] >= SAT_DN && m.dist_in[i] >= depth {
+                    if s[i] >= SAT_DN && m.dist_in.get(i) >= depth {
                         rv.push(p.real[c].data[i] as f64);
                         pv.push((q[k][c].data[i] as f64).min(FS as f64));
                     }
@@ -134,8 +134,8 @@ pub fn blooming(
         for c in 0..p.channels() {
             let rr = &r1[k][c].data;
             for i in 0..rr.len() {
-                let d = m.dist_sat[i];
-                if !d.is_finite() || d < 0.5 || m.dist_edge_unsat[i] < 1.5 {
+                let d = m.dist_sat.get(i);
+                if !d.is_finite() || d < 0.5 || m.dist_edge_unsat.get(i) < 1.5 {
                     continue;
                 }
                 if d <= D as f32 {
@@ -239,7 +239,7 @@ pub fn smear(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], q: &[Vec<Plane>
                         if s[i] >= SAT_DN {
                             nsat += 1;
                         }
-                        if m.dist_sat[i] <= 12.0 || m.dist_edge[i] <= 3.0 {
+                        if m.dist_sat.get(i) <= 12.0 || m.dist_edge.get(i) <= 3.0 {
                             continue;
                         }
                         if s[i] <= 0.25 {
