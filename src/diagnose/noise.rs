@@ -24,6 +24,7 @@
 use super::common::{LowBlock, Masks, NoiseBin, NoiseModel, QUIET_LAPLACIAN, RowOffsets};
 use super::img::{FS, Pair, Plane};
 use super::stats::{self, Wls};
+use rayon::prelude::*;
 
 const BIN: f64 = 4.0;
 const NBINS: usize = 64;
@@ -65,54 +66,90 @@ fn collect(
     pairs: &[Pair],
     masks: &[Masks],
     base: &[Vec<Plane>],
-    lap: &[Vec<f32>],
+    lap: &[Vec<u8>],
     skip: Option<&[Vec<bool>]>,
     rows: Option<&RowOffsets>,
 ) -> (Vec<Vec<f32>>, Vec<Vec<f32>>) {
-    let mut quiet_bins: Vec<Vec<f32>> = vec![Vec::new(); NBINS];
-    let mut tex_bins: Vec<Vec<f32>> = vec![Vec::new(); NBINS];
-    for (k, p) in pairs.iter().enumerate() {
-        let m = &masks[k];
-        let (w, h) = (p.w(), p.h());
-        // Subsample large frames: at most ~400k candidate pixels per frame and channel.
-        let step = ((w * h) / 400_000).max(1);
-        for c in 0..p.channels() {
-            let s = &base[k][c].data;
-            let r = &p.real[c].data;
-            let off = |y: usize| rows.map(|ro| ro[k][c][y]).unwrap_or(0.0);
-            for y in 1..h.saturating_sub(1) {
-                if y % step != 0 {
-                    continue;
-                }
-                let (o0, om, op) = (off(y), off(y - 1), off(y + 1));
-                for x in 1..w - 1 {
-                    let i = y * w + x;
-                    let l = lap[k][i];
-                    if l > TEXTURED_LAPLACIAN || m.dist_sat.get(i) <= 3.0 {
+    // Each pair's samples on its own (in parallel), then appended in pair order: the bins hold
+    // the same values in the same order as a pass over the pairs one after the other.
+    let per_pair: Vec<(Vec<Vec<f32>>, Vec<Vec<f32>>)> = pairs
+        .par_iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let mut quiet_bins: Vec<Vec<f32>> = vec![Vec::new(); NBINS];
+            let mut tex_bins: Vec<Vec<f32>> = vec![Vec::new(); NBINS];
+            let m = &masks[k];
+            let (w, h) = (p.w(), p.h());
+            // Subsample large frames: at most ~400k candidate pixels per frame and channel.
+            let step = ((w * h) / 400_000).max(1);
+            for c in 0..p.channels() {
+                let s = &base[k][c].data;
+                let r = &p.real[c].data;
+                let off = |y: usize| rows.map(|ro| ro[k][c][y]).unwrap_or(0.0);
+                for y in 1..h.saturating_sub(1) {
+                    if y % step != 0 {
                         continue;
                     }
-                    let nb = [i - 1, i + 1, i - w, i + w];
-                    if let Some(sk) = skip
-                        && (sk[k][i] || nb.iter().any(|&j| sk[k][j]))
-                    {
-                        continue;
-                    }
-                    if r[i] <= 0.0 || r[i] >= FS || nb.iter().any(|&j| r[j] <= 0.0 || r[j] >= FS) {
-                        continue;
-                    }
-                    let d = |j: usize| r[j] - s[j];
-                    let hp = (d(i) - o0) - 0.25 * (d(i - 1) + d(i + 1) - 2.0 * o0 + d(i - w) - om + d(i + w) - op);
-                    let b = ((s[i].max(0.0) as f64 / BIN) as usize).min(NBINS - 1);
-                    if l <= QUIET_LAPLACIAN {
-                        quiet_bins[b].push(hp);
-                    } else {
-                        tex_bins[b].push(hp);
+                    let (o0, om, op) = (off(y), off(y - 1), off(y + 1));
+                    for x in 1..w - 1 {
+                        let i = y * w + x;
+                        let l = lap[k][i];
+                        if l & LAP_TEXTURED != 0 || m.dist_sat.get(i) <= 3.0 {
+                            continue;
+                        }
+                        let nb = [i - 1, i + 1, i - w, i + w];
+                        if let Some(sk) = skip
+                            && (sk[k][i] || nb.iter().any(|&j| sk[k][j]))
+                        {
+                            continue;
+                        }
+                        if r[i] <= 0.0 || r[i] >= FS || nb.iter().any(|&j| r[j] <= 0.0 || r[j] >= FS) {
+                            continue;
+                        }
+                        let d = |j: usize| r[j] - s[j];
+                        let hp = (d(i) - o0) - 0.25 * (d(i - 1) + d(i + 1) - 2.0 * o0 + d(i - w) - om + d(i + w) - op);
+                        let b = ((s[i].max(0.0) as f64 / BIN) as usize).min(NBINS - 1);
+                        if l & LAP_QUIET != 0 {
+                            quiet_bins[b].push(hp);
+                        } else {
+                            tex_bins[b].push(hp);
+                        }
                     }
                 }
             }
+            (quiet_bins, tex_bins)
+        })
+        .collect();
+    let mut quiet_bins: Vec<Vec<f32>> = vec![Vec::new(); NBINS];
+    let mut tex_bins: Vec<Vec<f32>> = vec![Vec::new(); NBINS];
+    for (q, t) in per_pair {
+        for b in 0..NBINS {
+            quiet_bins[b].extend_from_slice(&q[b]);
+            tex_bins[b].extend_from_slice(&t[b]);
         }
     }
     (quiet_bins, tex_bins)
+}
+
+/// The Laplacian classes [`collect`] and [`low_blocks`] ask about, one byte per pixel instead of
+/// the f32 Laplacian (the estimate holds them for every pair at once).
+const LAP_QUIET: u8 = 1;
+/// Laplacian above [`TEXTURED_LAPLACIAN`].
+const LAP_TEXTURED: u8 = 2;
+/// Laplacian above [`QUIET_LAPLACIAN`] (not the complement of [`LAP_QUIET`] for a NaN).
+const LAP_ABOVE_QUIET: u8 = 4;
+
+/// [`laplacian3`] of a base reduced to its classes ([`LAP_QUIET`], [`LAP_TEXTURED`],
+/// [`LAP_ABOVE_QUIET`]): each bit is the comparison the estimate makes on the value.
+fn lap_classes(base: &[Plane]) -> Vec<u8> {
+    laplacian3(base)
+        .iter()
+        .map(|&l| {
+            (if l <= QUIET_LAPLACIAN { LAP_QUIET } else { 0 })
+                | (if l > TEXTURED_LAPLACIAN { LAP_TEXTURED } else { 0 })
+                | (if l > QUIET_LAPLACIAN { LAP_ABOVE_QUIET } else { 0 })
+        })
+        .collect()
 }
 
 /// Interval-censored normal fit of `real = round(clip(base + mu + n))`, n ~ N(0, sigma²), from
@@ -170,75 +207,81 @@ fn low_blocks(
     pairs: &[Pair],
     masks: &[Masks],
     base: &[Vec<Plane>],
-    lap: &[Vec<f32>],
+    lap: &[Vec<u8>],
     skip: Option<&[Vec<bool>]>,
     rows: Option<&RowOffsets>,
     low_level: f64,
     quant: f64,
 ) -> Vec<LowBlock> {
     const B: usize = 32;
-    let mut out = Vec::new();
-    for (k, p) in pairs.iter().enumerate() {
-        let m = &masks[k];
-        let (w, h) = (p.w(), p.h());
-        // Large frames: every other block row and column is plenty.
-        let bstep = if w * h > 1_000_000 { 2 } else { 1 };
-        for c in 0..p.channels() {
-            let s = &base[k][c].data;
-            let r = &p.real[c].data;
-            for by in (0..h.div_ceil(B)).step_by(bstep) {
-                for bx in (0..w.div_ceil(B)).step_by(bstep) {
-                    let mut obs: Vec<(f32, f32)> = Vec::new();
-                    let (mut sx, mut sy) = (0.0, 0.0);
-                    for y in by * B..((by + 1) * B).min(h) {
-                        for x in bx * B..((bx + 1) * B).min(w) {
-                            let i = y * w + x;
-                            if s[i] as f64 > low_level
-                                || lap[k][i] > QUIET_LAPLACIAN
-                                || m.dist_sat.get(i) <= 12.0
-                                || m.dist_edge.get(i) <= 3.0
-                                || skip.is_some_and(|sk| sk[k][i])
-                            {
-                                continue;
+    // Each pair's blocks on its own (in parallel), concatenated in pair order.
+    let per_pair: Vec<Vec<LowBlock>> = pairs
+        .par_iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let mut out = Vec::new();
+            let m = &masks[k];
+            let (w, h) = (p.w(), p.h());
+            // Large frames: every other block row and column is plenty.
+            let bstep = if w * h > 1_000_000 { 2 } else { 1 };
+            for c in 0..p.channels() {
+                let s = &base[k][c].data;
+                let r = &p.real[c].data;
+                for by in (0..h.div_ceil(B)).step_by(bstep) {
+                    for bx in (0..w.div_ceil(B)).step_by(bstep) {
+                        let mut obs: Vec<(f32, f32)> = Vec::new();
+                        let (mut sx, mut sy) = (0.0, 0.0);
+                        for y in by * B..((by + 1) * B).min(h) {
+                            for x in bx * B..((bx + 1) * B).min(w) {
+                                let i = y * w + x;
+                                if s[i] as f64 > low_level
+                                    || lap[k][i] & LAP_ABOVE_QUIET != 0
+                                    || m.dist_sat.get(i) <= 12.0
+                                    || m.dist_edge.get(i) <= 3.0
+                                    || skip.is_some_and(|sk| sk[k][i])
+                                {
+                                    continue;
+                                }
+                                // With row offsets removed, the base carries them (the censoring
+                                // happens on the observed value).
+                                let o = rows.map(|ro| ro[k][c][y]).unwrap_or(0.0);
+                                obs.push((s[i] + o, r[i]));
+                                sx += x as f64;
+                                sy += y as f64;
                             }
-                            // With row offsets removed, the base carries them (the censoring
-                            // happens on the observed value).
-                            let o = rows.map(|ro| ro[k][c][y]).unwrap_or(0.0);
-                            obs.push((s[i] + o, r[i]));
-                            sx += x as f64;
-                            sy += y as f64;
                         }
-                    }
-                    if obs.len() < 120 {
-                        continue;
-                    }
-                    // Trim gross outliers (hot pixels, cosmic rays) around the median difference.
-                    let d: Vec<f64> = obs.iter().map(|&(b, r)| (r - b) as f64).collect();
-                    let med = stats::median(&d);
-                    let sc = stats::mad_sigma(&d).max(1.0);
-                    let n0 = obs.len() as f64;
-                    let kept: Vec<(f32, f32)> =
-                        obs.iter().copied().filter(|&(b, r)| ((r - b) as f64 - med).abs() <= 6.0 * sc).collect();
-                    if let Some((mu, sigma, se, clipped)) = censored_offset_fit(&kept, quant) {
-                        let base_mean = kept.iter().map(|o| o.0 as f64).sum::<f64>() / kept.len() as f64;
-                        out.push(LowBlock {
-                            k,
-                            c,
-                            xc: sx / n0,
-                            yc: sy / n0,
-                            base: base_mean,
-                            mu,
-                            se_mu: se,
-                            sigma,
-                            n: kept.len(),
-                            clipped,
-                        });
+                        if obs.len() < 120 {
+                            continue;
+                        }
+                        // Trim gross outliers (hot pixels, cosmic rays) around the median difference.
+                        let d: Vec<f64> = obs.iter().map(|&(b, r)| (r - b) as f64).collect();
+                        let med = stats::median(&d);
+                        let sc = stats::mad_sigma(&d).max(1.0);
+                        let n0 = obs.len() as f64;
+                        let kept: Vec<(f32, f32)> =
+                            obs.iter().copied().filter(|&(b, r)| ((r - b) as f64 - med).abs() <= 6.0 * sc).collect();
+                        if let Some((mu, sigma, se, clipped)) = censored_offset_fit(&kept, quant) {
+                            let base_mean = kept.iter().map(|o| o.0 as f64).sum::<f64>() / kept.len() as f64;
+                            out.push(LowBlock {
+                                k,
+                                c,
+                                xc: sx / n0,
+                                yc: sy / n0,
+                                base: base_mean,
+                                mu,
+                                se_mu: se,
+                                sigma,
+                                n: kept.len(),
+                                clipped,
+                            });
+                        }
                     }
                 }
             }
-        }
-    }
-    out
+            out
+        })
+        .collect();
+    per_pair.into_iter().flatten().collect()
 }
 
 /// Estimate the noise model on `real - base`. `prnu_c` is the fixed-pattern variance coefficient
@@ -264,7 +307,7 @@ pub fn estimate_with_rows(
     skip: Option<&[Vec<bool>]>,
     rows: Option<&RowOffsets>,
 ) -> NoiseModel {
-    let lap: Vec<Vec<f32>> = base.iter().map(|b| laplacian3(b)).collect();
+    let lap: Vec<Vec<u8>> = base.par_iter().map(|b| lap_classes(b)).collect();
     let (quiet_raw, tex_raw) = collect(pairs, masks, base, &lap, skip, rows);
     let q12 = quant * quant / 12.0;
     let mut bins = Vec::new();
