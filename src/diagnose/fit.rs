@@ -23,6 +23,7 @@ use super::{DiagnoseError, Options, Signature, fixed, jpeg};
 use crate::config::FaultConfig;
 use crate::faults::{ParamKind, Params, registry};
 use crate::frame::Frame;
+use rayon::prelude::*;
 
 /// One reported effect.
 #[derive(Debug, Clone)]
@@ -606,15 +607,16 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     // deterministic model against the real images is above that of the sim, the effect whose
     // removal lowers it most is dropped (a significant robust-loss drop can come from a few
     // pixels while every other pixel gets worse, e.g. a well lowered to feed a halo).
-    let rmse_before =
-        pairs.iter().map(|p| metrics_of(&p.sim_frame, &p.real_frame).rmse).sum::<f64>() / pairs.len().max(1) as f64;
+    // Per-pair RMSEs in parallel, summed in pair order.
+    let rmse_before = pairs.par_iter().map(|p| metrics_of(&p.sim_frame, &p.real_frame).rmse).collect::<Vec<f64>>();
+    let rmse_before = rmse_before.iter().sum::<f64>() / pairs.len().max(1) as f64;
     let rmse_model = |planes: &[Vec<Plane>]| -> f64 {
-        pairs
-            .iter()
+        let each: Vec<f64> = pairs
+            .par_iter()
             .zip(planes)
             .map(|(p, m)| metrics_of(&frame_from_planes(m, &p.real_frame), &p.real_frame).rmse)
-            .sum::<f64>()
-            / pairs.len().max(1) as f64
+            .collect();
+        each.iter().sum::<f64>() / pairs.len().max(1) as f64
     };
     let mut rmse_after = rmse_model(&model_planes);
     super::progress("fit: rmse");
@@ -913,16 +915,27 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     let mut before = Vec::new();
     let mut after = Vec::new();
     let mut rmse_noise = Vec::new();
-    for (k, p) in pairs.iter().enumerate() {
-        before.push(metrics_of(&p.sim_frame, &p.real_frame));
-        let mut sim = p.sim_frame.clone();
-        sim.seq = k as u64;
-        let det = frame_from_planes(&model_planes[k], &p.real_frame);
-        let full = apply_config(&config, &sim)?;
-        let mut m = metrics_of(&full, &p.real_frame);
-        let md = metrics_of(&det, &p.real_frame);
-        rmse_noise.push(m.rmse);
-        m.rmse = md.rmse;
+    // Pairs in parallel (each through its own chain), collected in pair order.
+    let per_pair: Vec<Result<(FitMetrics, FitMetrics, f64), DiagnoseError>> = pairs
+        .par_iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let b = metrics_of(&p.sim_frame, &p.real_frame);
+            let mut sim = p.sim_frame.clone();
+            sim.seq = k as u64;
+            let det = frame_from_planes(&model_planes[k], &p.real_frame);
+            let full = apply_config(&config, &sim)?;
+            let mut m = metrics_of(&full, &p.real_frame);
+            let md = metrics_of(&det, &p.real_frame);
+            let with_noise = m.rmse;
+            m.rmse = md.rmse;
+            Ok((b, m, with_noise))
+        })
+        .collect();
+    for r in per_pair {
+        let (b, m, with_noise) = r?;
+        before.push(b);
+        rmse_noise.push(with_noise);
         after.push(m);
     }
     notes.extend(sel.notes.iter().filter(|n| !n.contains("backward check")).cloned());

@@ -10,6 +10,7 @@
 
 use super::img::{Pair, Plane, SAT_DN};
 use super::types::{Profile, Signature};
+use rayon::prelude::*;
 
 /// The standard JPEG luminance quantisation table (ITU T.81 Annex K), natural order.
 pub const STD_LUMA: [u16; 64] = [
@@ -74,41 +75,55 @@ const RES: f64 = 16.0;
 
 fn coefficient_hist(images: &[&[Plane]], off: (usize, usize)) -> CoefHist {
     let cos = cos_table();
-    let mut bins: Vec<std::collections::HashMap<i32, u32>> = vec![Default::default(); 64];
-    let mut block = [0.0; 64];
-    let mut out = [0.0; 64];
-    for planes in images {
-        let (w, h) = (planes[0].w, planes[0].h);
-        let y_plane: Vec<f32> = if planes.len() == 3 {
-            (0..w * h)
-                .map(|i| 0.299 * planes[0].data[i] + 0.587 * planes[1].data[i] + 0.114 * planes[2].data[i])
-                .collect()
-        } else {
-            planes[0].data.clone()
-        };
-        let mut by = off.1;
-        while by + 8 <= h {
-            let mut bx = off.0;
-            while bx + 8 <= w {
-                let mut sat = false;
-                for y in 0..8 {
-                    for x in 0..8 {
-                        let v = y_plane[(by + y) * w + bx + x] as f64;
-                        if v >= SAT_DN as f64 {
-                            sat = true;
+    // Each image's counts on its own (in parallel), then added up: counts are integers, so the
+    // histogram is the same whatever the order.
+    let per_image: Vec<Vec<std::collections::HashMap<i32, u32>>> = images
+        .par_iter()
+        .map(|planes| {
+            let mut bins: Vec<std::collections::HashMap<i32, u32>> = vec![Default::default(); 64];
+            let mut block = [0.0; 64];
+            let mut out = [0.0; 64];
+            let (w, h) = (planes[0].w, planes[0].h);
+            let y_plane: Vec<f32> = if planes.len() == 3 {
+                (0..w * h)
+                    .map(|i| 0.299 * planes[0].data[i] + 0.587 * planes[1].data[i] + 0.114 * planes[2].data[i])
+                    .collect()
+            } else {
+                planes[0].data.clone()
+            };
+            let mut by = off.1;
+            while by + 8 <= h {
+                let mut bx = off.0;
+                while bx + 8 <= w {
+                    let mut sat = false;
+                    for y in 0..8 {
+                        for x in 0..8 {
+                            let v = y_plane[(by + y) * w + bx + x] as f64;
+                            if v >= SAT_DN as f64 {
+                                sat = true;
+                            }
+                            block[y * 8 + x] = v - 128.0;
                         }
-                        block[y * 8 + x] = v - 128.0;
                     }
-                }
-                if !sat {
-                    dct8(&block, &cos, &mut out);
-                    for f in 1..64 {
-                        *bins[f].entry((out[f] * RES).round() as i32).or_insert(0) += 1;
+                    if !sat {
+                        dct8(&block, &cos, &mut out);
+                        for f in 1..64 {
+                            *bins[f].entry((out[f] * RES).round() as i32).or_insert(0) += 1;
+                        }
                     }
+                    bx += 8;
                 }
-                bx += 8;
+                by += 8;
             }
-            by += 8;
+            bins
+        })
+        .collect();
+    let mut bins: Vec<std::collections::HashMap<i32, u32>> = vec![Default::default(); 64];
+    for image in per_image {
+        for (f, m) in image.into_iter().enumerate() {
+            for (key, count) in m {
+                *bins[f].entry(key).or_insert(0) += count;
+            }
         }
     }
     let bins = bins
