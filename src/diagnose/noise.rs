@@ -61,6 +61,9 @@ pub fn quiet_mask(base: &[Plane], limit: f32) -> Vec<bool> {
 /// residual of a fitted model is noise there too, at the price of a little leakage of misfit.
 pub const TEXTURED_LAPLACIAN: f32 = 8.0;
 
+/// High-pass samples of one kind, per level bin.
+type LevelSamples = Vec<Vec<f32>>;
+
 /// High-pass samples per level bin: (quiet samples, textured samples).
 fn collect(
     pairs: &[Pair],
@@ -72,7 +75,7 @@ fn collect(
 ) -> (Vec<Vec<f32>>, Vec<Vec<f32>>) {
     // Each pair's samples on its own (in parallel), then appended in pair order: the bins hold
     // the same values in the same order as a pass over the pairs one after the other.
-    let per_pair: Vec<(Vec<Vec<f32>>, Vec<Vec<f32>>)> = pairs
+    let per_pair: Vec<(LevelSamples, LevelSamples)> = pairs
         .par_iter()
         .enumerate()
         .map(|(k, p)| {
