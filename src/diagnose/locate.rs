@@ -51,41 +51,39 @@ pub fn predict_planes(pairs: &[Pair], ph: &Photometric) -> (Vec<Vec<Plane>>, Vec
 
 /// [`predict_planes`] of one pair.
 fn predict_pair(p: &Pair, ph: &Photometric) -> (Vec<Plane>, Vec<Plane>) {
-    {
-        let (w, h) = (p.w(), p.h());
-        let mut pq = Vec::new();
-        let mut pr = Vec::new();
-        // The model is separable: precompute the position terms once per pixel.
-        let mut add = vec![0f32; w * h];
-        let mut rho = vec![0f32; w * h];
-        for y in 0..h {
-            for x in 0..w {
-                let (xn, yn, r2) = photometric::coords(x, y, w, h);
-                add[y * w + x] = ph.additive(xn, yn) as f32;
-                rho[y * w + x] = r2 as f32;
-            }
+    let (w, h) = (p.w(), p.h());
+    let mut pq = Vec::new();
+    let mut pr = Vec::new();
+    // The model is separable: precompute the position terms once per pixel.
+    let mut add = vec![0f32; w * h];
+    let mut rho = vec![0f32; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (xn, yn, r2) = photometric::coords(x, y, w, h);
+            add[y * w + x] = ph.additive(xn, yn) as f32;
+            rho[y * w + x] = r2 as f32;
         }
-        let b = &ph.beta;
-        for c in 0..p.channels() {
-            let s = &p.sim[c].data;
-            let mut q = Plane::new(w, h);
-            for i in 0..w * h {
-                let sv = s[i] as f64;
-                let r2 = rho[i] as f64;
-                let gam = if sv > 0.0 { sv * (sv / FS as f64).ln() } else { 0.0 };
-                let v = sv
-                    + add[i] as f64
-                    + b[photometric::I_GAIN] * sv
-                    + b[photometric::I_GAMMA] * gam
-                    + sv * (b[photometric::I_V2] * r2 + b[photometric::I_V4] * r2 * r2);
-                q.data[i] = v.clamp(0.0, FS as f64) as f32;
-            }
-            let r = p.real[c].sub(&q);
-            pq.push(q);
-            pr.push(r);
-        }
-        (pq, pr)
     }
+    let b = &ph.beta;
+    for c in 0..p.channels() {
+        let s = &p.sim[c].data;
+        let mut q = Plane::new(w, h);
+        for i in 0..w * h {
+            let sv = s[i] as f64;
+            let r2 = rho[i] as f64;
+            let gam = if sv > 0.0 { sv * (sv / FS as f64).ln() } else { 0.0 };
+            let v = sv
+                + add[i] as f64
+                + b[photometric::I_GAIN] * sv
+                + b[photometric::I_GAMMA] * gam
+                + sv * (b[photometric::I_V2] * r2 + b[photometric::I_V4] * r2 * r2);
+            q.data[i] = v.clamp(0.0, FS as f64) as f32;
+        }
+        let r = p.real[c].sub(&q);
+        pq.push(q);
+        pr.push(r);
+    }
+    (pq, pr)
 }
 
 /// Quantisation step (8-bit DN) of the real data (see [`super::img::code_step`]).
