@@ -110,7 +110,7 @@ pub fn streak_max_error_dn(length: f64, angle_deg: f64) -> f64 {
     if !runs_streak(length, angle_deg) {
         1.0 // the FIR
     } else if angle_deg.rem_euclid(90.0) == 0.0 {
-        0.5 + 1e-4 // the final rounding (and f32 rounding of the weights)
+        0.55 // the final rounding, plus the 16-bit truncations (end taps, halving, division)
     } else if length < 20.0 {
         14.0
     } else if length < 37.5 {
