@@ -314,7 +314,21 @@ fn unshear_k(out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u
         }
     }
 }
-dispatch!(unshear_d, unshear_k, (out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u32));
+/// [`unshear_k`] in AVX2 registers (16 outputs at a time; level `lv` >= 1, also on AVX-512 CPUs:
+/// written out because LLVM widens the sums of multiply-highs to 32 bits), the rest scalar; the
+/// same 16-bit operations, so the same bytes.
+#[allow(clippy::too_many_arguments)]
+fn unshear_d(lv: u8, out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u32) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if lv >= 1 && super::kit::has_avx2() {
+        // SAFETY: AVX2 present (checked).
+        done = unsafe { simd::unshear(out, b, ch, g, a, dm, ds) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = lv;
+    unshear_k(&mut out[done..], &b[done..], ch, g, a, dm, ds);
+}
 
 /// Output positions (pixels along a line) per column block: the block's running sums and held
 /// lines stay in the L1 cache while it runs down the band.
@@ -569,6 +583,59 @@ fn transpose_px<const C: usize>(
 #[cfg(target_arch = "x86_64")]
 mod simd {
     use std::arch::x86_64::*;
+
+    /// `_mm256_mulhi_epu16` pinned as one `vpmulhuw` (LLVM otherwise rewrites some of these
+    /// multiply-highs into a widening 32-bit sequence, about 2x slower).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn mulhi(a: __m256i, b: __m256i) -> __m256i {
+        let r: __m256i;
+        // SAFETY: AVX2 (this function's feature); a register-only instruction without memory
+        // access or flags.
+        unsafe {
+            std::arch::asm!("vpmulhuw {r}, {a}, {b}", r = lateout(ymm_reg) r, a = in(ymm_reg) a, b = in(ymm_reg) b,
+                options(pure, nomem, nostack, preserves_flags));
+        }
+        r
+    }
+
+    /// [`super::unshear_k`] over the first `out.len() / 16 * 16` outputs (returned), 16 at a time.
+    ///
+    /// # Safety
+    /// AVX2.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn unshear(out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u32) -> usize {
+        let n = out.len() / 16 * 16;
+        assert!(b.len() >= n + 3 * ch && ds >= 1);
+        let set = |v: u16| _mm256_set1_epi16(v as i16);
+        let (w0, w1) = (set((64 - g as u16) << 10), set((g as u16) << 10));
+        let aa = a.unsigned_abs() as u16;
+        let (aa1, aa2, sm) = (set(aa), set(aa << 1), set(if a < 0 { u16::MAX } else { 0 }));
+        let (off, offv, dmv, one, top) =
+            (set(super::OFF), set(super::mulhi(super::OFF, dm)), set(dm), set(1), set(255));
+        let cnt = _mm_cvtsi32_si128(ds as i32 - 1);
+        for i in (0..n).step_by(16) {
+            // SAFETY: AVX2 (the caller's contract); every load reads 16 values of `b` below
+            // `i + 16 + 3 ch <= b.len()` and the store writes 16 bytes of `out` below n (asserted).
+            unsafe {
+                let l = |o: usize| _mm256_loadu_si256(b.as_ptr().add(i + o).cast::<__m256i>());
+                let (x0, x1, x2, x3) = (l(0), l(ch), l(2 * ch), l(3 * ch));
+                let (ul, uc, ur) = if g == 0 {
+                    (x0, x1, x2)
+                } else {
+                    let u = |p, q| _mm256_add_epi16(mulhi(p, w0), mulhi(q, w1));
+                    (u(x0, x1), u(x1, x2), u(x2, x3))
+                };
+                let t = _mm256_sub_epi16(_mm256_add_epi16(mulhi(ul, aa1), mulhi(ur, aa1)), mulhi(uc, aa2));
+                let v = _mm256_add_epi16(_mm256_add_epi16(off, uc), _mm256_sub_epi16(_mm256_xor_si256(t, sm), sm));
+                let q = _mm256_subs_epu16(mulhi(v, dmv), offv);
+                let q = _mm256_min_epu16(_mm256_srli_epi16(_mm256_add_epi16(_mm256_srl_epi16(q, cnt), one), 1), top);
+                let r = _mm_packus_epi16(_mm256_castsi256_si128(q), _mm256_extracti128_si256(q, 1));
+                _mm_storeu_si128(out.as_mut_ptr().add(i).cast::<__m128i>(), r);
+            }
+        }
+        n
+    }
 
     /// Transposes 8 x 8 pixels of `C` (1 or 3) bytes: `dst[c * ds + r * C + b] = src[r * ss +
     /// c * C + b]`, each pixel widened to a 32-bit lane, an 8 x 8 32-bit transpose, narrowed back.
