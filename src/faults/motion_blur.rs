@@ -25,8 +25,9 @@ pub static INFO: EffectInfo = EffectInfo {
             every CPU path): each output is within 1 DN of the exact convolution (tested against an f64 \
             reference for lengths 0.7-58 px); cost grows with length_px (about 1.5 taps per px). \
             8-bit frames, length_px > 24 for mostly vertical streaks (|sin angle| >= |cos angle|), \
-            and for mostly horizontal ones where that FIR would need more than 30 point-symmetric tap \
-            pairs (from 24.5 px at 10 deg, 25.5 px at 45 deg, 58.5 px at 0 deg): cost independent of \
+            and for mostly horizontal ones where that FIR would need more than 34 point-symmetric tap \
+            pairs (from 28.5 px at 10 deg, 24.5 px at 30 deg, 31.5 px at 45 deg, 66.5 px at 0 deg): \
+            cost independent of \
             the length: the lines across the \
             streak's major axis are sheared (linear interpolation, shifts rounded to 1/64 px) so the \
             streak runs straight across them, a running sum across lines applies the model's exact \
@@ -89,17 +90,17 @@ pub fn line_taps(length: f64, angle_deg: f64) -> Vec<(i32, i32, f32)> {
 /// Most point-symmetric tap pairs (the centre tap included) of a streak that 8-bit frames run
 /// as the exact FIR (`fir16`, cost about linear in the pair count, about 0.28 ms per pair on
 /// rgb8 1920x1200): 13 for mostly vertical streaks (every one longer than 24 px runs the running
-/// sums, which cost less than a 14-pair FIR there), 30 for mostly horizontal ones (their running
-/// sums run on a transposed copy, about 1.7 times the cost); about where the two paths cost the
-/// same (BENCHMARKS.md).
+/// sums, which cost less than a 14-pair FIR there), 34 for mostly horizontal ones (their running
+/// sums run on a transposed copy, about twice the cost); about where the two paths cost the same
+/// (BENCHMARKS.md).
 pub fn fir_max_pairs(angle_deg: f64) -> usize {
-    if streak::is_vertical(angle_deg) { 13 } else { 30 }
+    if streak::is_vertical(angle_deg) { 13 } else { 34 }
 }
 
 /// Whether 8-bit frames run the running-sum path (`streak`, cost independent of the length)
 /// rather than the exact FIR: streaks longer than 24 px (the running sums' error bound) whose
 /// FIR would need more than [`fir_max_pairs`] tap pairs (every mostly vertical one; mostly
-/// horizontal ones from 24.5 px at 10 deg, 24 px at 30 deg, 25.5 px at 45 deg, 58.5 px at 0 deg).
+/// horizontal ones from 28.5 px at 10 deg, 24.5 px at 30 deg, 31.5 px at 45 deg, 66.5 px at 0 deg).
 pub fn runs_streak(length: f64, angle_deg: f64) -> bool {
     length > 24.0 && runs_streak_with(length, angle_deg, &line_taps(length, angle_deg))
 }

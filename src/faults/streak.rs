@@ -779,7 +779,16 @@ mod tests {
         for (w, h, format) in [(203u32, 131u32, PixelFormat::Rgb8), (150, 190, PixelFormat::Mono8)] {
             let f = crate::faults::kit::bench_scene(w, h, format, 3).unwrap();
             let ch = format.channels();
-            for (len, ang) in [(13.0, 10.0), (40.0, 63.0), (100.0, 137.0), (30.0, 90.0), (25.0, 0.0)] {
+            for (len, ang) in [
+                (13.0, 10.0),
+                (40.0, 63.0),
+                (100.0, 137.0),
+                (30.0, 90.0),
+                (25.0, 0.0),
+                (25.0, 10.0),
+                (61.0, 0.0),
+                (100.0, 45.0),
+            ] {
                 let plan = StreakPlan::new(len, ang);
                 let run = |lv: u8, threads: usize| {
                     let mut g = f.clone();
