@@ -284,8 +284,8 @@ dispatch!(step_d, step_k, (b: &mut [u16], r: &mut [u16], a0: &[u16], a1: &[u16],
 const OFF: u16 = 1 << 14;
 
 /// `u[t] = mulhi(b[t], 1024 (64 - g)) + mulhi(b[t + ch], 1024 g)` (the unshear; `b[t]` itself
-/// when `g = 0`), then `v[t] = OFF + u[t + ch] + s (mulhi(u[t], |a|) + mulhi(u[t + 2 ch], |a|)
-/// - mulhi(u[t + ch], 2 |a|))` (the cross filter `[a, 1 - 2a, a]`, `s` the sign of `a`, wrapping 16-bit
+/// when `g = 0`), then `v[t] = OFF + u[t + ch] + s (mulhi(u[t], |a|) + mulhi(u[t + 2 ch], |a|) -
+/// mulhi(u[t + ch], 2 |a|))` (the cross filter `[a, 1 - 2a, a]`, `s` the sign of `a`, wrapping 16-bit
 /// arithmetic: the true value is in 0..2^16) and `out[t] = v / D` rounded (see
 /// [`StreakPlan::dm`]), clamped to 0..=255; in one pass (each `u` computed where it is used). `b`
 /// starts one position before the output.
