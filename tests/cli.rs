@@ -519,6 +519,8 @@ fn blur_kernels_give_the_same_bytes_on_every_path() {
         &["--effect", "motion_blur", "--set", "motion_blur.length_px=60", "--set", "motion_blur.angle_deg=100"],
         &["--effect", "motion_blur", "--set", "motion_blur.length_px=40", "--set", "motion_blur.angle_deg=30"],
         &["--effect", "motion_blur", "--set", "motion_blur.length_px=90", "--set", "motion_blur.angle_deg=0"],
+        &["--effect", "motion_blur", "--set", "motion_blur.length_px=30", "--set", "motion_blur.angle_deg=170"],
+        &["--effect", "motion_blur", "--set", "motion_blur.length_px=24.5", "--set", "motion_blur.angle_deg=90"],
     ];
     for case in cases {
         let run = |env: Option<&str>| -> Vec<String> {

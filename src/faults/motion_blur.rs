@@ -23,20 +23,24 @@ pub static INFO: EffectInfo = EffectInfo {
             point (samples x 64, the point-symmetric tap pairs' weights rounded to multiples of 2^-15 \
             that sum exactly to 1, every product rounded to nearest, the same integer operations on \
             every CPU path): each output is within 1 DN of the exact convolution (tested against an f64 \
-            reference for lengths 0.7-88 px); cost grows with length_px (about 1.5 taps per px). \
-            8-bit frames, length_px > 24 where that FIR would need more than 30 point-symmetric tap \
-            pairs for mostly vertical streaks (|sin angle| >= |cos angle|) or 45 for mostly \
-            horizontal ones (from 25 px at 80 deg, 34 px at 30 deg, 59 px at 90 deg, 90 px at 0 \
-            deg): cost independent of the length: the lines across the \
+            reference for lengths 0.7-58 px); cost grows with length_px (about 1.5 taps per px). \
+            8-bit frames, length_px > 24 for mostly vertical streaks (|sin angle| >= |cos angle|), \
+            and for mostly horizontal ones where that FIR would need more than 34 point-symmetric tap \
+            pairs (from 28.5 px at 10 deg, 24.5 px at 30 deg, 31.5 px at 45 deg, 66.5 px at 0 deg): \
+            cost independent of \
+            the length: the lines across the \
             streak's major axis are sheared (linear interpolation, shifts rounded to 1/64 px) so the \
             streak runs straight across them, a running sum across lines applies the model's exact \
             weights along the major axis (a box of 2T = length x |major component| lines convolved \
             with the tent), the result is unsheared (linear interpolation) and a 3-tap filter along \
             the lines matches, per output line, the model's cross-streak variance (sharpening where \
-            the two interpolations are wider). f32 on integer-valued data (exact running sums), the \
-            same IEEE operations on every CPU path and thread count. Against the model it is within \
-            10 DN on hard edges and point sources from 24 px, 6 DN from 37.5 px, 3.5 DN at 100 px, \
-            0.5 DN for axis-aligned streaks, mean within 0.05 DN (tested). 16-bit frames in f32 with \
+            the two interpolations are wider). 16-bit integer arithmetic: the interpolated lines \
+            with q fraction bits (q = 1 at 100 px, 3 at 25 px: each within 2^-(q+1) DN), exact \
+            running sums, the end taps, unshear, cross filter and normalisation as 16-bit \
+            multiply-highs; the same integer operations on every CPU path and thread count. Against \
+            the model it is within 10 DN on hard edges and point sources from 24 px, 6 DN from 37.5 \
+            px, 3.5 DN at 100 px, 0.55 DN for axis-aligned streaks (the final rounding plus the 16-bit \
+            truncations), mean within 0.05 DN (tested). 16-bit frames in f32 with \
             the model's taps, rounded and clipped (cost grows with length_px). length_px = 0 is the \
             identity.",
     params: &[
@@ -84,17 +88,19 @@ pub fn line_taps(length: f64, angle_deg: f64) -> Vec<(i32, i32, f32)> {
 }
 
 /// Most point-symmetric tap pairs (the centre tap included) of a streak that 8-bit frames run
-/// as the exact FIR (`fir16`, cost about linear in the pair count): 30 for mostly vertical
-/// streaks, 45 for mostly horizontal ones (their running sums run on a transposed copy, about
-/// 1.5 times the cost); about where the two paths cost the same (BENCHMARKS.md).
+/// as the exact FIR (`fir16`, cost about linear in the pair count, about 0.28 ms per pair on
+/// rgb8 1920x1200): 13 for mostly vertical streaks (every one longer than 24 px runs the running
+/// sums, which cost less than a 14-pair FIR there), 34 for mostly horizontal ones (their running
+/// sums run on a transposed copy, about twice the cost); about where the two paths cost the same
+/// (BENCHMARKS.md).
 pub fn fir_max_pairs(angle_deg: f64) -> usize {
-    if streak::is_vertical(angle_deg) { 30 } else { 45 }
+    if streak::is_vertical(angle_deg) { 13 } else { 34 }
 }
 
 /// Whether 8-bit frames run the running-sum path (`streak`, cost independent of the length)
 /// rather than the exact FIR: streaks longer than 24 px (the running sums' error bound) whose
-/// FIR would need more than [`fir_max_pairs`] tap pairs (e.g. from 25 px at 80 deg, 34 px at
-/// 30 deg, 59 px at 90 deg, 90 px at 0 deg).
+/// FIR would need more than [`fir_max_pairs`] tap pairs (every mostly vertical one; mostly
+/// horizontal ones from 28.5 px at 10 deg, 24.5 px at 30 deg, 31.5 px at 45 deg, 66.5 px at 0 deg).
 pub fn runs_streak(length: f64, angle_deg: f64) -> bool {
     length > 24.0 && runs_streak_with(length, angle_deg, &line_taps(length, angle_deg))
 }
@@ -110,7 +116,7 @@ pub fn streak_max_error_dn(length: f64, angle_deg: f64) -> f64 {
     if !runs_streak(length, angle_deg) {
         1.0 // the FIR
     } else if angle_deg.rem_euclid(90.0) == 0.0 {
-        0.5 + 1e-4 // the final rounding (and f32 rounding of the weights)
+        0.55 // the final rounding, plus the 16-bit truncations (end taps, halving, division)
     } else if length < 20.0 {
         14.0
     } else if length < 37.5 {
@@ -363,7 +369,7 @@ mod tests {
         let (w, h) = (140usize, 120usize);
         let src = orig.packed_samples_f32();
         for &(len, ang) in
-            &[(0.7, 20.0), (5.0, 0.0), (10.0, 30.0), (24.0, 90.0), (30.0, 30.0), (45.0, 90.0), (88.0, 0.0)]
+            &[(0.7, 20.0), (5.0, 0.0), (10.0, 30.0), (24.0, 90.0), (24.0, 30.0), (40.0, 0.0), (58.0, 0.0)]
         {
             assert!(!runs_streak(len, ang), "{len} px at {ang} deg runs the FIR");
             let mut f = orig.clone();

@@ -19,12 +19,15 @@
 //! `x - i m` is not whole: the result is interpolated linearly between `k = floor(x - i m)` and
 //! `k + 1` (the unshear). The shifts `j m` and `-i m` are rounded to 1/64 px.
 //!
-//! Arithmetic is f32 on integer-valued data: `A` is `(64 - f) p0 + f p1` of two bytes (an exact
-//! integer <= 16320), the running sums are exact integers (< 2^24), and the remaining operations
-//! (end taps, unshear, normalisation, rounding half to even) are the same IEEE operations in the
-//! same order on every path: the bytes do not depend on the CPU (scalar, AVX2, AVX-512 copies of
-//! one loop) nor on how lines are split over threads (exact sums). Borders are mirrored
-//! (half-sample symmetric) per axis like the model's taps.
+//! Arithmetic is 16-bit unsigned integer (16 lanes per AVX2 register, twice f32's): `A` is
+//! `((64 - f) p0 + f p1) 2^q / 64` of two bytes rounded, with `q <= 6` fraction bits chosen per
+//! streak so that the running sum of `2n + 1` lines plus the end taps stays below 2^16 (`q = 1`
+//! at 100 px, 3 at 25 px: each line's interpolation within 1/4 resp. 1/16 DN); the running sums
+//! are exact (wrapping 16-bit adds whose true value fits), the end taps, unshear, cross filter and
+//! the final division are multiply-highs (`vpmulhuw`) with 16-bit weights. Every operation is an
+//! integer operation, the same on every path: the bytes do not depend on the CPU (scalar, AVX2,
+//! AVX-512 copies of one loop) nor on how lines are split over threads (exact sums). Borders are
+//! mirrored (half-sample symmetric) per axis like the model's taps.
 
 use super::defocus::mirror;
 use rayon::prelude::*;
@@ -40,8 +43,17 @@ pub struct StreakPlan {
     pub n: usize,
     /// Weights of the partial taps at distance n + 1 and n + 2 (the full taps weigh 1).
     pub e: [f32; 2],
-    /// 1 / (total weight * 64 * 64).
-    pub inv: f32,
+    /// The partial taps' weights in the integer step: `floor(65536 e)` (a multiply-high).
+    pub eq: [u16; 2],
+    /// Fraction bits of the held lines `A` (`A` = the interpolated line times `2^q`, rounded):
+    /// the largest `q <= 6` whose running sum with its end taps fits 16 bits.
+    pub q: u32,
+    /// The final division by `D` = total integer weight * 2^(q - 1) (the step's `B` per DN):
+    /// `out = ((mulhi(v + OFF, dm) - mulhi(OFF, dm)) >> (ds - 1) + 1) >> 1`, `dm = round(2^(16 + ds)
+    /// / D)` (the largest `ds` with `dm < 2^16`).
+    pub dm: u16,
+    /// The shift of the final division (see `dm`), at least 1.
+    pub ds: u32,
     /// The model's cross-streak variance (px^2) averaged over the lines with their weights: per
     /// line `d` the discrete variance of `g_m = tent * tent(./m)/|m|` sampled at phase `frac(d m)`.
     pub vbar: f64,
@@ -100,8 +112,14 @@ impl StreakPlan {
         // Relative weight of the line at distance d (1 for |d| <= n, 0 from n + 3).
         let wgt = |d: f64| tent_cdf(d + tt) - tent_cdf(d - tt);
         let e = [wgt(n as f64 + 1.0) as f32, wgt(n as f64 + 2.0) as f32];
-        let total = (2 * n + 1) as f64 + 2.0 * (e[0] as f64 + e[1] as f64);
-        let mut p = StreakPlan { vertical, m, n, e, inv: (1.0 / (total * 4096.0)) as f32, vbar: 0.0 };
+        let eq = e.map(|v| (v as f64 * 65536.0).floor().min(65535.0) as u16);
+        // The running sum (2n + 1 lines) plus the end taps, all samples 255: at most 65535.
+        let q = (0..=6u32).rev().find(|&q| (2 * n + 5) as u64 * (255 << q) <= 65535).unwrap_or(0);
+        let total_q = (2 * n + 1) as f64 + 2.0 * (eq[0] as f64 + eq[1] as f64) / 65536.0;
+        let dd = total_q * (1u32 << q) as f64 / 2.0;
+        let ds = (1..=15u32).rev().find(|&s| (2f64.powi(16 + s as i32) / dd).round() < 65536.0).unwrap_or(1);
+        let dm = (2f64.powi(16 + ds as i32) / dd).round() as u16;
+        let mut p = StreakPlan { vertical, m, n, e, eq, q, dm, ds, vbar: 0.0 };
         p.vbar = p
             .line_weights()
             .iter()
@@ -124,9 +142,10 @@ impl StreakPlan {
     }
 
     /// Weight `a` of the cross filter `[a, 1 - 2a, a]` for output line `i`: makes up the
-    /// difference to the model's cross-streak variance (`2a`), none if this path is already wider.
-    pub fn cross_tap(&self, i: isize) -> f32 {
-        ((self.vbar - self.path_cross_variance(i)) / 2.0).clamp(-0.25, 0.25) as f32
+    /// difference to the model's cross-streak variance (`2a`), none if this path is already wider;
+    /// in 1/65536 (|a| <= 1/4).
+    pub fn cross_tap(&self, i: isize) -> i32 {
+        (((self.vbar - self.path_cross_variance(i)) / 2.0).clamp(-0.25, 0.25) * 65536.0).round() as i32
     }
 
     /// The relative tap weights across lines, `-(n + 2)..=n + 2`, normalised (the model the
@@ -152,10 +171,10 @@ impl StreakPlan {
 #[derive(Default)]
 struct Slot {
     // running sums R(k) and the lines A(j, k) at j = i - n - 2 .. i - n and i + n + 1, i + n + 2,
-    // over the band's range of k (f32, `ch` per position); the B row; a padded source line
-    r: Vec<f32>,
-    a: [Vec<f32>; 5],
-    b: Vec<f32>,
+    // over the band's range of k (16-bit, `ch` per position); the B row; a padded source line
+    r: Vec<u16>,
+    a: [Vec<u16>; 5],
+    b: Vec<u16>,
     pad: Vec<u8>,
 }
 
@@ -170,7 +189,7 @@ pub struct Scratch {
     slots: Vec<Slot>,
     // allocation: per frame size and streak: the cross-filter tap of every line, and the
     // (streak, line count) they are for
-    taps: Vec<f32>,
+    taps: Vec<i32>,
     taps_for: Option<(StreakPlan, usize)>,
 }
 
@@ -215,63 +234,102 @@ macro_rules! dispatch {
     };
 }
 
-/// `a[t] = p[t] (64 - f) + p[t + ch] f` for `t < a.len()`.
+/// `a[t] = (p[t] (64 - f) + p[t + ch] f + 2^(5 - q)) >> (6 - q)` for `t < a.len()` (`q <= 6`:
+/// the line interpolated at phase `f / 64`, times `2^q`, rounded half up).
 #[inline(always)]
-fn lerp_k(a: &mut [f32], p: &[u8], ch: usize, f: u8) {
-    let (w0, w1) = ((64 - f) as f32, f as f32);
+fn lerp_k(a: &mut [u16], p: &[u8], ch: usize, f: u8, q: u32) {
+    let (w0, w1) = (64 - f as u16, f as u16);
+    let (sh, half) = (6 - q, (1u16 << (6 - q)) >> 1);
     let p1 = &p[ch..ch + a.len()];
     let p0 = &p[..a.len()];
     for ((a, &x0), &x1) in a.iter_mut().zip(p0).zip(p1) {
-        *a = x0 as f32 * w0 + x1 as f32 * w1;
+        *a = (x0 as u16 * w0 + x1 as u16 * w1 + half) >> sh;
     }
 }
-dispatch!(lerp_d, lerp_k, (a: &mut [f32], p: &[u8], ch: usize, f: u8));
+dispatch!(lerp_d, lerp_k, (a: &mut [u16], p: &[u8], ch: usize, f: u8, q: u32));
 
-/// `r[t] += a[t]` (exact: integer values below 2^24).
+/// `r[t] += a[t]` (16-bit; the plan's `q` keeps every running sum below 2^16).
 #[inline(always)]
-fn add_k(r: &mut [f32], a: &[f32]) {
+fn add_k(r: &mut [u16], a: &[u16]) {
     for (r, &a) in r.iter_mut().zip(a) {
-        *r += a;
+        *r = r.wrapping_add(a);
     }
 }
-dispatch!(add_d, add_k, (r: &mut [f32], a: &[f32]));
+dispatch!(add_d, add_k, (r: &mut [u16], a: &[u16]));
+
+/// `(x e) >> 16` (the high half of the 16-bit product: one `vpmulhuw`).
+#[inline(always)]
+fn mulhi(x: u16, e: u16) -> u16 {
+    ((x as u32 * e as u32) >> 16) as u16
+}
 
 /// One line step over the held lines `a0..a4` = `A(i - n - 2)`, `A(i - n - 1)`, `A(i - n)`,
-/// `A(i + n + 1)`, `A(i + n + 2)`: `b = r + e0 (a1 + a3) + e1 (a0 + a4)` (line `i` with its end
-/// taps), then `r += a3 - a2` (the running sum of line `i + 1`, exact).
+/// `A(i + n + 1)`, `A(i + n + 2)`: `b = (r + mulhi(a1 + a3, e0) + mulhi(a0 + a4, e1) + 1) >> 1`
+/// (line `i` with its end taps, halved and rounded: below 2^15; the sum is below 2^16 - 1), then `r += a3 - a2` (the running sum of line `i + 1`; 16-bit wrapping
+/// arithmetic, exact as every true value is below 2^16).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn step_k(b: &mut [f32], r: &mut [f32], a0: &[f32], a1: &[f32], a2: &[f32], a3: &[f32], a4: &[f32], e0: f32, e1: f32) {
+fn step_k(b: &mut [u16], r: &mut [u16], a0: &[u16], a1: &[u16], a2: &[u16], a3: &[u16], a4: &[u16], e0: u16, e1: u16) {
     let n = b.len();
     let (r, a0, a1, a2, a3, a4) = (&mut r[..n], &a0[..n], &a1[..n], &a2[..n], &a3[..n], &a4[..n]);
     for i in 0..n {
-        b[i] = r[i] + e0 * (a1[i] + a3[i]) + e1 * (a0[i] + a4[i]);
-        r[i] += a3[i] - a2[i];
+        b[i] = (r[i].wrapping_add(mulhi(a1[i] + a3[i], e0)).wrapping_add(mulhi(a0[i] + a4[i], e1)) + 1) >> 1;
+        r[i] = r[i].wrapping_add(a3[i]).wrapping_sub(a2[i]);
     }
 }
-dispatch!(step_d, step_k, (b: &mut [f32], r: &mut [f32], a0: &[f32], a1: &[f32], a2: &[f32], a3: &[f32], a4: &[f32], e0: f32, e1: f32));
+dispatch!(step_d, step_k, (b: &mut [u16], r: &mut [u16], a0: &[u16], a1: &[u16], a2: &[u16], a3: &[u16], a4: &[u16], e0: u16, e1: u16));
 
-/// `u[t] = b[t] (64 - g) + b[t + ch] g` (the unshear), then
-/// `out[t] = round_half_even((u[t + ch] (1 - 2a) + (u[t] + u[t + 2 ch]) a) inv)` clamped to 0..=255
-/// (the cross filter), in one pass (each `u` computed where it is used). `b` starts one position
-/// before the output.
+/// Offset of the cross filter's result (its sharpening can undershoot by up to half the
+/// largest `B`, 2^14).
+const OFF: u16 = 1 << 14;
+
+/// `u[t] = mulhi(b[t], 1024 (64 - g)) + mulhi(b[t + ch], 1024 g)` (the unshear; `b[t]` itself
+/// when `g = 0`), then `v[t] = OFF + u[t + ch] + s (mulhi(u[t], |a|) + mulhi(u[t + 2 ch], |a|) -
+/// mulhi(u[t + ch], 2 |a|))` (the cross filter `[a, 1 - 2a, a]`, `s` the sign of `a`, wrapping 16-bit
+/// arithmetic: the true value is in 0..2^16) and `out[t] = v / D` rounded (see
+/// [`StreakPlan::dm`]), clamped to 0..=255; in one pass (each `u` computed where it is used). `b`
+/// starts one position before the output.
 #[inline(always)]
-fn unshear_k(out: &mut [u8], b: &[f32], ch: usize, g: u8, a: f32, inv: f32) {
-    let (w0, w1) = ((64 - g) as f32, g as f32);
+fn unshear_k(out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u32) {
     let n = out.len();
     let (b0, b1, b2, b3) = (&b[..n], &b[ch..ch + n], &b[2 * ch..2 * ch + n], &b[3 * ch..3 * ch + n]);
-    let c0 = 1.0 - 2.0 * a;
-    for i in 0..n {
-        let ul = b0[i] * w0 + b1[i] * w1;
-        let uc = b1[i] * w0 + b2[i] * w1;
-        let ur = b2[i] * w0 + b3[i] * w1;
-        let v = ((uc * c0 + (ul + ur) * a) * inv).round_ties_even().clamp(0.0, 255.0);
-        // SAFETY: `v` is finite (sums and products of finite values, clamped) and in 0..=255,
-        // so the conversion is exact and defined (and vectorises, unlike `as u8`).
-        out[i] = unsafe { v.to_int_unchecked::<i32>() } as u8;
+    let (aa, sm) = (a.unsigned_abs() as u16, if a < 0 { u16::MAX } else { 0 });
+    let aa2 = aa << 1;
+    let off = mulhi(OFF, dm);
+    let cross = |ul: u16, uc: u16, ur: u16| -> u8 {
+        let t = mulhi(ul, aa).wrapping_add(mulhi(ur, aa)).wrapping_sub(mulhi(uc, aa2));
+        let v = OFF.wrapping_add(uc).wrapping_add((t ^ sm).wrapping_sub(sm));
+        (((mulhi(v, dm).saturating_sub(off) >> (ds - 1)) + 1) >> 1).min(255) as u8
+    };
+    if g == 0 {
+        for i in 0..n {
+            out[i] = cross(b0[i], b1[i], b2[i]);
+        }
+    } else {
+        let (w0, w1) = ((64 - g as u16) << 10, (g as u16) << 10);
+        for i in 0..n {
+            let ul = mulhi(b0[i], w0) + mulhi(b1[i], w1);
+            let uc = mulhi(b1[i], w0) + mulhi(b2[i], w1);
+            let ur = mulhi(b2[i], w0) + mulhi(b3[i], w1);
+            out[i] = cross(ul, uc, ur);
+        }
     }
 }
-dispatch!(unshear_d, unshear_k, (out: &mut [u8], b: &[f32], ch: usize, g: u8, a: f32, inv: f32));
+/// [`unshear_k`] in AVX2 registers (16 outputs at a time; level `lv` >= 1, also on AVX-512 CPUs:
+/// written out because LLVM widens the sums of multiply-highs to 32 bits), the rest scalar; the
+/// same 16-bit operations, so the same bytes.
+#[allow(clippy::too_many_arguments)]
+fn unshear_d(lv: u8, out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u32) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if lv >= 1 && super::kit::has_avx2() {
+        // SAFETY: AVX2 present (checked).
+        done = unsafe { simd::unshear(out, b, ch, g, a, dm, ds) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = lv;
+    unshear_k(&mut out[done..], &b[done..], ch, g, a, dm, ds);
+}
 
 /// Output positions (pixels along a line) per column block: the block's running sums and held
 /// lines stay in the L1 cache while it runs down the band.
@@ -281,6 +339,9 @@ const CHUNK: isize = 256;
 /// walks down the lines, one new source line per output line, a stride the hardware
 /// prefetchers miss.
 const AHEAD: isize = 6;
+
+/// Positions a block's valid range grows by at a time on its lead side (see [`band`]).
+const GROUP: isize = 64;
 
 /// Hints the cache to load the bytes of source line `j` that `A(j, k)`, `k` in `[k0, k1)`, reads
 /// (no effect on the values).
@@ -312,7 +373,7 @@ fn band(
     rows: usize,
     dst: &mut [u8],
     dstride: usize,
-    taps: &[f32],
+    taps: &[i32],
     slot: &mut Slot,
 ) {
     let (nl, ch) = (src.nl, src.ch);
@@ -326,11 +387,11 @@ fn band(
     let len = (CHUNK as usize + 3) * ch;
     for v in [&mut slot.r, &mut slot.b].into_iter().chain(slot.a.iter_mut()) {
         if v.len() < len {
-            v.resize(len, 0.0);
+            v.resize(len, 0);
         }
     }
     // A(j, k) for k in [k0, k1) into `a` (index (k - base) ch).
-    let fill = |a: &mut [f32], pad: &mut Vec<u8>, base: isize, j: isize, k0: isize, k1: isize| {
+    let fill = |a: &mut [u16], pad: &mut Vec<u8>, base: isize, j: isize, k0: isize, k1: isize| {
         let q = plan.shift_q(j);
         let (s, f) = ((q >> 6) as isize, (q & 63) as u8);
         let line = src.line(j);
@@ -340,7 +401,7 @@ fn band(
         let (i0, i1) = ((-s).clamp(k0, k1), (nl as isize - 1 - s).clamp(k0, k1).max((-s).clamp(k0, k1)));
         if i1 > i0 {
             let p = ((i0 + s) as usize) * ch;
-            lerp_d(lv, &mut a[x(i0)..x(i1)], &line[p..p + ((i1 - i0) as usize + 1) * ch], ch, f);
+            lerp_d(lv, &mut a[x(i0)..x(i1)], &line[p..p + ((i1 - i0) as usize + 1) * ch], ch, f, plan.q);
         }
         for (e0, e1) in [(k0, i0), (i1, k1)] {
             if e1 > e0 {
@@ -349,7 +410,7 @@ fn band(
                     let sp = mirror(p, nl) * ch;
                     pad.extend_from_slice(&line[sp..sp + ch]);
                 }
-                lerp_d(lv, &mut a[x(e0)..x(e1)], pad, ch, f);
+                lerp_d(lv, &mut a[x(e0)..x(e1)], pad, ch, f, plan.q);
             }
         }
     };
@@ -361,38 +422,75 @@ fn band(
         let c1 = c0 + CHUNK;
         // State over k in [c0 - 1, c1 + 2), local index (k - base) ch.
         let base = c0 - 1;
-        let w = (c1 + 2 - base) as usize * ch;
-        let mut started = false;
+        // Positions [v0, v1) hold valid running sums and lines (`None`: not started). The
+        // positions a line needs, [o0 - 1, o1 + 2), move monotonically with the line (by the
+        // sign of -m): the lead side is extended GROUP positions at a time, the trailing side is
+        // dropped (never needed again), so the block computes only about the positions its
+        // lines output (the sheared parallelogram, not its bounding rectangle).
+        let mut valid: Option<(isize, isize)> = None;
         for (row, i) in (i0..i0 + rows).enumerate() {
             let (k, g) = klo(i);
             let (o0, o1) = (c0.max(k), c1.min(k + nl as isize));
             if o0 >= o1 {
-                if started {
+                if valid.is_some() {
                     break;
                 }
                 continue;
             }
+            let (n0, n1) = (o0 - 1, o1 + 2);
             let Slot { r, a, b, pad } = &mut *slot;
-            if !started {
-                // Running sums and held lines at line i.
-                started = true;
-                r[..w].fill(0.0);
+            // Running sums and held lines at line i over [g0, g1).
+            let mut init = |g0: isize, g1: isize| {
+                let (x0, x1) = ((g0 - base) as usize * ch, (g1 - base) as usize * ch);
+                r[x0..x1].fill(0);
                 for d in -n..=n {
-                    fill(b, pad, base, i as isize + d, base, c1 + 2);
-                    add_d(lv, &mut r[..w], &b[..w]);
+                    fill(b, pad, base, i as isize + d, g0, g1);
+                    add_d(lv, &mut r[x0..x1], &b[x0..x1]);
                 }
                 for (t, &o) in off.iter().enumerate() {
-                    fill(&mut a[t], pad, base, i as isize + o, base, c1 + 2);
+                    fill(&mut a[t], pad, base, i as isize + o, g0, g1);
                 }
+            };
+            let (mut v0, mut v1) = match valid {
+                None => {
+                    let (g0, g1) = if plan.m > 0.0 {
+                        ((n0 - GROUP).max(base), n1)
+                    } else if plan.m < 0.0 {
+                        (n0, (n1 + GROUP).min(c1 + 2))
+                    } else {
+                        (n0, n1)
+                    };
+                    init(g0, g1);
+                    (g0, g1)
+                }
+                Some(v) => v,
+            };
+            if n0 < v0 {
+                let g0 = (v0 - GROUP).min(n0).max(base);
+                init(g0, v0);
+                v0 = g0;
             }
-            // B over the block (used over [o0 - 1, o1 + 2)) and the running sums of line i + 1,
+            if n1 > v1 {
+                let g1 = (v1 + GROUP).max(n1).min(c1 + 2);
+                init(v1, g1);
+                v1 = g1;
+            }
+            if plan.m > 0.0 {
+                v1 = v1.min(n1);
+            } else if plan.m < 0.0 {
+                v0 = v0.max(n0);
+            }
+            valid = Some((v0, v1));
+            let (y0, y1) = ((v0 - base) as usize * ch, (v1 - base) as usize * ch);
+            // B over [v0, v1) (used over [o0 - 1, o1 + 2)) and the running sums of line i + 1,
             // then unshear and cross filter into pixels o0 - k.. o1 - k.
             let [a0, a1, a2, a3, a4] = &*a;
-            step_d(lv, &mut b[..w], &mut r[..w], a0, a1, a2, a3, a4, plan.e[0], plan.e[1]);
-            let (x0, x1) = ((o0 - 1 - base) as usize * ch, (o1 + 2 - base) as usize * ch);
+            let (a0, a1, a2, a3, a4) = (&a0[y0..y1], &a1[y0..y1], &a2[y0..y1], &a3[y0..y1], &a4[y0..y1]);
+            step_d(lv, &mut b[y0..y1], &mut r[y0..y1], a0, a1, a2, a3, a4, plan.eq[0], plan.eq[1]);
+            let (x0, x1) = ((n0 - base) as usize * ch, (n1 - base) as usize * ch);
             let p0 = row * dstride + (o0 - k) as usize * ch;
             let orow = &mut dst[p0..p0 + (o1 - o0) as usize * ch];
-            unshear_d(lv, orow, &b[x0..x1], ch, g, taps[row], plan.inv);
+            unshear_d(lv, orow, &b[x0..x1], ch, g, taps[row], plan.dm, plan.ds);
             if row + 1 == rows {
                 break;
             }
@@ -401,17 +499,17 @@ fn band(
             // Trail: t2 <- t1 <- t0 <- A(i + 1 - n); lead: l1 <- l2 <- A(i + 1 + n + 2).
             a.swap(0, 1);
             a.swap(1, 2);
-            fill(&mut a[2], pad, base, i as isize + 1 - n, base, c1 + 2);
+            fill(&mut a[2], pad, base, i as isize + 1 - n, v0, v1);
             a.swap(3, 4);
-            fill(&mut a[4], pad, base, i as isize + 1 + n + 2, base, c1 + 2);
-            prefetch(plan, src, i as isize + 1 + n + 2 + AHEAD, base, c1 + 2);
+            fill(&mut a[4], pad, base, i as isize + 1 + n + 2, v0, v1);
+            prefetch(plan, src, i as isize + 1 + n + 2 + AHEAD, v0, v1);
         }
         c0 = c1;
     }
 }
 
 /// Pixel transpose: `dst[x * dstride + y * ch + c] = src[y * sstride + x * ch + c]` for
-/// `x < w`, `y < h`, in blocks of 32 x 32 pixels (a block's rows stay in cache), 8 x 8 pixels at
+/// `x < w`, `y < h`, in blocks of 64 x 64 pixels (a block's rows stay in cache), 8 x 8 pixels at
 /// a time in AVX2 registers (level `lv` >= 1), the block edges pixel by pixel.
 #[allow(clippy::too_many_arguments)]
 fn transpose(lv: u8, src: &[u8], sstride: usize, w: usize, h: usize, ch: usize, dst: &mut [u8], dstride: usize) {
@@ -432,7 +530,7 @@ fn transpose_px<const C: usize>(
     dst: &mut [u8],
     dstride: usize,
 ) {
-    const B: usize = 32;
+    const B: usize = 64;
     let used = dst.len().min(dstride * w);
     #[cfg(target_arch = "x86_64")]
     let simd = lv >= 1 && super::kit::has_avx2();
@@ -447,6 +545,16 @@ fn transpose_px<const C: usize>(
         for y0 in (0..h).step_by(B) {
             let ys = B.min(h - y0);
             let sblock = &src[y0 * sstride + x0 * C..];
+            // The next block's source rows (a stride the hardware prefetchers miss).
+            #[cfg(target_arch = "x86_64")]
+            for y in y0 + B..(y0 + 2 * B).min(h) {
+                use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+                let row = &src[y * sstride + x0 * C..y * sstride + (x0 + xs) * C];
+                for p in (0..row.len()).step_by(64).chain([row.len() - 1]) {
+                    // SAFETY: a prefetch hint of an address inside `row` (no effect on values).
+                    unsafe { _mm_prefetch::<_MM_HINT_T0>(row.as_ptr().add(p).cast::<i8>()) };
+                }
+            }
             // Pixels (dx, dy) of the block done in registers: dx < xv, dy < yv.
             let (xv, yv) = if simd { (xs / 8 * 8, ys / 8 * 8) } else { (0, 0) };
             #[cfg(target_arch = "x86_64")]
@@ -476,6 +584,59 @@ fn transpose_px<const C: usize>(
 #[cfg(target_arch = "x86_64")]
 mod simd {
     use std::arch::x86_64::*;
+
+    /// `_mm256_mulhi_epu16` pinned as one `vpmulhuw` (LLVM otherwise rewrites some of these
+    /// multiply-highs into a widening 32-bit sequence, about 2x slower).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn mulhi(a: __m256i, b: __m256i) -> __m256i {
+        let r: __m256i;
+        // SAFETY: AVX2 (this function's feature); a register-only instruction without memory
+        // access or flags.
+        unsafe {
+            std::arch::asm!("vpmulhuw {r}, {a}, {b}", r = lateout(ymm_reg) r, a = in(ymm_reg) a, b = in(ymm_reg) b,
+                options(pure, nomem, nostack, preserves_flags));
+        }
+        r
+    }
+
+    /// [`super::unshear_k`] over the first `out.len() / 16 * 16` outputs (returned), 16 at a time.
+    ///
+    /// # Safety
+    /// AVX2.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn unshear(out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u32) -> usize {
+        let n = out.len() / 16 * 16;
+        assert!(b.len() >= n + 3 * ch && ds >= 1);
+        let set = |v: u16| _mm256_set1_epi16(v as i16);
+        let (w0, w1) = (set((64 - g as u16) << 10), set((g as u16) << 10));
+        let aa = a.unsigned_abs() as u16;
+        let (aa1, aa2, sm) = (set(aa), set(aa << 1), set(if a < 0 { u16::MAX } else { 0 }));
+        let (off, offv, dmv, one, top) =
+            (set(super::OFF), set(super::mulhi(super::OFF, dm)), set(dm), set(1), set(255));
+        let cnt = _mm_cvtsi32_si128(ds as i32 - 1);
+        for i in (0..n).step_by(16) {
+            // SAFETY: AVX2 (the caller's contract); every load reads 16 values of `b` below
+            // `i + 16 + 3 ch <= b.len()` and the store writes 16 bytes of `out` below n (asserted).
+            unsafe {
+                let l = |o: usize| _mm256_loadu_si256(b.as_ptr().add(i + o).cast::<__m256i>());
+                let (x0, x1, x2, x3) = (l(0), l(ch), l(2 * ch), l(3 * ch));
+                let (ul, uc, ur) = if g == 0 {
+                    (x0, x1, x2)
+                } else {
+                    let u = |p, q| _mm256_add_epi16(mulhi(p, w0), mulhi(q, w1));
+                    (u(x0, x1), u(x1, x2), u(x2, x3))
+                };
+                let t = _mm256_sub_epi16(_mm256_add_epi16(mulhi(ul, aa1), mulhi(ur, aa1)), mulhi(uc, aa2));
+                let v = _mm256_add_epi16(_mm256_add_epi16(off, uc), _mm256_sub_epi16(_mm256_xor_si256(t, sm), sm));
+                let q = _mm256_subs_epu16(mulhi(v, dmv), offv);
+                let q = _mm256_min_epu16(_mm256_srli_epi16(_mm256_add_epi16(_mm256_srl_epi16(q, cnt), one), 1), top);
+                let r = _mm_packus_epi16(_mm256_castsi256_si128(q), _mm256_extracti128_si256(q, 1));
+                _mm_storeu_si128(out.as_mut_ptr().add(i).cast::<__m128i>(), r);
+            }
+        }
+        n
+    }
 
     /// Transposes 8 x 8 pixels of `C` (1 or 3) bytes: `dst[c * ds + r * C + b] = src[r * ss +
     /// c * C + b]`, each pixel widened to a 32-bit lane, an 8 x 8 32-bit transpose, narrowed back.
@@ -619,7 +780,16 @@ mod tests {
         for (w, h, format) in [(203u32, 131u32, PixelFormat::Rgb8), (150, 190, PixelFormat::Mono8)] {
             let f = crate::faults::kit::bench_scene(w, h, format, 3).unwrap();
             let ch = format.channels();
-            for (len, ang) in [(13.0, 10.0), (40.0, 63.0), (100.0, 137.0), (30.0, 90.0), (25.0, 0.0)] {
+            for (len, ang) in [
+                (13.0, 10.0),
+                (40.0, 63.0),
+                (100.0, 137.0),
+                (30.0, 90.0),
+                (25.0, 0.0),
+                (25.0, 10.0),
+                (61.0, 0.0),
+                (100.0, 45.0),
+            ] {
                 let plan = StreakPlan::new(len, ang);
                 let run = |lv: u8, threads: usize| {
                     let mut g = f.clone();
