@@ -15,7 +15,7 @@
 //!   by moment matching through the library's own effects ([`super::moments`]).
 
 use super::common::{NoiseModel, QUIET_LAPLACIAN, params_from_signature};
-use super::img::{Pair, Plane, frame_from_planes};
+use super::img::{FS, Pair, Plane, frame_from_planes};
 use super::locate::{self, Located};
 use super::noise;
 use super::select::{self, Candidate, Evidence, FitCtx, LossData};
@@ -74,7 +74,7 @@ pub struct Fitted {
 }
 
 fn cand(name: &'static str, label: &str, params: Params, fit: &[&'static str]) -> Candidate {
-    Candidate { name, label: label.to_string(), params, fit: fit.to_vec() }
+    Candidate { name, label: label.to_string(), params, fit: fit.to_vec(), well_ceiling: None }
 }
 
 /// Every applicable deterministic candidate, initialised from the signatures.
@@ -168,7 +168,9 @@ pub fn candidates(pairs: &[Pair], loc: &Located) -> Vec<Candidate> {
             // the well. From interiors the plateau only starts the fit (as before).
             let fit: &[&'static str] =
                 if well_basis(loc) == WellBasis::Cores { &["spread_px"] } else { &["full_well_fraction", "spread_px"] };
-            out.push(cand("blooming", "blooming", p, fit));
+            let mut c = cand("blooming", "blooming", p, fit);
+            c.well_ceiling = well_ceiling(loc);
+            out.push(c);
         }
         if let Some(mut p) = init("lens_flare") {
             let i = p.get("intensity");
@@ -179,6 +181,40 @@ pub fn candidates(pairs: &[Pair], loc: &Located) -> Vec<Candidate> {
     }
     out
 }
+
+/// The largest full well (fraction of FS) the selection reports as overflow when the blooming
+/// signature saw the saturated plateau below the top code (its `plateau` choice): one ADC step
+/// under full scale. None (the default floor of `select::above_floor`) otherwise.
+pub fn well_ceiling(loc: &Located) -> Option<f64> {
+    let below = loc
+        .signature("blooming")
+        .is_some_and(|s| s.choices.iter().any(|(n, v)| n == "plateau" && v == "below_top_code"));
+    below.then(|| 1.0 - loc.noise.quant.max(1.0 / 257.0) / FS as f64)
+}
+
+/// The columns (`vertical`) or rows of a frame of width `w` that pass within `halo_px` of a
+/// saturated sim region (distance map `dist_sat`), when there are over-exposed sources
+/// (`halo_px`) and a smear direction; None otherwise.
+pub fn smear_lines_off(
+    dist_sat: &[f32],
+    w: usize,
+    halo_px: Option<f64>,
+    smear_dir: Option<bool>,
+) -> Option<(bool, Vec<bool>)> {
+    let (r, vertical) = (halo_px?, smear_dir?);
+    let h = dist_sat.len() / w.max(1);
+    let mut off = vec![false; if vertical { w } else { h }];
+    for (i, &d) in dist_sat.iter().enumerate() {
+        if d <= r as f32 {
+            off[if vertical { i % w } else { i / w }] = true;
+        }
+    }
+    Some((vertical, off))
+}
+
+/// Distance (px) from saturated regions beyond which a pixel is in the interior of the global
+/// tone and additive effects' own test (without over-exposed sources).
+pub const INTERIOR_SAT_PX: f32 = 4.0;
 
 /// Where the blooming signature read the saturated plateau (its `well_basis` choice).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -482,6 +518,21 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             "over-exposed sources: pixels within {r:.0} px of saturated regions are left out of the forward-model fit (their halo is fed by charge the clipped sim does not hold)"
         ));
     }
+    // The interior on which global tone and additive effects (gain_offset, gamma, dark_current,
+    // stray_light, vignetting) must show their own evidence: away from edges and saturated
+    // pixels. Around over-exposed sources the spilled charge's tail reaches past the ring left
+    // out above (the halo falls below 1 DN at `halo_px`, not to zero): a smooth additive field
+    // fitted to that tail is the halo, not stray light, so the interior starts at twice that.
+    let interior_sat_px = halo_px.map(|r| (2.0 * r) as f32).unwrap_or(0.0).max(INTERIOR_SAT_PX);
+    // Smear through over-exposed sources: the real camera's saturated footprint (the source
+    // and the ring its spill fills to the well) is larger than the clipped sim's, so the smear
+    // those columns (rows) carry is more than the model's count gives them, along their whole
+    // length. An additive field fitted to that excess is the smear, not stray light: those
+    // lines are left out of the interior too.
+    let smear_dir = loc
+        .signature("smear")
+        .filter(|s| s.z >= z)
+        .and_then(|s| s.choices.iter().find(|(n, _)| n == "direction").map(|(_, v)| v == "vertical"));
     // With a dithered JPEG step (three JPEG round trips per frame and evaluation, most of the cost
     // of a fit) the fit reads whole bands of rows instead of every `row_step`-th row, and the JPEG
     // runs on those bands only: rows 1..=14 of every `s`-th 16-row band (a whole number of MCU
@@ -502,7 +553,16 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             fidx.iter()
                 .map(|&k| {
                     let m = &loc.masks[k];
-                    (0..m.sat.len()).map(|i| m.dist_edge[i] > 2.0 && m.dist_sat[i] > 4.0).collect()
+                    let lines = smear_lines_off(&m.dist_sat, pairs[k].w(), halo_px, smear_dir);
+                    (0..m.sat.len())
+                        .map(|i| {
+                            m.dist_edge[i] > 2.0
+                                && m.dist_sat[i] > interior_sat_px
+                                && !lines.as_ref().is_some_and(|(vertical, off)| {
+                                    off[if *vertical { i % pairs[k].w() } else { i / pairs[k].w() }]
+                                })
+                        })
+                        .collect()
                 })
                 .collect(),
             loc.noise.clone(),
