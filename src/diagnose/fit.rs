@@ -993,3 +993,27 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         noise: st.noise,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// (h28diag) With over-exposed sources and vertical smear, every column that passes within
+    /// the halo of a saturated region is off the interior, and no other; without over-exposure
+    /// or without smear nothing is.
+    #[test]
+    fn smear_lines_through_over_exposed_sources_are_off() {
+        let (w, h) = (10usize, 4usize);
+        let mut d = vec![f32::INFINITY; w * h];
+        d[w + 3] = 0.0;
+        d[2 * w + 4] = 2.0;
+        d[3 * w + 8] = 9.0;
+        let (vertical, off) = smear_lines_off(&d, w, Some(3.0), Some(true)).unwrap();
+        assert!(vertical);
+        assert_eq!(off.iter().enumerate().filter(|(_, o)| **o).map(|(i, _)| i).collect::<Vec<_>>(), vec![3, 4]);
+        let (_, rows) = smear_lines_off(&d, w, Some(3.0), Some(false)).unwrap();
+        assert_eq!(rows, vec![false, true, true, false]);
+        assert!(smear_lines_off(&d, w, None, Some(true)).is_none());
+        assert!(smear_lines_off(&d, w, Some(3.0), None).is_none());
+    }
+}

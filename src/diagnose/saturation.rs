@@ -396,3 +396,28 @@ pub fn smear(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], q: &[Vec<Plane>
     });
     sig
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// (h28diag) A plateau at a full well below the top code carries only the read noise: its
+    /// scatter is floored there (not the shot noise of the noise model at that level), and none
+    /// of it is at the top code. A level clipped at the top code has half or more there.
+    #[test]
+    fn plateau_scatter_of_a_full_well_is_the_read_noise() {
+        let mut nm = NoiseModel::prior(1.0);
+        nm.a = 2.25;
+        nm.b = 1.0 / 6.0;
+        let flat = vec![251.0; 120];
+        let (sd, top) = plateau_scatter(&flat, &nm);
+        assert!((sd - (2.25f64 + 1.0 / 12.0).sqrt()).abs() < 1e-9, "sd {sd}");
+        assert!(sd < 0.5 * nm.sd(251.0), "read noise only, well under the shot noise at 251 DN");
+        assert_eq!(top, 0.0);
+        // Noisy values around full scale, clipped at the top code: half or more at the top.
+        let clipped: Vec<f64> = (0..200).map(|i| (250.0 + (i % 11) as f64).min(255.0)).collect();
+        let (sd_c, top_c) = plateau_scatter(&clipped, &nm);
+        assert!(top_c >= 0.5, "top share {top_c}");
+        assert!(sd_c >= (2.25f64 + 1.0 / 12.0).sqrt());
+    }
+}

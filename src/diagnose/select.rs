@@ -1998,6 +1998,23 @@ mod tests {
         assert!(above_floor(&b));
     }
 
+    /// (h28diag) A well 4 DN under the top code of 8-bit data (0.985 FS) is clipping by the
+    /// default floor, but charge overflow when the saturated plateau showed it below the top
+    /// code (the candidate's ceiling, one ADC step under FS); a well at the top code is not.
+    #[test]
+    fn well_ceiling_admits_a_plateau_below_the_top_code() {
+        let mut p = Params::defaults(registry::find("blooming").unwrap().info);
+        p.set("full_well_fraction", 0.985).unwrap();
+        let mut c =
+            Candidate { name: "blooming", label: "blooming".into(), params: p, fit: vec![], well_ceiling: None };
+        assert!(!step_above_floor(&Step::new(&c).unwrap()));
+        c.well_ceiling = Some(1.0 - 1.0 / 255.0);
+        assert!(step_above_floor(&Step::new(&c).unwrap()));
+        assert!(step_above_floor(&Step::new(&c).unwrap().boxed_clone()), "the ceiling survives a clone");
+        c.params.set("full_well_fraction", 0.999).unwrap();
+        assert!(!step_above_floor(&Step::new(&c).unwrap()), "a well within one ADC step of FS");
+    }
+
     /// Without blooming the forward model's smear counts only samples at the top code: on 10-bit
     /// data (bit-replicated into 16 bits) code 1023 feeds the streak, code 1022 (254.75 DN, a
     /// bright but unsaturated feature) does not, and neither does anything at 0.98·FS.
