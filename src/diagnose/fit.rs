@@ -192,30 +192,6 @@ pub fn well_ceiling(loc: &Located) -> Option<f64> {
     below.then(|| 1.0 - loc.noise.quant.max(1.0 / 257.0) / FS as f64)
 }
 
-/// The columns (`vertical`) or rows of a frame of width `w` that pass within `halo_px` of a
-/// saturated sim region (distance map `dist_sat`), when there are over-exposed sources
-/// (`halo_px`) and a smear direction; None otherwise.
-pub fn smear_lines_off(
-    dist_sat: &[f32],
-    w: usize,
-    halo_px: Option<f64>,
-    smear_dir: Option<bool>,
-) -> Option<(bool, Vec<bool>)> {
-    let (r, vertical) = (halo_px?, smear_dir?);
-    let h = dist_sat.len() / w.max(1);
-    let mut off = vec![false; if vertical { w } else { h }];
-    for (i, &d) in dist_sat.iter().enumerate() {
-        if d <= r as f32 {
-            off[if vertical { i % w } else { i / w }] = true;
-        }
-    }
-    Some((vertical, off))
-}
-
-/// Distance (px) from saturated regions beyond which a pixel is in the interior of the global
-/// tone and additive effects' own test (without over-exposed sources).
-pub const INTERIOR_SAT_PX: f32 = 4.0;
-
 /// Where the blooming signature read the saturated plateau (its `well_basis` choice).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum WellBasis {
@@ -518,21 +494,6 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             "over-exposed sources: pixels within {r:.0} px of saturated regions are left out of the forward-model fit (their halo is fed by charge the clipped sim does not hold)"
         ));
     }
-    // The interior on which global tone and additive effects (gain_offset, gamma, dark_current,
-    // stray_light, vignetting) must show their own evidence: away from edges and saturated
-    // pixels. Around over-exposed sources the spilled charge's tail reaches past the ring left
-    // out above (the halo falls below 1 DN at `halo_px`, not to zero): a smooth additive field
-    // fitted to that tail is the halo, not stray light, so the interior starts at twice that.
-    let interior_sat_px = halo_px.map(|r| (2.0 * r) as f32).unwrap_or(0.0).max(INTERIOR_SAT_PX);
-    // Smear through over-exposed sources: the real camera's saturated footprint (the source
-    // and the ring its spill fills to the well) is larger than the clipped sim's, so the smear
-    // those columns (rows) carry is more than the model's count gives them, along their whole
-    // length. An additive field fitted to that excess is the smear, not stray light: those
-    // lines are left out of the interior too.
-    let smear_dir = loc
-        .signature("smear")
-        .filter(|s| s.z >= z)
-        .and_then(|s| s.choices.iter().find(|(n, _)| n == "direction").map(|(_, v)| v == "vertical"));
     // With a dithered JPEG step (three JPEG round trips per frame and evaluation, most of the cost
     // of a fit) the fit reads whole bands of rows instead of every `row_step`-th row, and the JPEG
     // runs on those bands only: rows 1..=14 of every `s`-th 16-row band (a whole number of MCU
@@ -553,16 +514,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             fidx.iter()
                 .map(|&k| {
                     let m = &loc.masks[k];
-                    let lines = smear_lines_off(&m.dist_sat, pairs[k].w(), halo_px, smear_dir);
-                    (0..m.sat.len())
-                        .map(|i| {
-                            m.dist_edge[i] > 2.0
-                                && m.dist_sat[i] > interior_sat_px
-                                && !lines.as_ref().is_some_and(|(vertical, off)| {
-                                    off[if *vertical { i % pairs[k].w() } else { i / pairs[k].w() }]
-                                })
-                        })
-                        .collect()
+                    (0..m.sat.len()).map(|i| m.dist_edge[i] > 2.0 && m.dist_sat[i] > 4.0).collect()
                 })
                 .collect(),
             loc.noise.clone(),
@@ -992,28 +944,4 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         selection_tests: sel.tests,
         noise: st.noise,
     })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// (h28diag) With over-exposed sources and vertical smear, every column that passes within
-    /// the halo of a saturated region is off the interior, and no other; without over-exposure
-    /// or without smear nothing is.
-    #[test]
-    fn smear_lines_through_over_exposed_sources_are_off() {
-        let (w, h) = (10usize, 4usize);
-        let mut d = vec![f32::INFINITY; w * h];
-        d[w + 3] = 0.0;
-        d[2 * w + 4] = 2.0;
-        d[3 * w + 8] = 9.0;
-        let (vertical, off) = smear_lines_off(&d, w, Some(3.0), Some(true)).unwrap();
-        assert!(vertical);
-        assert_eq!(off.iter().enumerate().filter(|(_, o)| **o).map(|(i, _)| i).collect::<Vec<_>>(), vec![3, 4]);
-        let (_, rows) = smear_lines_off(&d, w, Some(3.0), Some(false)).unwrap();
-        assert_eq!(rows, vec![false, true, true, false]);
-        assert!(smear_lines_off(&d, w, None, Some(true)).is_none());
-        assert!(smear_lines_off(&d, w, Some(3.0), None).is_none());
-    }
 }
