@@ -15,7 +15,7 @@
 //!   by moment matching through the library's own effects ([`super::moments`]).
 
 use super::common::{NoiseModel, QUIET_LAPLACIAN, params_from_signature};
-use super::img::{Pair, Plane, frame_from_planes};
+use super::img::{FS, Pair, Plane, frame_from_planes};
 use super::locate::{self, Located};
 use super::noise;
 use super::select::{self, Candidate, Evidence, FitCtx, LossData};
@@ -75,7 +75,7 @@ pub struct Fitted {
 }
 
 fn cand(name: &'static str, label: &str, params: Params, fit: &[&'static str]) -> Candidate {
-    Candidate { name, label: label.to_string(), params, fit: fit.to_vec() }
+    Candidate { name, label: label.to_string(), params, fit: fit.to_vec(), well_ceiling: None }
 }
 
 /// Every applicable deterministic candidate, initialised from the signatures.
@@ -169,7 +169,9 @@ pub fn candidates(pairs: &[Pair], loc: &Located) -> Vec<Candidate> {
             // the well. From interiors the plateau only starts the fit (as before).
             let fit: &[&'static str] =
                 if well_basis(loc) == WellBasis::Cores { &["spread_px"] } else { &["full_well_fraction", "spread_px"] };
-            out.push(cand("blooming", "blooming", p, fit));
+            let mut c = cand("blooming", "blooming", p, fit);
+            c.well_ceiling = well_ceiling(loc);
+            out.push(c);
         }
         if let Some(mut p) = init("lens_flare") {
             let i = p.get("intensity");
@@ -179,6 +181,16 @@ pub fn candidates(pairs: &[Pair], loc: &Located) -> Vec<Candidate> {
         }
     }
     out
+}
+
+/// The largest full well (fraction of FS) the selection reports as overflow when the blooming
+/// signature saw the saturated plateau below the top code (its `plateau` choice): one ADC step
+/// under full scale. None (the default floor of `select::above_floor`) otherwise.
+pub fn well_ceiling(loc: &Located) -> Option<f64> {
+    let below = loc
+        .signature("blooming")
+        .is_some_and(|s| s.choices.iter().any(|(n, v)| n == "plateau" && v == "below_top_code"));
+    below.then(|| 1.0 - loc.noise.quant.max(1.0 / 257.0) / FS as f64)
 }
 
 /// Where the blooming signature read the saturated plateau (its `well_basis` choice).

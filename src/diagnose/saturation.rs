@@ -48,6 +48,25 @@ pub const CORE_MAX_BLUR_PX: f64 = 0.5;
 /// as over-exposure.
 pub const OVEREXPOSED_MARGIN_DN: f64 = 3.0;
 
+/// z (binomial, against 1/2) below which the share of the saturated plateau at the top code does
+/// not show a well below full scale (see [`blooming`]).
+pub const PLATEAU_BELOW_TOP_Z: f64 = 5.0;
+
+/// Robust scatter (DN, 1.4826 MAD) of the saturated plateau's real values, floored at the read
+/// noise and ADC step a photosite at its full well still carries, and the share of the values at
+/// the top code.
+pub fn plateau_scatter(vals: &[f64], noise: &NoiseModel) -> (f64, f64) {
+    if vals.is_empty() {
+        return (noise.sd(FS as f64), 1.0);
+    }
+    let med = stats::median(vals);
+    let dev: Vec<f64> = vals.iter().map(|v| (v - med).abs()).collect();
+    let mad = 1.4826 * stats::median(&dev);
+    let read = (noise.a.max(0.0) + noise.quant * noise.quant / 12.0).sqrt();
+    let top = vals.iter().filter(|&&v| v >= SAT_DN as f64).count() as f64 / vals.len() as f64;
+    (mad.max(read), top)
+}
+
 /// Blooming: plateau level inside saturated regions and the halo around them. The choice
 /// `well_basis` says where the plateau was read: `interior` (saturated regions deeper than the
 /// blur), `cores` (no interior, no measurable blur: pixels of small saturated regions whose four
@@ -112,8 +131,13 @@ pub fn blooming(
     let pm = stats::median(&all_p);
     let deficit = pm - rm;
     let n = all_r.len() as f64;
-    // SE of the median of noisy plateau values; across frames when there are several.
-    let se_noise = 1.2533 * noise.sd(rm) / n.sqrt();
+    // A photosite at its full well holds a clipped charge: it carries no shot noise, only the
+    // read noise and the ADC step. The scatter of the plateau is measured (robustly) and
+    // floored at that read noise, instead of taken from the noise model at the plateau's level
+    // (which adds the shot noise of a charge that was never read out).
+    let (sd_plateau, top_frac) = plateau_scatter(&all_r, noise);
+    // SE of the median of the plateau values; across frames when there are several.
+    let se_noise = 1.2533 * sd_plateau / n.sqrt();
     let se_frames = if per_frame.len() >= 3 {
         let d: Vec<f64> = per_frame.iter().map(|f| f.0).collect();
         stats::mean_se(&d).1
@@ -178,6 +202,15 @@ pub fn blooming(
         let r = prof.iter().position(|v| v.is_finite() && *v < 1.0).map(|i| i + 1).unwrap_or(D);
         sig.set_param("halo_px", r as f64);
     }
+    // A well below the top code: no saturated photosite reaches the top code. Without one
+    // (the well at or above full scale, the plateau only lowered by PRNU, noise or JPEG
+    // ringing of clipped samples), a pixel whose expected level is at or above full scale reads
+    // the top code at least half of the time. The share of the plateau at the top code, tested
+    // against 1/2 (binomial), says whether the data show a well below full scale.
+    let flat_z = (0.5 - top_frac) / (0.25 / n).sqrt();
+    if flat_z >= PLATEAU_BELOW_TOP_Z && deficit > 0.0 {
+        sig.choices.push(("plateau".into(), "below_top_code".into()));
+    }
     let fwf = (rm / FS as f64).clamp(0.05, 1.0);
     sig.set_param("full_well_fraction", fwf);
     sig.set_param("spread_px", spread.clamp(0.3, 20.0));
@@ -192,6 +225,10 @@ pub fn blooming(
         "saturated plateau reads {rm:.1} DN where {pm:.1} DN is expected (deficit {deficit:.2} ± {se:.2} DN, z = {:.1}); halo {:.2} DN at 1 px, {:.2} DN at 3 px above the far field",
         sig.z, prof[0], prof[2]
     );
+    sig.evidence.push_str(&format!(
+        "; plateau scatter {sd_plateau:.2} DN, {:.1} % of it at the top code (z = {flat_z:.1} against the 50 % of a clipped level at or above full scale)",
+        100.0 * top_frac
+    ));
     if let Some(r) = sig.param("halo_px") {
         sig.evidence.push_str(&format!(
             "; the halo exceeds the {sim_excess:.1} DN the clipped sim holds above the well: over-exposed sources (ring to {r:.0} px left out of the fit, spread_px untestable)"
@@ -358,4 +395,29 @@ pub fn smear(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], q: &[Vec<Plane>
         series: vec![("measured".into(), py), ("fitted: strength x saturated count".into(), sat_counts)],
     });
     sig
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// (h28diag) A plateau at a full well below the top code carries only the read noise: its
+    /// scatter is floored there (not the shot noise of the noise model at that level), and none
+    /// of it is at the top code. A level clipped at the top code has half or more there.
+    #[test]
+    fn plateau_scatter_of_a_full_well_is_the_read_noise() {
+        let mut nm = NoiseModel::prior(1.0);
+        nm.a = 2.25;
+        nm.b = 1.0 / 6.0;
+        let flat = vec![251.0; 120];
+        let (sd, top) = plateau_scatter(&flat, &nm);
+        assert!((sd - (2.25f64 + 1.0 / 12.0).sqrt()).abs() < 1e-9, "sd {sd}");
+        assert!(sd < 0.5 * nm.sd(251.0), "read noise only, well under the shot noise at 251 DN");
+        assert_eq!(top, 0.0);
+        // Noisy values around full scale, clipped at the top code: half or more at the top.
+        let clipped: Vec<f64> = (0..200).map(|i| (250.0 + (i % 11) as f64).min(255.0)).collect();
+        let (sd_c, top_c) = plateau_scatter(&clipped, &nm);
+        assert!(top_c >= 0.5, "top share {top_c}");
+        assert!(sd_c >= (2.25f64 + 1.0 / 12.0).sqrt());
+    }
 }

@@ -59,6 +59,9 @@ pub struct Candidate {
     pub params: Params,
     /// Names of the parameters fitted.
     pub fit: Vec<&'static str>,
+    /// blooming only: the largest `full_well_fraction` that counts as charge overflow when the
+    /// data show the saturated plateau below the top code (None: [`above_floor`]'s default).
+    pub well_ceiling: Option<f64>,
 }
 
 /// One step of the deterministic model.
@@ -78,6 +81,8 @@ pub struct Step {
     /// trips of the image plus noise, which approximates the expected output.
     pub dither: Option<NoiseModel>,
     dither_draws: DitherDraws,
+    /// See [`Candidate::well_ceiling`].
+    pub well_ceiling: Option<f64>,
 }
 
 /// Noise draws averaged by a dithered JPEG step.
@@ -151,7 +156,7 @@ impl DitherDraws {
 impl Step {
     /// A step that is part of the model from the start and never tested (no fitted parameters).
     pub fn fixed(name: &'static str, params: Params) -> Result<Step, DiagnoseError> {
-        let c = Candidate { name, label: name.to_string(), params, fit: Vec::new() };
+        let c = Candidate { name, label: name.to_string(), params, fit: Vec::new(), well_ceiling: None };
         let mut s = Step::new(&c)?;
         s.fixed = true;
         Ok(s)
@@ -174,6 +179,7 @@ impl Step {
             fixed: false,
             dither: None,
             dither_draws: DitherDraws::default(),
+            well_ceiling: c.well_ceiling,
         })
     }
 
@@ -188,6 +194,7 @@ impl Step {
             fixed: self.fixed,
             dither: self.dither.clone(),
             dither_draws: self.dither_draws.clone(),
+            well_ceiling: self.well_ceiling,
         }
     }
 
@@ -1233,7 +1240,10 @@ fn replace_by_reading(
     let mut steps: Vec<Step> = sel.steps.iter().filter(|s| s.fixed || !remove(s.name)).map(Step::boxed_clone).collect();
     for &e in b.shape.effects() {
         let Some(params) = tone_params(e, b) else { return Ok(false) };
-        insert_sorted(&mut steps, Step::new(&Candidate { name: e, label: e.to_string(), params, fit: Vec::new() })?);
+        insert_sorted(
+            &mut steps,
+            Step::new(&Candidate { name: e, label: e.to_string(), params, fit: Vec::new(), well_ceiling: None })?,
+        );
     }
     if !coords_of(&steps, None).is_empty() {
         refine(ctx, &mut steps)?;
@@ -1491,6 +1501,16 @@ pub fn above_floor(p: &Params) -> bool {
     }
 }
 
+/// [`above_floor`] of a step, with its own ceiling of the full well: a well one ADC step or more
+/// below the top code counts as overflow when the saturated plateau shows it (the plateau sits
+/// below the top code; see `saturation::blooming`'s `plateau` choice).
+pub fn step_above_floor(s: &Step) -> bool {
+    match (s.name, s.well_ceiling) {
+        ("blooming", Some(c)) => s.params.get("full_well_fraction") <= c,
+        _ => above_floor(&s.params),
+    }
+}
+
 #[allow(clippy::too_many_arguments)]
 fn evidence(
     name: &str,
@@ -1545,15 +1565,25 @@ fn try_candidate(
     widths: &[(f64, usize)],
 ) -> Result<(Evidence, Vec<Step>, usize), DiagnoseError> {
     let pos = insert_sorted(&mut trial, Step::new(cand)?);
-    let coords = coords_of(&trial, Some(pos));
+    let mut coords = coords_of(&trial, Some(pos));
+    // The candidate's own parameters are its degrees of freedom.
+    let k = coords.len();
     if cand.name == "vignetting" {
         profile_start(ctx, &mut trial, &coords, "field_deg", &VIGNETTING_FIELDS_DEG)?;
     }
+    // Coupled parameters: with blooming, smear counts the photosites at the well (more of them
+    // than the sim's top code holds: the rim of a bright feature that the spill fills up), so
+    // a smear strength fitted to the sim's counts overshoots once blooming is in; it is refitted
+    // with the well (it was free in the model without blooming, so it adds no degree of freedom).
+    if cand.name == "blooming"
+        && let Some(j) = trial.iter().position(|s| s.name == "smear" && !s.fixed)
+    {
+        coords.extend(coords_of(&trial, Some(j)));
+    }
     let with = optimise(ctx, &mut trial, &coords, widths)?;
     let planes = ctx.physical_planes(&trial)?;
-    let mut ev =
-        evidence(cand.name, &cand.label, current, with, coords.len(), material(&planes, current_planes), z_thr, round);
-    ev.accepted &= above_floor(&trial[pos].params);
+    let mut ev = evidence(cand.name, &cand.label, current, with, k, material(&planes, current_planes), z_thr, round);
+    ev.accepted &= step_above_floor(&trial[pos]);
     ev.params = Some(trial[pos].params);
     Ok((ev, trial, pos))
 }
@@ -1657,7 +1687,7 @@ fn drop_one(
     let pw = ctx.physical_planes(&without)?;
     let k = coords_of(steps, Some(j)).len();
     let mut ev = evidence(steps[j].name, &steps[j].label, lw, current, k, material(planes, &pw), z_thr, 0);
-    ev.accepted &= above_floor(&steps[j].params);
+    ev.accepted &= step_above_floor(&steps[j]);
     ev.params = Some(steps[j].params);
     if matches!(steps[j].name, "gain_offset" | "gamma" | "dark_current" | "stray_light" | "vignetting") && ev.accepted {
         // A global tone or additive effect must be supported away from edges and saturated
@@ -1966,6 +1996,23 @@ mod tests {
         assert!(!above_floor(&b), "a well 1.3 % below full scale is clipping, not overflow");
         b.set("full_well_fraction", 0.94).unwrap();
         assert!(above_floor(&b));
+    }
+
+    /// (h28diag) A well 4 DN under the top code of 8-bit data (0.985 FS) is clipping by the
+    /// default floor, but charge overflow when the saturated plateau showed it below the top
+    /// code (the candidate's ceiling, one ADC step under FS); a well at the top code is not.
+    #[test]
+    fn well_ceiling_admits_a_plateau_below_the_top_code() {
+        let mut p = Params::defaults(registry::find("blooming").unwrap().info);
+        p.set("full_well_fraction", 0.985).unwrap();
+        let mut c =
+            Candidate { name: "blooming", label: "blooming".into(), params: p, fit: vec![], well_ceiling: None };
+        assert!(!step_above_floor(&Step::new(&c).unwrap()));
+        c.well_ceiling = Some(1.0 - 1.0 / 255.0);
+        assert!(step_above_floor(&Step::new(&c).unwrap()));
+        assert!(step_above_floor(&Step::new(&c).unwrap().boxed_clone()), "the ceiling survives a clone");
+        c.params.set("full_well_fraction", 0.999).unwrap();
+        assert!(!step_above_floor(&Step::new(&c).unwrap()), "a well within one ADC step of FS");
     }
 
     /// Without blooming the forward model's smear counts only samples at the top code: on 10-bit

@@ -1675,7 +1675,7 @@ impl Case {
             "seed": self.seed,
             "backdrop": match (self.alt_scene, self.lab, self.earth, self.wedge) {
                 (Some(AltScene::StarField { .. }), ..) => "star field",
-                (Some(AltScene::Docking { .. }), ..) => "docking target",
+                (Some(AltScene::Docking { .. } | AltScene::DockingLit { .. }), ..) => "docking target",
                 (Some(AltScene::Planet { .. }), ..) => "planetary surface",
                 (None, true, _, true) if self.lamp => "lamp-lit lab with step wedge",
                 (None, true, _, false) if self.lamp => "lamp-lit lab",
@@ -1988,6 +1988,7 @@ pub fn corpus() -> Vec<Case> {
     v.extend(h26flare_cases());
     v.extend(h27smear_cases());
     v.extend(h27tone_cases());
+    v.extend(h28diag_cases());
     v
 }
 
@@ -2320,6 +2321,8 @@ pub enum AltScene {
     /// craters (dark floors, a bright sunlit rim on one side, a shadowed rim on the other), lit
     /// obliquely so the level spans about `lo`..`hi` DN. It drifts by (0.9, 0.5) px per frame.
     Planet { lo: f64, hi: f64 },
+    /// (h28diag) The docking target with its glint and retro-reflector at `glint_fs`·FS.
+    DockingLit { white: f64, retro: bool, glint_fs: f64 },
 }
 
 /// ADC step in 8-bit DN of `bits`-bit data.
@@ -2414,6 +2417,22 @@ fn star_field_irradiance(
 
 /// Irradiance (8-bit DN, unclipped, mono) of frame `i` of `n` of the docking target.
 fn docking_irradiance(w: usize, h: usize, seed: u64, white: f64, with_retro: bool, i: usize, n: usize) -> Img {
+    docking_irradiance_lit(w, h, seed, white, with_retro, 1.0, i, n)
+}
+
+/// The docking target with its specular glint and retro-reflector at `glint_fs`·FS (1: just at
+/// full scale; above 1 the real camera sees an over-exposure the clipped sim hides; h28diag).
+#[allow(clippy::too_many_arguments)]
+fn docking_irradiance_lit(
+    w: usize,
+    h: usize,
+    seed: u64,
+    white: f64,
+    with_retro: bool,
+    glint_fs: f64,
+    i: usize,
+    n: usize,
+) -> Img {
     let mut r = Prng::new(seed ^ 0xd0c4);
     let t = i as f64 - (n.max(1) - 1) as f64 / 2.0;
     let (pcx, pcy) = (w as f64 * r.range(0.45, 0.55) + 1.0 * t, h as f64 * r.range(0.45, 0.52) + 0.6 * t);
@@ -2444,13 +2463,13 @@ fn docking_irradiance(w: usize, h: usize, seed: u64, white: f64, with_retro: boo
         // Specular glint (screen-aligned ellipse) and a retro-reflector, both at FS.
         let e = ((lx - glint.0) / ga).powi(2) + ((ly - glint.1) / gb).powi(2);
         if e <= 1.0 {
-            v = FS;
+            v = glint_fs * FS;
         } else {
             v = v.max(150.0 * (-(e.sqrt() - 1.0) * 1.6).exp());
         }
         let d = ((lx - retro.0).powi(2) + (ly - retro.1).powi(2)).sqrt();
         if with_retro && d <= 3.6 {
-            v = FS;
+            v = glint_fs * FS;
         }
         v
     };
@@ -2477,6 +2496,9 @@ pub fn alt_frame(alt: AltScene, w: usize, h: usize, seed: u64, i: usize, n: usiz
             star_field_irradiance(w, h, seed, stars, (src_x, src_y), sun, i, n)
         }
         AltScene::Docking { white, retro } => docking_irradiance(w, h, seed, white, retro, i, n),
+        AltScene::DockingLit { white, retro, glint_fs } => {
+            docking_irradiance_lit(w, h, seed, white, retro, glint_fs, i, n)
+        }
         AltScene::Planet { lo, hi } => planet_irradiance(w, h, seed, lo, hi, i, n),
     };
     irr.v.iter_mut().for_each(|v| *v = ((*v / step).round() * step).max(0.0));
@@ -2658,6 +2680,56 @@ pub fn h27smear_cases() -> Vec<Case> {
             .adc(10),
     ]
 }
+
+// =============================================================================================
+// h28diag: blooming hidden with smear on 8-bit and 10-bit docking-target data
+// =============================================================================================
+
+/// h28diag cases: blooming with a full well a little under the top code (0.95–0.97 FS) and a
+/// modest over-exposure of the glint and retro-reflector (1.3–1.6 FS), hidden together with
+/// frame-transfer smear at held-out strength (0.1 % of FS per saturated pixel), on the docking
+/// target at 640x400, 4 frames, mono 8-bit and 10-bit data. The fiducials stay below the well.
+pub fn h28diag_cases() -> Vec<Case> {
+    use Hidden::*;
+    let lit = |white, retro, glint_fs| AltScene::DockingLit { white, retro, glint_fs };
+    vec![
+        // Only the glint and the retro-reflector saturate (no interior: the well is read on their
+        // cores); the well is 4 DN under the top code.
+        h26_case(
+            "h28_bloom_smear_docking_mono8",
+            711,
+            6.0,
+            1.5,
+            vec![Blooming { full_well: 0.985, decay_px: 1.0 }, Smear { strength: 0.001, vertical: true }],
+        )
+        .on(lit(225.0, true, 1.2))
+        .sized(640, 400, 4),
+        // 10-bit data, the well 2.5 DN under the top code, weaker smear.
+        h26_case(
+            "h28_bloom_smear_docking_mono10",
+            712,
+            10.0,
+            1.2,
+            vec![Blooming { full_well: 0.99, decay_px: 1.0 }, Smear { strength: 0.0008, vertical: true }],
+        )
+        .on(lit(240.0, true, 1.15))
+        .adc(10)
+        .sized(640, 400, 4),
+        // White fiducials at full scale (saturated interiors, many saturated pixels per column:
+        // the smear of a column reaches several DN) and an over-exposed glint.
+        h26_case(
+            "h28_bloom_smear_fiducials_mono8",
+            713,
+            6.0,
+            1.5,
+            vec![Blooming { full_well: 0.98, decay_px: 1.0 }, Smear { strength: 0.0008, vertical: true }],
+        )
+        .on(lit(255.0, false, 1.2))
+        .sized(640, 400, 4),
+    ]
+}
+
+// ---- end h28diag ------------------------------------------------------------------------------
 
 // ---------------------------------------------------------------------------------------------
 // Unit tests of the generator itself
