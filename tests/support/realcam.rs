@@ -2163,6 +2163,11 @@ fn planet_irradiance(w: usize, h: usize, seed: u64, lo: f64, hi: f64, i: usize, 
         }
         lo + (hi - lo) * (alb * k).clamp(0.0, 1.2)
     };
+    supersampled(w, h, shade)
+}
+
+/// A mono image of `shade` (DN at a sub-pixel position) averaged over 3 x 3 points per pixel.
+fn supersampled(w: usize, h: usize, shade: impl Fn(f64, f64) -> f64) -> Img {
     let mut img = Img::new(w, h, 1);
     for y in 0..h {
         for x in 0..w {
@@ -2473,19 +2478,7 @@ fn docking_irradiance_lit(
         }
         v
     };
-    let mut img = Img::new(w, h, 1);
-    for y in 0..h {
-        for x in 0..w {
-            let mut acc = 0.0;
-            for j in 0..3 {
-                for k in 0..3 {
-                    acc += shade(x as f64 + (k as f64 + 0.5) / 3.0, y as f64 + (j as f64 + 0.5) / 3.0);
-                }
-            }
-            img.set(x, y, 0, acc / 9.0);
-        }
-    }
-    img
+    supersampled(w, h, shade)
 }
 
 /// Sim frame and real irradiance of frame `i` of `n` of an alternative scene, both quantised to
