@@ -244,6 +244,11 @@ pub fn metrics_of(a: &Frame, b: &Frame) -> FitMetrics {
     }
 }
 
+/// The `rmse` of [`metrics_of`] alone (without the ORB features of the FQI).
+fn rmse_of(a: &Frame, b: &Frame) -> f64 {
+    crate::metrics::rmse(&crate::metrics::Grey::from_frame(a), &crate::metrics::Grey::from_frame(b)).unwrap_or(f64::NAN)
+}
+
 pub fn mean_metrics(v: &[FitMetrics]) -> FitMetrics {
     let n = v.len().max(1) as f64;
     let fq: Vec<f64> = v.iter().filter_map(|m| m.fqi).collect();
@@ -619,14 +624,14 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     // deterministic model against the real images is above that of the sim, the effect whose
     // removal lowers it most is dropped (a significant robust-loss drop can come from a few
     // pixels while every other pixel gets worse, e.g. a well lowered to feed a halo).
-    // Per-pair RMSEs in parallel, summed in pair order.
-    let rmse_before = pairs.par_iter().map(|p| metrics_of(&p.sim_frame, &p.real_frame).rmse).collect::<Vec<f64>>();
-    let rmse_before = rmse_before.iter().sum::<f64>() / pairs.len().max(1) as f64;
+    // The sim's metrics per pair in parallel (also the report's "before"), RMSEs summed in pair order.
+    let before: Vec<FitMetrics> = pairs.par_iter().map(|p| metrics_of(&p.sim_frame, &p.real_frame)).collect();
+    let rmse_before = before.iter().map(|m| m.rmse).sum::<f64>() / pairs.len().max(1) as f64;
     let rmse_model = |planes: &[Vec<Plane>]| -> f64 {
         let each: Vec<f64> = pairs
             .par_iter()
             .zip(planes)
-            .map(|(p, m)| metrics_of(&frame_from_planes(m, &p.real_frame), &p.real_frame).rmse)
+            .map(|(p, m)| rmse_of(&frame_from_planes(m, &p.real_frame), &p.real_frame))
             .collect();
         each.iter().sum::<f64>() / pairs.len().max(1) as f64
     };
@@ -924,29 +929,25 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     cfg_params.extend(results.iter().filter(|r| !det_names.contains(&r.name)).filter_map(|r| r.params));
     let mut config = FaultConfig::from_effects(seed, cfg_params);
     config.origin = "fitted by faultcam diagnose".into();
-    let mut before = Vec::new();
     let mut after = Vec::new();
     let mut rmse_noise = Vec::new();
     // Pairs in parallel (each through its own chain), collected in pair order.
-    let per_pair: Vec<Result<(FitMetrics, FitMetrics, f64), DiagnoseError>> = pairs
+    let per_pair: Vec<Result<(FitMetrics, f64), DiagnoseError>> = pairs
         .par_iter()
         .enumerate()
         .map(|(k, p)| {
-            let b = metrics_of(&p.sim_frame, &p.real_frame);
             let mut sim = p.sim_frame.clone();
             sim.seq = k as u64;
             let det = frame_from_planes(&model_planes[k], &p.real_frame);
             let full = apply_config(&config, &sim)?;
             let mut m = metrics_of(&full, &p.real_frame);
-            let md = metrics_of(&det, &p.real_frame);
             let with_noise = m.rmse;
-            m.rmse = md.rmse;
-            Ok((b, m, with_noise))
+            m.rmse = rmse_of(&det, &p.real_frame);
+            Ok((m, with_noise))
         })
         .collect();
     for r in per_pair {
-        let (b, m, with_noise) = r?;
-        before.push(b);
+        let (m, with_noise) = r?;
         rmse_noise.push(with_noise);
         after.push(m);
     }
