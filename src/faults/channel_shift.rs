@@ -337,6 +337,52 @@ mod ssse3 {
         n
     }
 
+    /// [`super::bilinear_row`] for whole groups of 32 pixels in 16-bit lanes; returns the pixels
+    /// done. The same integers: the horizontal sums `wx0·p + wx1·q` (at most 256·255) are exact in
+    /// u16; the vertical step `wy0·top + wy1·bot` runs in `vpmaddwd` on the sums offset by -2^15
+    /// (signed 16-bit), which takes 2^15·(wy0 + wy1) = 2^23 off the 32-bit total: added back with
+    /// the rounding constant before the shift.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn bilinear_row(out: &mut [u8], a: &[u8], b: &[u8], wx0: u32, wy0: u32) -> usize {
+        let n = out.len().min(a.len().saturating_sub(1)).min(b.len().saturating_sub(1)) / 32 * 32;
+        debug_assert!(wx0 <= 256 && wy0 <= 256);
+        let (wx0v, wx1v) = (_mm256_set1_epi16(wx0 as i16), _mm256_set1_epi16((256 - wx0) as i16));
+        let wy = _mm256_set1_epi32((((256 - wy0) << 16) | wy0) as i32);
+        let flip = _mm256_set1_epi16(i16::MIN);
+        let round = _mm256_set1_epi32((1 << 23) + (1 << 15));
+        let half = |x: usize| {
+            // SAFETY: AVX2 context; bytes x .. x + 17 of `a` and `b` exist (x + 16 <= n < len).
+            unsafe {
+                let ld =
+                    |s: &[u8], o: usize| _mm256_cvtepu8_epi16(_mm_loadu_si128(s.as_ptr().add(o) as *const __m128i));
+                let top = _mm256_add_epi16(_mm256_mullo_epi16(ld(a, x), wx0v), _mm256_mullo_epi16(ld(a, x + 1), wx1v));
+                let bot = _mm256_add_epi16(_mm256_mullo_epi16(ld(b, x), wx0v), _mm256_mullo_epi16(ld(b, x + 1), wx1v));
+                let (t, u) = (_mm256_xor_si256(top, flip), _mm256_xor_si256(bot, flip));
+                let lo = _mm256_srli_epi32::<16>(_mm256_add_epi32(
+                    _mm256_madd_epi16(_mm256_unpacklo_epi16(t, u), wy),
+                    round,
+                ));
+                let hi = _mm256_srli_epi32::<16>(_mm256_add_epi32(
+                    _mm256_madd_epi16(_mm256_unpackhi_epi16(t, u), wy),
+                    round,
+                ));
+                // In-lane unpack and pack undo each other: pixels x .. x + 16 in order.
+                _mm256_packus_epi32(lo, hi)
+            }
+        };
+        for x in (0..n).step_by(32) {
+            let bytes = _mm256_packus_epi16(half(x), half(x + 16));
+            // SAFETY: bytes x .. x + 32 of `out` exist (x + 32 <= n).
+            unsafe {
+                _mm256_storeu_si256(
+                    out.as_mut_ptr().add(x) as *mut __m256i,
+                    _mm256_permute4x64_epi64::<0b11_01_10_00>(bytes),
+                )
+            };
+        }
+        n
+    }
+
     /// Put whole groups of 16 pixels; returns the pixels done.
     #[target_feature(enable = "avx2")]
     pub unsafe fn put_channel(rgb: &mut [u8], plane: &[u8], c: usize) -> usize {
@@ -419,7 +465,17 @@ fn shift_row(out: &mut [u8], plane: &[u8], w: usize, h: usize, y: usize, tx: Tap
     }
     if hi > lo {
         let s0 = (lo as i64 + tx.i) as usize;
-        bilinear_row(&mut out[lo..hi], &r0[s0..s0 + (hi - lo) + 1], &r1[s0..s0 + (hi - lo) + 1], wx0, wy0, 0u8);
+        let (out, a, b) = (&mut out[lo..hi], &r0[s0..s0 + (hi - lo) + 1], &r1[s0..s0 + (hi - lo) + 1]);
+        #[cfg(target_arch = "x86_64")]
+        let done = if super::kit::has_avx2() {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            unsafe { ssse3::bilinear_row(out, a, b, wx0, wy0) }
+        } else {
+            0
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        let done = 0;
+        bilinear_row(&mut out[done..], &a[done..], &b[done..], wx0, wy0, 0u8);
     }
 }
 
@@ -526,6 +582,38 @@ mod tests {
                 for i in 0..3 * n {
                     let want = if i % 3 == c { pr[i / 3] } else { rgb[i] };
                     assert_eq!(out[i], want, "put channel {c}, {n} px, byte {i}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn bilinear_kernel_equals_its_reference_for_every_weight() {
+        // Every (wx0, wy0) in 1..=256 x 0..=256 (wx0 = 256 - f: never 0), random rows plus the
+        // extremes (all 255: the largest sums), lengths around the 32-pixel step.
+        #[cfg(target_arch = "x86_64")]
+        if crate::faults::kit::has_avx2() {
+            let mut r = crate::rng::Rng::new(9);
+            let rows: Vec<(Vec<u8>, Vec<u8>)> = (0..3)
+                .map(|k| match k {
+                    0 => (vec![255u8; 100], vec![255u8; 100]),
+                    1 => (vec![255u8; 100], vec![0u8; 100]),
+                    _ => {
+                        ((0..100).map(|_| r.below(256) as u8).collect(), (0..100).map(|_| r.below(256) as u8).collect())
+                    }
+                })
+                .collect();
+            for wx0 in 1..=256u32 {
+                for wy0 in 0..=256u32 {
+                    for (a, b) in &rows {
+                        let n = [31usize, 32, 64, 99][(wx0 + wy0) as usize % 4];
+                        let (mut got, mut want) = (vec![0u8; n], vec![0u8; n]);
+                        bilinear_row(&mut want, &a[..n + 1], &b[..n + 1], wx0, wy0, 0u8);
+                        // SAFETY: the CPU supports AVX2 (checked above).
+                        let done = unsafe { ssse3::bilinear_row(&mut got, &a[..n + 1], &b[..n + 1], wx0, wy0) };
+                        assert_eq!(done, n / 32 * 32);
+                        assert_eq!(&got[..done], &want[..done], "wx0 {wx0} wy0 {wy0} n {n}");
+                    }
                 }
             }
         }
