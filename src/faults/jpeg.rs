@@ -342,11 +342,17 @@ pub struct IQuant {
     half: IBlock,
     /// ceil(2^32 / (8 Q)) < 2^29.
     recip: [[u32; 8]; 8],
-    /// Q, 4 Q and 1 / (8 Q) (f32, correctly rounded) for the 16-bit kernel: floor(a / (8 Q))
-    /// = trunc((a + 1/2) * (1 / (8 Q))) exactly for 0 <= a < 2^14 (see `dct16`).
-    q16: [[i16; 8]; 8],
-    half16: [[i16; 8]; 8],
-    recip_f: [[f32; 8]; 8],
+    /// Rows of the 16-bit quantiser, repeated for the two blocks of the AVX2 kernel: 4 Q (the
+    /// rounding half), the multiplier m = ceil(2^(14 + l) / (8 Q)) with 2^(l - 1) < 8 Q <= 2^l,
+    /// the bias 2^(l - 3) and the scale 2^(17 - l) of the second step, and Q. For 0 <= a < 2^14,
+    /// floor(a / (8 Q)) = floor(a m / 2^(14 + l)) (a m / 2^(14 + l) exceeds a / (8 Q) by less
+    /// than 2^-l <= 1 / (8 Q)) = floor(t / 2^(l - 2)) with t = (a m) >> 16, and that is
+    /// `vpmulhrsw`'s ((t - 2^(l - 3)) 2^(17 - l) + 2^14) >> 15 (see [`quant16`]).
+    half_w: [[i16; 16]; 8],
+    mul_w: [[u16; 16]; 8],
+    bias_w: [[i16; 16]; 8],
+    scale_w: [[i16; 16]; 8],
+    q_w: [[i16; 16]; 8],
 }
 
 impl IQuant {
@@ -355,9 +361,11 @@ impl IQuant {
             q: [[0; 8]; 8],
             half: [[0; 8]; 8],
             recip: [[0; 8]; 8],
-            q16: [[0; 8]; 8],
-            half16: [[0; 8]; 8],
-            recip_f: [[0.0; 8]; 8],
+            half_w: [[0; 16]; 8],
+            mul_w: [[0; 16]; 8],
+            bias_w: [[0; 16]; 8],
+            scale_w: [[0; 16]; 8],
+            q_w: [[0; 16]; 8],
         };
         for v in 0..8 {
             for u in 0..8 {
@@ -367,13 +375,27 @@ impl IQuant {
                 // floor(n / qv) = (n * ceil(2^32 / qv)) >> 32 exactly for n < 2^32 / qv (n < 2^15 here).
                 out.recip[v][u] = (1u64 << 32).div_ceil(qv) as u32;
                 // Tables are clamped to 1..=255 (baseline), so these fit 16 bits.
-                out.q16[v][u] = table[v * 8 + u].min(255) as i16;
-                out.half16[v][u] = (qv / 2).min(1020) as i16;
-                out.recip_f[v][u] = 1.0f32 / qv as f32;
+                let (m, bias, scale) = quant16(qv.min(2040) as u32);
+                for k in [u, u + 8] {
+                    out.half_w[v][k] = (qv / 2).min(1020) as i16;
+                    out.mul_w[v][k] = m;
+                    out.bias_w[v][k] = bias;
+                    out.scale_w[v][k] = scale;
+                    out.q_w[v][k] = table[v * 8 + u].min(255) as i16;
+                }
             }
         }
         out
     }
+}
+
+/// Multiplier, bias and scale of the 16-bit quantiser for the divisor `d` = 8 Q (8..=2040):
+/// with 2^(l - 1) < d <= 2^l (3 <= l <= 11), m = ceil(2^(14 + l) / d) (2^14..2^15), 2^(l - 3)
+/// and 2^(17 - l). (`vpmulhrsw` for the second step, whose shift is per lane: AVX2 has no
+/// variable 16-bit shift, and a second `vpmulhuw` is widened to 32 bits by the compiler.)
+const fn quant16(d: u32) -> (u16, i16, i16) {
+    let l = 32 - (d - 1).leading_zeros();
+    (((1u32 << (14 + l)).div_ceil(d)) as u16, (1i32 << (l - 3)) as i16, (1i32 << (17 - l)) as i16)
 }
 
 /// Samples (already level-shifted by -128) in, decoded samples (0..=255) out: libjpeg islow
@@ -530,21 +552,6 @@ mod avx2 {
         }
     }
 
-    /// `FIX(c) * v` products and rounding of libjpeg's colour conversion, eight lanes at a time.
-    #[inline(always)]
-    unsafe fn lin3(r: __m256i, g: __m256i, b: __m256i, kr: i32, kg: i32, kb: i32, add: i32) -> __m256i {
-        unsafe {
-            let s = _mm256_add_epi32(
-                _mm256_mullo_epi32(r, _mm256_set1_epi32(kr)),
-                _mm256_add_epi32(
-                    _mm256_mullo_epi32(g, _mm256_set1_epi32(kg)),
-                    _mm256_mullo_epi32(b, _mm256_set1_epi32(kb)),
-                ),
-            );
-            _mm256_srai_epi32(_mm256_add_epi32(s, _mm256_set1_epi32(add)), 16)
-        }
-    }
-
     /// Eight i32 lanes (0..=255) to eight bytes.
     #[inline(always)]
     unsafe fn pack8(v: __m256i) -> u64 {
@@ -557,139 +564,219 @@ mod avx2 {
         }
     }
 
-    /// AVX2 version of `rgb_to_ycc_row_scalar` (same integers).
+    /// Weight pair (a, b) for `vpmaddwd`: a on even 16-bit lanes, b on odd ones.
+    #[inline(always)]
+    fn pair(a: i32, b: i32) -> __m256i {
+        debug_assert!(i16::try_from(a).is_ok() && i16::try_from(b).is_ok());
+        // SAFETY: only inlined into functions that enable AVX2.
+        unsafe { _mm256_set1_epi32((a & 0xffff) | (b << 16)) }
+    }
+
+    /// Byte shuffles that pick, in each 128-bit lane, the (r, g) and (b, 0) byte pairs of four
+    /// pixels whose red byte is at `first` (+3 per pixel) as 16-bit words.
+    const fn pick_pairs(first: usize) -> ([i8; 32], [i8; 32]) {
+        let (mut rg, mut b) = ([-1i8; 32], [-1i8; 32]);
+        let mut k = 0;
+        while k < 8 {
+            let p = k % 4;
+            rg[4 * k] = (first + 3 * p) as i8;
+            rg[4 * k + 2] = (first + 3 * p + 1) as i8;
+            b[4 * k] = (first + 3 * p + 2) as i8;
+            k += 1;
+        }
+        (rg, b)
+    }
+    const PICK_X: ([i8; 32], [i8; 32]) = pick_pairs(0);
+    const PICK_Z: ([i8; 32], [i8; 32]) = pick_pairs(4);
+
+    /// AVX2 version of `rgb_to_ycc_row_scalar` (same integers), 16 pixels per step in 16-bit
+    /// lanes: the products as `vpmaddwd` of (r, g) and (b, 128) word pairs with 16-bit weights
+    /// (the AVX-512 kernel's split), Cb and Cr computed negated so that their rounding constant
+    /// is 2^15 as Y's: (x + 2^15 - 1) >> 16 = -((2^15 - x) >> 16) for integers.
     #[target_feature(enable = "avx2")]
     pub unsafe fn rgb_to_ycc_row(src: &[u8], y: &mut [u8], cb: &mut [u8], cr: &mut [u8]) {
-        use super::{CBCR_OFFSET, ONE_HALF, fix};
+        use super::{ONE_HALF, fix};
         let n = y.len().min(cb.len()).min(cr.len()).min(src.len() / 3);
+        // SAFETY: 32-byte tables; unaligned loads.
+        let ld = |t: &[i8; 32]| unsafe { _mm256_loadu_si256(t.as_ptr() as *const __m256i) };
+        let (rg_x, b_x, rg_z, b_z) = (ld(&PICK_X.0), ld(&PICK_X.1), ld(&PICK_Z.0), ld(&PICK_Z.1));
+        let c128w = _mm256_set1_epi32(128 << 16);
+        // Y = 19595 r + 38470 g + 7471 b + 2^15: g's weight split as 65536 - 27066 (the 65536 g
+        // is the (r, g) pair's high word), the rounding as 128 * 256.
+        let ky1 = pair(fix(0.299), fix(0.587) - 65536);
+        let ky2 = pair(fix(0.114), ONE_HALF / 128);
+        let hi16 = _mm256_set1_epi32(0xffff_0000u32 as i32);
+        // -(Cb - 128) = (11059 r + 21709 g - 32768 b + 2^15) >> 16.
+        let kb1 = pair(fix(0.168_74), fix(0.331_26));
+        let kb2 = pair(-fix(0.5), ONE_HALF / 128);
+        // -(Cr - 128) = (-32768 r + 27439 g + 5329 b + 2^15) >> 16.
+        let kr1 = pair(-fix(0.5), fix(0.418_69));
+        let kr2 = pair(fix(0.081_31), ONE_HALF / 128);
+        let c128 = _mm256_set1_epi16(128);
         let mut i = 0;
-        // De-interleave eight pixels (24 bytes: a 16-byte and an 8-byte load) with byte shuffles.
-        let (r_lo, r_hi) = (
-            _mm_setr_epi8(0, 3, 6, 9, 12, 15, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1),
-            _mm_setr_epi8(-1, -1, -1, -1, -1, -1, 2, 5, -1, -1, -1, -1, -1, -1, -1, -1),
-        );
-        let (g_lo, g_hi) = (
-            _mm_setr_epi8(1, 4, 7, 10, 13, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1),
-            _mm_setr_epi8(-1, -1, -1, -1, -1, 0, 3, 6, -1, -1, -1, -1, -1, -1, -1, -1),
-        );
-        let (b_lo, b_hi) = (
-            _mm_setr_epi8(2, 5, 8, 11, 14, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1),
-            _mm_setr_epi8(-1, -1, -1, -1, -1, 1, 4, 7, -1, -1, -1, -1, -1, -1, -1, -1),
-        );
-        while i + 8 <= n {
-            // SAFETY: bytes 3i .. 3i + 24 are inside `src` (i + 8 <= n pixels).
-            let (lo, hi) = unsafe {
+        while i + 16 <= n {
+            // Lane 0: pixels i .. i + 8, lane 1: i + 8 .. i + 16; x from each group's first byte,
+            // z from its eighth (pixels 4..8 start at byte 12 = 8 + 4).
+            // SAFETY: bytes 3i .. 3i + 48 are inside `src` (i + 16 <= n pixels).
+            let (x, z) = unsafe {
                 let p = src.as_ptr().add(3 * i);
-                (_mm_loadu_si128(p as *const __m128i), _mm_loadl_epi64(p.add(16) as *const __m128i))
+                (
+                    _mm256_loadu2_m128i(p.add(24) as *const __m128i, p as *const __m128i),
+                    _mm256_loadu2_m128i(p.add(32) as *const __m128i, p.add(8) as *const __m128i),
+                )
             };
-            let pick = |a: __m128i, b: __m128i| {
-                _mm256_cvtepu8_epi32(_mm_or_si128(_mm_shuffle_epi8(lo, a), _mm_shuffle_epi8(hi, b)))
+            let conv = |v: __m256i, rgm: __m256i, bm: __m256i| {
+                let rg = _mm256_shuffle_epi8(v, rgm);
+                let b = _mm256_or_si256(_mm256_shuffle_epi8(v, bm), c128w);
+                let yv = _mm256_add_epi32(
+                    _mm256_add_epi32(_mm256_madd_epi16(rg, ky1), _mm256_madd_epi16(b, ky2)),
+                    _mm256_and_si256(rg, hi16),
+                );
+                let cbv = _mm256_add_epi32(_mm256_madd_epi16(rg, kb1), _mm256_madd_epi16(b, kb2));
+                let crv = _mm256_add_epi32(_mm256_madd_epi16(rg, kr1), _mm256_madd_epi16(b, kr2));
+                (_mm256_srai_epi32::<16>(yv), _mm256_srai_epi32::<16>(cbv), _mm256_srai_epi32::<16>(crv))
             };
-            let (r, g, b) = (pick(r_lo, r_hi), pick(g_lo, g_hi), pick(b_lo, b_hi));
-            // SAFETY: AVX2 is enabled in this function.
+            let (y0, cb0, cr0) = conv(x, rg_x, b_x);
+            let (y1, cb1, cr1) = conv(z, rg_z, b_z);
+            // packs keeps the pixel order: [x0-3 z4-7 | x8-11 z12-15].
+            let yw = _mm256_packs_epi32(y0, y1);
+            let cbw = _mm256_sub_epi16(c128, _mm256_packs_epi32(cb0, cb1));
+            let crw = _mm256_sub_epi16(c128, _mm256_packs_epi32(cr0, cr1));
+            let ycb = _mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_packus_epi16(yw, cbw));
+            let crr = _mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_packus_epi16(crw, crw));
+            // SAFETY: 16 bytes at i of each output (i + 16 <= n); values are 0..=255.
             unsafe {
-                let yv = lin3(r, g, b, fix(0.299), fix(0.587), fix(0.114), ONE_HALF);
-                let cbv = lin3(r, g, b, -fix(0.168_74), -fix(0.331_26), fix(0.5), CBCR_OFFSET + ONE_HALF - 1);
-                let crv = lin3(r, g, b, fix(0.5), -fix(0.418_69), -fix(0.081_31), CBCR_OFFSET + ONE_HALF - 1);
-                y[i..i + 8].copy_from_slice(&pack8(yv).to_le_bytes());
-                cb[i..i + 8].copy_from_slice(&pack8(cbv).to_le_bytes());
-                cr[i..i + 8].copy_from_slice(&pack8(crv).to_le_bytes());
+                _mm_storeu_si128(y.as_mut_ptr().add(i) as *mut __m128i, _mm256_castsi256_si128(ycb));
+                _mm_storeu_si128(cb.as_mut_ptr().add(i) as *mut __m128i, _mm256_extracti128_si256::<1>(ycb));
+                _mm_storeu_si128(cr.as_mut_ptr().add(i) as *mut __m128i, _mm256_castsi256_si128(crr));
             }
-            i += 8;
+            i += 16;
         }
         super::rgb_to_ycc_row_scalar(&src[3 * i..3 * n], &mut y[i..n], &mut cb[i..n], &mut cr[i..n]);
     }
 
-    /// AVX2 version of `ycc_to_rgb_row_scalar` (same integers).
+    /// Byte shuffles from [r0-7 g0-7] and [b0-7 b0-7] (per 128-bit lane) to the interleaved RGB
+    /// bytes `start .. start + 16` of the lane's eight pixels (`start` per lane).
+    const fn interleave(start0: usize, start1: usize) -> ([i8; 32], [i8; 32]) {
+        let (mut rg, mut b) = ([-1i8; 32], [-1i8; 32]);
+        let mut k = 0;
+        while k < 32 {
+            let j = if k < 16 { start0 + k } else { start1 + k - 16 };
+            let (p, c) = (j / 3, j % 3);
+            match c {
+                0 => rg[k] = p as i8,
+                1 => rg[k] = (8 + p) as i8,
+                _ => b[k] = p as i8,
+            }
+            k += 1;
+        }
+        (rg, b)
+    }
+    const INTERLEAVE_A: ([i8; 32], [i8; 32]) = interleave(0, 8);
+    const INTERLEAVE_B: ([i8; 32], [i8; 32]) = interleave(8, 0);
+
+    /// `(v * k + 2^15) >> 16` in 16-bit lanes for |k| < 2^15: high product plus the carry of the
+    /// low half's rounding.
+    #[inline(always)]
+    fn mul_round(v: __m256i, k: __m256i) -> __m256i {
+        // SAFETY: only inlined into functions that enable AVX2.
+        unsafe { _mm256_add_epi16(_mm256_mulhi_epi16(v, k), _mm256_srli_epi16::<15>(_mm256_mullo_epi16(v, k))) }
+    }
+
+    /// AVX2 version of `ycc_to_rgb_row_scalar` (same integers), 16 pixels per step in 16-bit
+    /// lanes (the AVX-512 kernel's split of the products).
     #[target_feature(enable = "avx2")]
     pub unsafe fn ycc_to_rgb_row(y: &[u8], cb: &[u8], cr: &[u8], out: &mut [u8]) {
         use super::{ONE_HALF, fix};
         let n = y.len().min(cb.len()).min(cr.len()).min(out.len() / 3);
+        // R = crx + ((26345 crx + 2^15) >> 16)            (91881 = 65536 + 26345)
+        // B = 2 cbx + ((-14942 cbx + 2^15) >> 16)         (116130 = 131072 - 14942)
+        // G = -crx + ((-22554 cbx + 18734 crx + 2^15) >> 16)   (46802 = 65536 - 18734)
+        let kr = _mm256_set1_epi16((fix(1.402) - 65536) as i16);
+        let kb = _mm256_set1_epi16((fix(1.772) - 131072) as i16);
+        let kg = pair(-fix(0.344_14), 65536 - fix(0.714_14));
+        let half = _mm256_set1_epi32(ONE_HALF);
+        let c128 = _mm256_set1_epi16(128);
+        // SAFETY: 32-byte tables; unaligned loads.
+        let ld = |t: &[i8; 32]| unsafe { _mm256_loadu_si256(t.as_ptr() as *const __m256i) };
+        let (ia_rg, ia_b, ib_rg, ib_b) =
+            (ld(&INTERLEAVE_A.0), ld(&INTERLEAVE_A.1), ld(&INTERLEAVE_B.0), ld(&INTERLEAVE_B.1));
         let mut i = 0;
-        // Byte shuffles that interleave [r0 g0 r1 g1 .. r7 g7] and [b0 .. b7] into 24 bytes.
-        let rg0 = _mm_setr_epi8(0, 1, -1, 2, 3, -1, 4, 5, -1, 6, 7, -1, 8, 9, -1, 10);
-        let b0 = _mm_setr_epi8(-1, -1, 0, -1, -1, 1, -1, -1, 2, -1, -1, 3, -1, -1, 4, -1);
-        let rg1 = _mm_setr_epi8(11, -1, 12, 13, -1, 14, 15, -1, -1, -1, -1, -1, -1, -1, -1, -1);
-        let b1 = _mm_setr_epi8(-1, 5, -1, -1, 6, -1, -1, 7, -1, -1, -1, -1, -1, -1, -1, -1);
-        let (lo, hi) = (_mm256_setzero_si256(), _mm256_set1_epi32(255));
-        let c128 = _mm256_set1_epi32(128);
-        while i + 8 <= n {
-            let load = |s: &[u8]| -> __m256i {
-                let b: [u8; 8] = s[i..i + 8].try_into().unwrap_or([0; 8]);
-                _mm256_cvtepu8_epi32(_mm_set_epi64x(0, i64::from_le_bytes(b)))
+        while i + 16 <= n {
+            // SAFETY: 16 bytes at i of each input (i + 16 <= n).
+            let (yv, cbx, crx) = unsafe {
+                let ld = |s: &[u8]| _mm256_cvtepu8_epi16(_mm_loadu_si128(s.as_ptr().add(i) as *const __m128i));
+                (ld(y), _mm256_sub_epi16(ld(cb), c128), _mm256_sub_epi16(ld(cr), c128))
             };
-            let (yv, cbx, crx) = (load(y), _mm256_sub_epi32(load(cb), c128), _mm256_sub_epi32(load(cr), c128));
-            let half = _mm256_set1_epi32(ONE_HALF);
-            let r = _mm256_add_epi32(
-                yv,
-                _mm256_srai_epi32(_mm256_add_epi32(_mm256_mullo_epi32(crx, _mm256_set1_epi32(fix(1.402))), half), 16),
+            let r = _mm256_add_epi16(crx, mul_round(crx, kr));
+            let b = _mm256_add_epi16(_mm256_add_epi16(cbx, cbx), mul_round(cbx, kb));
+            let g_lo = _mm256_madd_epi16(_mm256_unpacklo_epi16(cbx, crx), kg);
+            let g_hi = _mm256_madd_epi16(_mm256_unpackhi_epi16(cbx, crx), kg);
+            let g = _mm256_sub_epi16(
+                _mm256_packs_epi32(
+                    _mm256_srai_epi32::<16>(_mm256_add_epi32(g_lo, half)),
+                    _mm256_srai_epi32::<16>(_mm256_add_epi32(g_hi, half)),
+                ),
+                crx,
             );
-            let gs = _mm256_add_epi32(
-                _mm256_add_epi32(_mm256_mullo_epi32(cbx, _mm256_set1_epi32(-fix(0.344_14))), half),
-                _mm256_mullo_epi32(crx, _mm256_set1_epi32(-fix(0.714_14))),
-            );
-            let g = _mm256_add_epi32(yv, _mm256_srai_epi32(gs, 16));
-            let b = _mm256_add_epi32(
-                yv,
-                _mm256_srai_epi32(_mm256_add_epi32(_mm256_mullo_epi32(cbx, _mm256_set1_epi32(fix(1.772))), half), 16),
-            );
-            let clamp = |v: __m256i| _mm256_min_epi32(_mm256_max_epi32(v, lo), hi);
-            // SAFETY: AVX2 is enabled in this function.
-            let (rb, gb, bb) = unsafe { (pack8(clamp(r)), pack8(clamp(g)), pack8(clamp(b))) };
-            let rg = _mm_unpacklo_epi8(_mm_set_epi64x(0, rb as i64), _mm_set_epi64x(0, gb as i64));
-            let bv = _mm_set_epi64x(0, bb as i64);
-            let o0 = _mm_or_si128(_mm_shuffle_epi8(rg, rg0), _mm_shuffle_epi8(bv, b0));
-            let o1 = _mm_or_si128(_mm_shuffle_epi8(rg, rg1), _mm_shuffle_epi8(bv, b1));
-            let mut bytes = [0u8; 32];
-            // SAFETY: `bytes` holds 32 bytes; unaligned stores.
+            // y + term, range-limited to 0..=255 by the unsigned saturation of the packs.
+            let rg = _mm256_packus_epi16(_mm256_add_epi16(yv, r), _mm256_add_epi16(yv, g));
+            let bb = _mm256_add_epi16(yv, b);
+            let bb = _mm256_packus_epi16(bb, bb);
+            let a = _mm256_or_si256(_mm256_shuffle_epi8(rg, ia_rg), _mm256_shuffle_epi8(bb, ia_b));
+            let bv = _mm256_or_si256(_mm256_shuffle_epi8(rg, ib_rg), _mm256_shuffle_epi8(bb, ib_b));
+            // SAFETY: bytes 3i .. 3i + 48 of `out` exist (i + 16 <= n); a holds output bytes
+            // 0..16 and 32..48, bv 8..24 and 24..40 (the overlaps get the same bytes).
             unsafe {
-                _mm_storeu_si128(bytes.as_mut_ptr() as *mut __m128i, o0);
-                _mm_storeu_si128(bytes.as_mut_ptr().add(16) as *mut __m128i, o1);
+                let o = out.as_mut_ptr().add(3 * i);
+                _mm_storeu_si128(o as *mut __m128i, _mm256_castsi256_si128(a));
+                _mm_storeu_si128(o.add(8) as *mut __m128i, _mm256_castsi256_si128(bv));
+                _mm_storeu_si128(o.add(24) as *mut __m128i, _mm256_extracti128_si256::<1>(bv));
+                _mm_storeu_si128(o.add(32) as *mut __m128i, _mm256_extracti128_si256::<1>(a));
             }
-            out[3 * i..3 * i + 24].copy_from_slice(&bytes[..24]);
-            i += 8;
+            i += 16;
         }
         super::ycc_to_rgb_row_scalar(&y[i..n], &cb[i..n], &cr[i..n], &mut out[3 * i..3 * n]);
     }
 
-    /// AVX2 version of `fancy_row_scalar` (same integers).
+    /// AVX2 version of `fancy_row_scalar` (same integers): 16 chroma columns (32 outputs) per
+    /// step in 16-bit lanes (column sums are at most 1020); the column sums `cs` are filled only
+    /// where the scalar edges read them.
     #[target_feature(enable = "avx2")]
     pub unsafe fn fancy_row(near: &[u8], far: &[u8], cs: &mut [i32], out: &mut [u8]) {
         let n = cs.len();
-        if n < 10 {
+        let w = out.len();
+        if n < 24 || near.len() < n || far.len() < n || w < 2 * n - 1 {
             return super::fancy_row_scalar(near, far, cs, out);
         }
-        for ((c, &a), &b) in cs.iter_mut().zip(near).zip(far) {
-            *c = 3 * a as i32 + b as i32;
-        }
-        // Interior columns c = 1 .. n-1 in steps of 8 (needs c-1 .. c+8 inside cs).
-        let (e8, o7) = (_mm256_set1_epi32(8), _mm256_set1_epi32(7));
+        let (e8, o7) = (_mm256_set1_epi16(8), _mm256_set1_epi16(7));
         let mut c = 1;
-        while c + 9 <= n {
-            // SAFETY: indices c-1 .. c+8 are inside `cs` (c >= 1, c + 9 <= n).
-            let (t, l, r) = unsafe {
-                let p = cs.as_ptr();
-                (
-                    _mm256_loadu_si256(p.add(c) as *const __m256i),
-                    _mm256_loadu_si256(p.add(c - 1) as *const __m256i),
-                    _mm256_loadu_si256(p.add(c + 1) as *const __m256i),
-                )
+        // Columns c .. c + 16 need chroma columns c - 1 .. c + 17 (inside 0..n) and write
+        // outputs 2c .. 2c + 32 (inside the row: 2(c + 16) <= 2n - 2 < w).
+        while c + 17 <= n {
+            // SAFETY: the loads read bytes c - 1 .. c + 17 of `near` and `far` (<= n).
+            let (l, t, r) = unsafe {
+                let sum = |k: usize| {
+                    let a = _mm256_cvtepu8_epi16(_mm_loadu_si128(near.as_ptr().add(k) as *const __m128i));
+                    let b = _mm256_cvtepu8_epi16(_mm_loadu_si128(far.as_ptr().add(k) as *const __m128i));
+                    _mm256_add_epi16(_mm256_add_epi16(_mm256_add_epi16(a, a), a), b)
+                };
+                (sum(c - 1), sum(c), sum(c + 1))
             };
-            let t3 = _mm256_add_epi32(_mm256_add_epi32(t, t), t);
-            let even = _mm256_srai_epi32(_mm256_add_epi32(_mm256_add_epi32(t3, l), e8), 4);
-            let odd = _mm256_srai_epi32(_mm256_add_epi32(_mm256_add_epi32(t3, r), o7), 4);
-            // Interleave even/odd: 16 outputs for columns c .. c+8.
-            let a = _mm256_unpacklo_epi32(even, odd); // e0 o0 e1 o1 | e4 o4 e5 o5
-            let b = _mm256_unpackhi_epi32(even, odd); // e2 o2 e3 o3 | e6 o6 e7 o7
-            let first = _mm256_permute2x128_si256(a, b, 0x20); // e0 o0 e1 o1 e2 o2 e3 o3
-            let second = _mm256_permute2x128_si256(a, b, 0x31); // e4 .. o7
-            // SAFETY: AVX2 is enabled in this function.
-            let (p0, p1) = unsafe { (pack8(first), pack8(second)) };
-            out[2 * c..2 * c + 8].copy_from_slice(&p0.to_le_bytes());
-            out[2 * c + 8..2 * c + 16].copy_from_slice(&p1.to_le_bytes());
-            c += 8;
+            let t3 = _mm256_add_epi16(_mm256_add_epi16(t, t), t);
+            let even = _mm256_srli_epi16::<4>(_mm256_add_epi16(_mm256_add_epi16(t3, l), e8));
+            let odd = _mm256_srli_epi16::<4>(_mm256_add_epi16(_mm256_add_epi16(t3, r), o7));
+            // Little-endian words (even, odd) are the output bytes 2c, 2c + 1.
+            let words = _mm256_or_si256(even, _mm256_slli_epi16::<8>(odd));
+            // SAFETY: bytes 2c .. 2c + 32 of `out` exist (see above).
+            unsafe { _mm256_storeu_si256(out.as_mut_ptr().add(2 * c) as *mut __m256i, words) };
+            c += 16;
         }
-        // The rest (both edges and the tail) as the scalar reference does it.
+        // The rest (both edges and the tail) as the scalar reference does it, from the column
+        // sums it reads: 0, 1 and c - 1 ...
+        for k in (0..2).chain(c - 1..n) {
+            cs[k] = 3 * near[k] as i32 + far[k] as i32;
+        }
         super::fancy_edges(cs, out, 2 * c);
     }
 
@@ -963,9 +1050,8 @@ fn row_fns() -> RowFns {
 /// [`idct_int_pass`] regrouped as `vpmaddwd` of interleaved 16-bit operands with 16-bit
 /// constants (integer identities, so the 32-bit sums are the reference's), descaled and packed
 /// back to 16 bits (the values fit: samples are -128..=127 and the tables baseline). The
-/// quantiser divides in f32: for 0 <= a < 2^14 and 8 <= 8 Q <= 2040, (a + 1/2) / (8 Q) is at
-/// least 1 / (16 Q) from an integer and the f32 product errs by less than 2^-23 relative, so
-/// its truncation is floor(a / (8 Q)) (checked for every a and Q in the tests).
+/// quantiser divides by two unsigned 16-bit high products, exact for 0 <= a < 2^14 and
+/// 8 <= 8 Q <= 2040 (see [`IQuant`]; checked for every a and Q in the tests).
 #[cfg(target_arch = "x86_64")]
 mod dct16 {
     use super::{
@@ -1138,23 +1224,18 @@ mod dct16 {
         }
     }
 
-    /// Quantise and dequantise row `v` (both blocks): sign(c) * floor((|c| + 4Q) / 8Q) * Q.
+    /// Quantise and dequantise row `v` (both blocks): sign(c) * floor((|c| + 4Q) / 8Q) * Q, the
+    /// division by two unsigned high products (see [`IQuant`]).
     #[inline(always)]
     fn quant(c: __m256i, q: &IQuant, v: usize) -> __m256i {
-        // SAFETY: AVX2 context; eight-lane table rows (unaligned 16- and 32-byte loads).
+        // SAFETY: AVX2 context; 16-lane table rows (unaligned 32-byte loads).
         unsafe {
-            let row16 = |t: &[i16; 8]| _mm256_broadcastsi128_si256(_mm_loadu_si128(t.as_ptr() as *const __m128i));
-            let r = _mm256_loadu_ps(q.recip_f[v].as_ptr());
-            let a = _mm256_add_epi16(_mm256_abs_epi16(c), row16(&q.half16[v]));
-            let half = _mm256_set1_ps(0.5);
-            let level = |x: __m128i| {
-                let f = _mm256_cvtepi32_ps(_mm256_cvtepi16_epi32(x));
-                _mm256_cvttps_epi32(_mm256_mul_ps(_mm256_add_ps(f, half), r))
-            };
-            let (la, lb) = (level(_mm256_castsi256_si128(a)), level(_mm256_extracti128_si256::<1>(a)));
-            // packs interleaves the 128-bit lanes: [A0-3 B0-3 | A4-7 B4-7] -> [A0-7 | B0-7].
-            let l16 = _mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_packs_epi32(la, lb));
-            _mm256_sign_epi16(_mm256_mullo_epi16(l16, row16(&q.q16[v])), c)
+            let a = _mm256_add_epi16(_mm256_abs_epi16(c), _mm256_loadu_si256(q.half_w[v].as_ptr() as *const __m256i));
+            let t = _mm256_mulhi_epu16(a, _mm256_loadu_si256(q.mul_w[v].as_ptr() as *const __m256i));
+            let t = _mm256_sub_epi16(t, _mm256_loadu_si256(q.bias_w[v].as_ptr() as *const __m256i));
+            let level = _mm256_mulhrs_epi16(t, _mm256_loadu_si256(q.scale_w[v].as_ptr() as *const __m256i));
+            let qq = _mm256_loadu_si256(q.q_w[v].as_ptr() as *const __m256i);
+            _mm256_sign_epi16(_mm256_mullo_epi16(level, qq), c)
         }
     }
 
@@ -1182,13 +1263,17 @@ mod dct16 {
         transpose(&mut r);
         idct(&mut r, CONST_BITS + PASS1_BITS + 3);
         transpose(&mut r);
-        for (dy, row) in r.iter().enumerate() {
-            // Range limit clamp(v + 128, 0, 255) by the unsigned saturation of the pack; block A's
-            // bytes are quadword 0, block B's quadword 2.
-            let p = _mm256_packus_epi16(_mm256_add_epi16(*row, c128), *row);
-            let bytes = _mm256_castsi256_si128(_mm256_permute4x64_epi64::<0b00_00_10_00>(p));
+        for dy in (0..8).step_by(2) {
+            // Range limit clamp(v + 128, 0, 255) by the unsigned saturation of the pack, two rows
+            // at a time: [A(dy) A(dy + 1) | B(dy) B(dy + 1)] -> [A(dy) B(dy) | A(dy + 1) B(dy + 1)].
+            let p = _mm256_packus_epi16(_mm256_add_epi16(r[dy], c128), _mm256_add_epi16(r[dy + 1], c128));
+            let p = _mm256_permute4x64_epi64::<0b11_01_10_00>(p);
             // SAFETY: as for the loads.
-            unsafe { _mm_storeu_si128(plane.as_mut_ptr().add(off + dy * pitch) as *mut __m128i, bytes) };
+            unsafe {
+                let o = plane.as_mut_ptr().add(off + dy * pitch);
+                _mm_storeu_si128(o as *mut __m128i, _mm256_castsi256_si128(p));
+                _mm_storeu_si128(o.add(pitch) as *mut __m128i, _mm256_extracti128_si256::<1>(p));
+            }
         }
     }
 }
@@ -1526,28 +1611,6 @@ fn gray8(data: &mut [u8], w: usize, h: usize, stride: usize, q: &IQuant) {
     });
 }
 
-/// Round trip of a tightly packed u8 plane whose size is a multiple of 8 in both directions.
-fn plane_roundtrip(plane: &mut [u8], pw: usize, q: &IQuant) {
-    let f = plane_block_fn();
-    let pair = plane_pair_fn();
-    plane.par_chunks_mut(pw * ROWS_PER_TASK).for_each(|chunk| {
-        let rows = chunk.len() / pw;
-        for by in (0..rows).step_by(8) {
-            let mut bx = 0;
-            if let Some(pair) = pair {
-                while bx + 16 <= pw {
-                    pair(chunk, by * pw + bx, pw, q);
-                    bx += 16;
-                }
-            }
-            while bx < pw {
-                f(chunk, by * pw + bx, pw, q);
-                bx += 8;
-            }
-        }
-    });
-}
-
 /// Two horizontally adjacent blocks at once, when this CPU has a kernel for it (the same bits as
 /// two calls of [`plane_block_fn`]).
 fn plane_pair_fn() -> Option<PlaneBlockFn> {
@@ -1559,7 +1622,51 @@ fn plane_pair_fn() -> Option<PlaneBlockFn> {
     None
 }
 
+/// Round trip of the 8x8 blocks of plane rows `r0 .. r0 + 8` (`pw` wide, a multiple of 8).
+fn block_row(plane: &mut [u8], r0: usize, pw: usize, q: &IQuant, one: PlaneBlockFn, pair: Option<PlaneBlockFn>) {
+    let mut bx = 0;
+    if let Some(pair) = pair {
+        while bx + 16 <= pw {
+            pair(plane, r0 * pw + bx, pw, q);
+            bx += 16;
+        }
+    }
+    while bx < pw {
+        one(plane, r0 * pw + bx, pw, q);
+        bx += 8;
+    }
+}
+
+/// Decode of one output row: chroma rows (near, far) upsampled (h2v2 fancy) into `up` with the
+/// column sums `sums`, or taken as they are (4:4:4, `far` unused), then YCbCr -> RGB into `out`.
+#[allow(clippy::too_many_arguments)]
+fn decode_row(
+    fns: &RowFns,
+    sub: bool,
+    yrow: &[u8],
+    cb: (&[u8], &[u8]),
+    cr: (&[u8], &[u8]),
+    sums: (&mut [i32], &mut [i32]),
+    up: (&mut [u8], &mut [u8]),
+    out: &mut [u8],
+) {
+    if sub {
+        (fns.fancy)(cb.0, cb.1, sums.0, up.0);
+        (fns.fancy)(cr.0, cr.1, sums.1, up.1);
+        (fns.to_rgb)(yrow, up.0, up.1, out);
+    } else {
+        (fns.to_rgb)(yrow, cb.0, cr.0, out);
+    }
+}
+
 impl Jpeg {
+    /// Rgb8 round trip, one band of `ROWS_PER_TASK` rows per task and one MCU row at a time
+    /// inside it (so that the rows of the three planes are still in cache when they are
+    /// transformed and decoded): RGB -> YCbCr with edges replicated to whole MCUs and chroma 2x2
+    /// averaged with libjpeg's alternating bias (1, 2, 1, 2, ...) or kept (4:4:4); DCT,
+    /// quantisation and inverse DCT of the MCU row's blocks; then the output rows whose chroma
+    /// neighbours are done (libjpeg h2v2 fancy upsampling and YCbCr -> RGB). The first and last
+    /// output rows of a band need the neighbouring bands' chroma and are decoded after all bands.
     fn colour(&mut self, frame: &mut Frame, luma: &IQuant, chroma: &IQuant, sub: bool) {
         let (w, h, stride) = (frame.width as usize, frame.height as usize, frame.stride);
         let mcu = if sub { 16 } else { 8 };
@@ -1577,28 +1684,40 @@ impl Jpeg {
         let used = stride * (h - 1) + w * 3;
         let data = &mut data[..used];
         let fns = row_fns();
-        // 1. RGB -> YCbCr, edges replicated to whole MCUs; chroma 2x2 averaged with libjpeg's
-        //    alternating bias (1, 2, 1, 2, ...) or kept (4:4:4).
+        let (one, pair) = (plane_block_fn(), plane_pair_fn());
         let csub = if sub { 2 } else { 1 };
         let band_c = ROWS_PER_TASK / csub;
-        {
-            let src: &[u8] = data;
-            self.y
-                .par_chunks_mut(pw * ROWS_PER_TASK)
-                .zip(self.cb.par_chunks_mut(cw * band_c).zip(self.cr.par_chunks_mut(cw * band_c)))
-                .zip(self.rows8.par_chunks_mut(4 * pw))
-                .enumerate()
-                .for_each(|(band, ((yp, (cbp, crp)), rows))| {
-                    let y0 = band * ROWS_PER_TASK;
-                    let (cbf, crf) = rows.split_at_mut(2 * pw);
-                    for (cy, (cbrow, crrow)) in cbp.chunks_mut(cw).zip(crp.chunks_mut(cw)).enumerate() {
-                        for k in 0..csub {
-                            let dy = cy * csub + k;
-                            let yy = (y0 + dy).min(h - 1);
+        let (cw_real, ch_real) = if sub { (w.div_ceil(2), h.div_ceil(2)) } else { (w, h) };
+        // Chroma rows (near, far) of output row y (absolute; 4:4:4: the row itself).
+        let chroma_rows = |y: usize| -> (usize, usize) {
+            if !sub {
+                return (y, y);
+            }
+            let cy = y / 2;
+            (cy, if y.is_multiple_of(2) { cy.saturating_sub(1) } else { (cy + 1).min(ch_real - 1) })
+        };
+        data.par_chunks_mut(stride * ROWS_PER_TASK)
+            .zip(self.y.par_chunks_mut(pw * ROWS_PER_TASK))
+            .zip(self.cb.par_chunks_mut(cw * band_c).zip(self.cr.par_chunks_mut(cw * band_c)))
+            .zip(self.rows8.par_chunks_mut(4 * pw).zip(self.rows32.par_chunks_mut(2 * pw)))
+            .enumerate()
+            .for_each(|(band, (((chunk, yp), (cbp, crp)), (rows, sums)))| {
+                let y0 = band * ROWS_PER_TASK;
+                let frows = chunk.len().div_ceil(stride);
+                let (c0, prows) = (y0 / csub, yp.len() / pw);
+                let (cbf, crf) = rows.split_at_mut(2 * pw);
+                let (sb, sr) = sums.split_at_mut(pw);
+                let (sb, sr) = (&mut sb[..cw_real], &mut sr[..cw_real]);
+                for k in 0..prows / mcu {
+                    // 1. RGB -> YCbCr of the MCU row (frame rows past the end repeat the last).
+                    for cy in k * mcu / csub..(k + 1) * mcu / csub {
+                        for j in 0..csub {
+                            let dy = cy * csub + j;
+                            let sy = (y0 + dy).min(h - 1) - y0;
                             let yrow = &mut yp[dy * pw..(dy + 1) * pw];
-                            let (cbk, crk) = (&mut cbf[k * pw..(k + 1) * pw], &mut crf[k * pw..(k + 1) * pw]);
+                            let (cbk, crk) = (&mut cbf[j * pw..(j + 1) * pw], &mut crf[j * pw..(j + 1) * pw]);
                             (fns.to_ycc)(
-                                &src[yy * stride..yy * stride + w * 3],
+                                &chunk[sy * stride..sy * stride + w * 3],
                                 &mut yrow[..w],
                                 &mut cbk[..w],
                                 &mut crk[..w],
@@ -1608,6 +1727,7 @@ impl Jpeg {
                             cbk[w..].fill(lb);
                             crk[w..].fill(lr);
                         }
+                        let (cbrow, crrow) = (&mut cbp[cy * cw..(cy + 1) * cw], &mut crp[cy * cw..(cy + 1) * cw]);
                         if sub {
                             let (b0, b1) = cbf.split_at(pw);
                             let (r0, r1) = crf.split_at(pw);
@@ -1618,38 +1738,63 @@ impl Jpeg {
                             crrow.copy_from_slice(&crf[..pw]);
                         }
                     }
-                });
-        }
-        // 2. DCT, quantisation, inverse DCT per component.
-        plane_roundtrip(&mut self.y, pw, luma);
-        plane_roundtrip(&mut self.cb, cw, chroma);
-        plane_roundtrip(&mut self.cr, cw, chroma);
-        // 3. Upsample (libjpeg h2v2 fancy) and YCbCr -> RGB.
-        let (yp, cbp, crp) = (&self.y, &self.cb, &self.cr);
-        let (cw_real, ch_real) = if sub { (w.div_ceil(2), h.div_ceil(2)) } else { (w, h) };
-        data.par_chunks_mut(stride * ROWS_PER_TASK)
-            .zip(self.rows8.par_chunks_mut(4 * pw))
-            .zip(self.rows32.par_chunks_mut(2 * pw))
-            .enumerate()
-            .for_each(|(band, ((chunk, rows), sums))| {
-                let (ucb, ucr) = rows.split_at_mut(2 * pw);
-                let (ucb, ucr) = (&mut ucb[..w], &mut ucr[..w]);
-                let (sb, sr) = sums.split_at_mut(pw);
-                let (sb, sr) = (&mut sb[..cw_real], &mut sr[..cw_real]);
-                for (dy, row) in chunk.chunks_mut(stride).enumerate() {
-                    let y = band * ROWS_PER_TASK + dy;
-                    let yrow = &yp[y * pw..][..w];
-                    let out = &mut row[..w * 3];
-                    if !sub {
-                        (fns.to_rgb)(yrow, &cbp[y * cw..][..w], &crp[y * cw..][..w], out);
-                        continue;
+                    // 2. DCT, quantisation, inverse DCT of its blocks.
+                    for r0 in (k * mcu..(k + 1) * mcu).step_by(8) {
+                        block_row(yp, r0, pw, luma, one, pair);
                     }
-                    let cy = y / 2;
-                    let far = if y.is_multiple_of(2) { cy.saturating_sub(1) } else { (cy + 1).min(ch_real - 1) };
-                    let (n0, n1) = (cy * cw, far * cw);
-                    (fns.fancy)(&cbp[n0..n0 + cw_real], &cbp[n1..n1 + cw_real], sb, ucb);
-                    (fns.fancy)(&crp[n0..n0 + cw_real], &crp[n1..n1 + cw_real], sr, ucr);
-                    (fns.to_rgb)(yrow, ucb, ucr, out);
+                    let r0 = k * mcu / csub;
+                    block_row(cbp, r0, cw, chroma, one, pair);
+                    block_row(crp, r0, cw, chroma, one, pair);
+                    // 3. Decode of the output rows whose chroma rows are done: with 4:2:0 the
+                    //    MCU row's last output row needs the next MCU row's first chroma row.
+                    let (lo, hi) = if sub {
+                        ((k * mcu).saturating_sub(1).max(1), ((k + 1) * mcu - 1).min(frows.saturating_sub(1)))
+                    } else {
+                        (k * mcu, ((k + 1) * mcu).min(frows))
+                    };
+                    let (ucb, ucr) = (&mut cbf[..w], &mut crf[..w]);
+                    for dy in lo..hi {
+                        let (near, far) = chroma_rows(y0 + dy);
+                        let (n, f) = ((near - c0) * cw, (far - c0) * cw);
+                        decode_row(
+                            &fns,
+                            sub,
+                            &yp[dy * pw..][..w],
+                            (&cbp[n..n + cw_real], &cbp[f..f + cw_real]),
+                            (&crp[n..n + cw_real], &crp[f..f + cw_real]),
+                            (&mut *sb, &mut *sr),
+                            (&mut *ucb, &mut *ucr),
+                            &mut chunk[dy * stride..dy * stride + w * 3],
+                        );
+                    }
+                }
+            });
+        if !sub {
+            return;
+        }
+        // 4. The first and last output rows of each band (4:2:0), from the whole planes.
+        let (yp, cbp, crp) = (&self.y, &self.cb, &self.cr);
+        data.par_chunks_mut(stride * ROWS_PER_TASK)
+            .zip(self.rows8.par_chunks_mut(4 * pw).zip(self.rows32.par_chunks_mut(2 * pw)))
+            .enumerate()
+            .for_each(|(band, (chunk, (rows, sums)))| {
+                let y0 = band * ROWS_PER_TASK;
+                let frows = chunk.len().div_ceil(stride);
+                let (ucb, ucr) = rows.split_at_mut(2 * pw);
+                let (sb, sr) = sums.split_at_mut(pw);
+                for dy in [0, frows - 1].into_iter().take(frows.min(2)) {
+                    let (near, far) = chroma_rows(y0 + dy);
+                    let (n, f) = (near * cw, far * cw);
+                    decode_row(
+                        &fns,
+                        sub,
+                        &yp[(y0 + dy) * pw..][..w],
+                        (&cbp[n..n + cw_real], &cbp[f..f + cw_real]),
+                        (&crp[n..n + cw_real], &crp[f..f + cw_real]),
+                        (&mut sb[..cw_real], &mut sr[..cw_real]),
+                        (&mut ucb[..w], &mut ucr[..w]),
+                        &mut chunk[dy * stride..dy * stride + w * 3],
+                    );
                 }
             });
     }
@@ -1801,13 +1946,15 @@ mod tests {
     }
 
     #[test]
-    fn float_quantiser_division_is_exact() {
+    fn high_product_quantiser_division_is_exact() {
         for q in 1..=255u32 {
-            let qv = 8 * q;
-            let r = 1.0f32 / qv as f32;
-            for a in 0..=9300u32 {
-                let got = ((a as f32 + 0.5) * r) as u32;
-                assert_eq!(got, a / qv, "a {a}, Q {q}");
+            let d = 8 * q;
+            let (m, bias, scale) = quant16(d);
+            for a in 0..1u32 << 14 {
+                // vpmulhuw, vpsubw, vpmulhrsw.
+                let t = ((a * m as u32) >> 16) as i32 - bias as i32;
+                let level = ((t * scale as i32) + (1 << 14)) >> 15;
+                assert_eq!(level, (a / d) as i32, "a {a}, Q {q}");
             }
         }
     }
