@@ -6,7 +6,9 @@
 //! loaded into a floating-point pool; everything else is never touched (or, with an exposure
 //! gain, only rescaled).
 
-use super::kit::{RGB_CHANNEL_BITS, ge_mask_u8, lut_u8_row, max_of_row, multiversion, scale_q16_row};
+use super::kit::{
+    RGB_CHANNEL_BITS, ge_mask_u8, lut_u8_row, max_of_row, multiversion, scale_q16_row, scale_q16_u8,
+};
 use super::util::gaussian_kernel;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, ImageMut, ImageRef, Sample};
@@ -221,16 +223,21 @@ impl Blooming {
             self.exc[r].fill(0.0);
         }
         let mut any = false;
-        let mut sig = [0f32; TILE];
+        let mut sig = [T::default(); TILE];
         for ly in 0..TILE.min(h - ty * TILE) {
             let row = &v.img.row(ty * TILE + ly)[x0 * ch..(x0 + xn) * ch];
             let base = s * TT + ly * TILE;
             let (cur, exc) = (&mut self.cur[base..base + xn], &mut self.exc[base..base + xn]);
+            if ch == 1 {
+                // One channel: the samples are contiguous, converted in vectors with the rest.
+                load_span(row, v.gain, v.well, v.glow.is_some(), cur, exc, &mut any);
+                continue;
+            }
             // Gather the channel (scalar), then the arithmetic in vectors.
             for (o, px) in sig[..xn].iter_mut().zip(row.chunks_exact(ch)) {
-                *o = px[v.c].to_f32();
+                *o = px[v.c];
             }
-            load_span(&sig[..xn], v.gain, v.well, v.glow.is_some(), cur, exc, &mut any, 0u8);
+            load_span(&sig[..xn], v.gain, v.well, v.glow.is_some(), cur, exc, &mut any);
         }
         self.has_exc[s] = any;
         s
@@ -389,8 +396,16 @@ impl Blooming {
                 continue;
             }
             let tid = self.active[s] as usize;
-            for li in 0..TT {
+            let mut li = 0;
+            while li < TT {
+                // Seeds in index order; eight samples without excess are skipped at once (no seed
+                // among them, and nothing changes them before the scan moves past).
+                if li % 8 == 0 && self.exc[s * TT + li..][..8].iter().all(|&e| e <= 0.0) {
+                    li += 8;
+                    continue;
+                }
                 if self.exc[s * TT + li] <= 0.0 {
+                    li += 1;
                     continue;
                 }
                 if generation == u32::MAX {
@@ -453,6 +468,7 @@ impl Blooming {
                     }
                 }
                 lost += pool.max(0.0);
+                li += 1;
             }
             self.has_exc[s] = false;
             s += 1;
@@ -682,27 +698,26 @@ multiversion! {
     /// Load samples `src` of a tile row with the exposure gain: charge mode `cur = min(s, W)`,
     /// `exc = max(s - W, 0)`; glow mode `cur = s`, `exc = [s >= W]` (s = src * gain). Sets `any`
     /// when some `exc` is positive.
-    fn load_span<T: Copy>(
-        src: &[f32],
+    fn load_span<T: Sample>(
+        src: &[T],
         gain: f32,
         well: f32,
         glow: bool,
         cur: &mut [f32],
         exc: &mut [f32],
         any: &mut bool,
-        _t: T,
     ) {
         let mut flag = 0u32;
         if glow {
             for ((c, e), &x) in cur.iter_mut().zip(exc.iter_mut()).zip(src) {
-                let sig = x * gain;
+                let sig = x.to_f32() * gain;
                 *c = sig;
                 *e = if sig >= well { 1.0 } else { 0.0 };
                 flag |= (sig >= well) as u32;
             }
         } else {
             for ((c, e), &x) in cur.iter_mut().zip(exc.iter_mut()).zip(src) {
-                let sig = x * gain;
+                let sig = x.to_f32() * gain;
                 *c = sig.min(well);
                 let over = (sig - well).max(0.0);
                 *e = over;
@@ -1011,6 +1026,12 @@ impl Blooming {
                     continue;
                 }
                 match fixed {
+                    // 8-bit without byte permutes: the multiply in 16-bit lanes.
+                    Some(gq) if T::bytes(row).is_some() => {
+                        if let Some(bytes) = T::bytes_mut(row) {
+                            scale_q16_u8(bytes, gq);
+                        }
+                    }
                     Some(gq) => scale_q16_row(row, gq),
                     None => {
                         for v in row.iter_mut() {

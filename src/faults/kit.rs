@@ -398,6 +398,48 @@ multiversion! {
     }
 }
 
+/// [`scale_q16_row`] on bytes: `v = min((v * gq + 2^15) >> 16, 255)`. With AVX2 and gq < 2^24
+/// the product is split for 16-bit lanes (see [`scale_q16_u8_avx2`]), 32 bytes per step instead
+/// of 8 in 32-bit lanes; the same values.
+pub fn scale_q16_u8(row: &mut [u8], gq: u32) {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2() && gq < 1 << 24 {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        unsafe { scale_q16_u8_avx2(row, gq) };
+        return;
+    }
+    scale_q16_row(row, gq)
+}
+
+/// AVX2 version of [`scale_q16_u8`] (gq < 2^24). With gq = a * 2^16 + b (a < 256, b < 2^16) and
+/// v * b = hi * 2^16 + lo: `(v * gq + 2^15) >> 16 = v * a + hi + (lo >> 15)`, at most
+/// 255 * 255 + 255 < 2^16, so every term fits a 16-bit lane (`vpmullw`, `vpmulhuw`); then the
+/// minimum with 255 and an unsigned pack. The tail runs the reference.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn scale_q16_u8_avx2(row: &mut [u8], gq: u32) {
+    use std::arch::x86_64::*;
+    let (a, b) = (_mm256_set1_epi16((gq >> 16) as i16), _mm256_set1_epi16((gq & 0xffff) as u16 as i16));
+    let (zero, max) = (_mm256_setzero_si256(), _mm256_set1_epi16(255));
+    let scale = |v: __m256i| {
+        let (hi, lo) = (_mm256_mulhi_epu16(v, b), _mm256_mullo_epi16(v, b));
+        let r = _mm256_add_epi16(_mm256_add_epi16(_mm256_mullo_epi16(v, a), hi), _mm256_srli_epi16(lo, 15));
+        _mm256_min_epu16(r, max)
+    };
+    let full = row.len() / 32;
+    for k in 0..full {
+        // SAFETY: bytes 32k .. 32k + 32 are inside the row (k < row.len() / 32).
+        unsafe {
+            let p = row.as_mut_ptr().add(32 * k) as *mut __m256i;
+            let v = _mm256_loadu_si256(p);
+            // Unpack and pack both work within 128-bit lanes, so the bytes come back in order.
+            let (l, h) = (scale(_mm256_unpacklo_epi8(v, zero)), scale(_mm256_unpackhi_epi8(v, zero)));
+            _mm256_storeu_si256(p, _mm256_packus_epi16(l, h));
+        }
+    }
+    scale_q16_row(&mut row[32 * full..], gq);
+}
+
 multiversion! {
     /// `v = min(v + a, MAX)` with one addend per sample.
     pub fn add_sat_row<T: Sample>(row: &mut [T], add: &[u32]) {
@@ -786,6 +828,17 @@ mod tests {
                 for i in 0..n {
                     assert_eq!(fast[i / 64] >> (i % 64) & 1 == 1, row[i] >= thr);
                 }
+            }
+        }
+        // Byte Q16 gains (AVX2 16-bit lanes) equal the reference for every byte and length.
+        let all: Vec<u8> = (0..=255u8).chain((0..300).map(|_| r.below(256) as u8)).collect();
+        for gq in [0u32, 1, 32768, 65536, 78643, 98304, 131072, 1 << 20, (1 << 24) - 1, 1 << 24, 1 << 30] {
+            for n in [0usize, 5, 31, 32, 33, 95, all.len()] {
+                let mut fast = all[..n].to_vec();
+                scale_q16_u8(&mut fast, gq);
+                let want: Vec<u8> =
+                    all[..n].iter().map(|&v| ((v as u64 * gq as u64 + 32768) >> 16).min(255) as u8).collect();
+                assert_eq!(fast, want, "gq {gq}, {n} bytes");
             }
         }
         // Channel masks: every bit in exactly one channel; word 1 of a row starts at sample 64,

@@ -351,11 +351,20 @@ fn render<T: Sample>(img: &mut ImageMut<'_, T>, ghosts: &[Ghost], opacity: f32, 
                     let a = g.rotation + (2 * i + 1) as f32 * std::f32::consts::PI / nb as f32;
                     *nrm = (a.cos() * inv_cos, a.sin() * inv_cos);
                 }
+                if ch == 1 {
+                    // One channel: the coverage is the per-sample weight, the level is constant.
+                    lexp[..nx].fill(g.level[0]);
+                }
                 for y in y0..y1 {
                     let dy = y as f32 - g.cy;
                     let d = &mut dist[..nx];
                     distance_row(d, x0, g.cx, dy, &normals[..nb], 0u8);
                     coverage_row(d, g.radius, g.edge, 0u8);
+                    if ch == 1 {
+                        let row = &mut chunk[(y - y_band) * stride + x0..][..nx];
+                        blend_row(row, d, &lexp[..nx], opacity);
+                        continue;
+                    }
                     let (ae, le) = (&mut aexp[..nx * ch], &mut lexp[..nx * ch]);
                     for ((a, l), &cov) in ae.chunks_exact_mut(ch).zip(le.chunks_exact_mut(ch)).zip(d.iter()) {
                         a.fill(cov);
