@@ -132,6 +132,9 @@ pub struct PoissonTable {
     /// Per bucket: the first k with cdf[k] > the bucket's lower edge (where `resolve` starts).
     // allocation: once per parameter change
     start: Vec<u32>,
+    /// `offset(k)` for k = 0..=kmax (what `resolve` returns; no float rounding per call).
+    // allocation: once per parameter change
+    offsets: Vec<i32>,
     dn_per_e: f64,
     /// Index bits of the buckets (quant.len() = 1 << bits).
     bits: u32,
@@ -159,6 +162,8 @@ impl PoissonTable {
         if let Some(last) = self.cdf.last_mut() {
             *last = 1.0;
         }
+        self.offsets.clear();
+        self.offsets.extend((0..self.cdf.len()).map(|k| offset(k as u64, dn_per_e)));
         self.fill_buckets(SMALL_BITS);
         if self.ambiguous_buckets() * 200 > self.quant.entries().len() {
             self.fill_buckets(LARGE_BITS);
@@ -193,7 +198,7 @@ impl PoissonTable {
         &self.quant
     }
 
-    #[inline]
+    #[cfg(test)]
     fn offset(&self, k: u64) -> i32 {
         offset(k, self.dn_per_e)
     }
@@ -201,14 +206,16 @@ impl PoissonTable {
     /// Exact count for a straddling bucket `u`.
     #[cold]
     fn resolve(&self, u: usize, rng: &mut Rng) -> i32 {
-        let x = (u as f64 + rng.uniform()) / self.quant.entries().len() as f64;
+        // The bucket count is a power of two: multiplying by its reciprocal is exact (the same
+        // value as dividing).
+        let x = (u as f64 + rng.uniform()) * (1.0 / self.quant.entries().len() as f64);
         // The first k with cdf[k] > x: every k below the bucket's start has cdf[k] <= its lower
         // edge <= x, so the search starts there (the same k as a search of the whole CDF).
         let mut k = self.start[u] as usize;
         while k + 1 < self.cdf.len() && self.cdf[k] <= x {
             k += 1;
         }
-        self.offset(k as u64)
+        self.offsets[k]
     }
 
     /// One quantised sample (DN offset) from a 16-bit uniform and the generator.
@@ -256,6 +263,9 @@ pub struct DarkCurrent {
     hot_key: Option<(u64, usize, usize, usize, u64)>,
     // allocation: once per stream / rate change
     hot: Vec<HotPixel>,
+    /// Per hot pixel, this frame's extra DN (drawn serially, added band by band).
+    // allocation: once per stream / rate change
+    hot_dn: Vec<i32>,
     last_mean_dn: f64,
 }
 
@@ -289,23 +299,27 @@ impl Effect for DarkCurrent {
             self.hot_key = Some(key);
         }
         let hot_factor = p.get("hot_factor");
+        // Hot pixels: extra Poisson(lambda * (m - 1)) electrons, drawn serially from their own
+        // stream, added after the row's dark noise (in the band that holds the row, while it is
+        // in cache).
+        let mut r = ctx.rng.derive(u64::MAX);
+        self.hot_dn.clear();
+        self.hot_dn.extend(self.hot.iter().map(|hp| {
+            let m = hot_factor * (0.5 + hp.u as f64);
+            let extra = r.poisson(lambda * (m - 1.0).max(0.0));
+            (extra as f64 * dn_per_e + 0.5).floor().min(1e9) as i32
+        }));
         let table = &self.table;
-        let hot = &self.hot;
+        let hot = (&self.hot[..], &self.hot_dn[..]);
         let rng = &ctx.rng;
-        with_image_mut!(frame, img => add_dark(&mut img, table, rng, hot, lambda, hot_factor, dn_per_e));
+        with_image_mut!(frame, img => add_dark(&mut img, table, rng, hot));
         Ok(Outcome::Keep)
     }
 }
 
-fn add_dark<T: Sample>(
-    img: &mut ImageMut<'_, T>,
-    table: &PoissonTable,
-    rng: &Rng,
-    hot: &[HotPixel],
-    lambda: f64,
-    hot_factor: f64,
-    dn_per_e: f64,
-) {
+/// Dark noise on every sample, then the hot pixels' extra DN (`hot`: the sorted hot pixels and
+/// their drawn offsets).
+fn add_dark<T: Sample>(img: &mut ImageMut<'_, T>, table: &PoissonTable, rng: &Rng, hot: (&[HotPixel], &[i32])) {
     let (stride, row_len, h) = (img.stride, img.row_len(), img.height);
     let used = stride * (h - 1) + row_len;
     let max = T::MAX_U32 as i32;
@@ -315,19 +329,22 @@ fn add_dark<T: Sample>(
         let base = rng.derive(band as u64);
         let mut lanes = RngLanes::new(&base.derive(0));
         let mut exact = base.derive(1);
-        for row in chunk.chunks_mut(stride) {
-            add_table_noise(&mut row[..row_len], &mut lanes, &table.quant, &mut |u| table.resolve(u, &mut exact));
+        let y0 = band * ROWS_PER_TASK;
+        // The band's hot pixels (sorted by row).
+        let (lo, hi) = (
+            hot.0.partition_point(|p| (p.y as usize) < y0),
+            hot.0.partition_point(|p| (p.y as usize) < y0 + ROWS_PER_TASK),
+        );
+        let mut hot_band = hot.0[lo..hi].iter().zip(&hot.1[lo..hi]).peekable();
+        for (dy, row) in chunk.chunks_mut(stride).enumerate() {
+            let row = &mut row[..row_len];
+            add_table_noise(row, &mut lanes, &table.quant, &mut |u| table.resolve(u, &mut exact));
+            while let Some((hp, &n)) = hot_band.next_if(|(hp, _)| hp.y as usize == y0 + dy) {
+                let v = &mut row[hp.sample as usize];
+                *v = T::from_u32_sat((v.to_u32() as i32).saturating_add(n).clamp(0, max) as u32);
+            }
         }
     });
-    // Hot pixels: extra Poisson(lambda * (m - 1)) electrons, drawn serially from their own stream.
-    let mut r = rng.derive(u64::MAX);
-    for hp in hot {
-        let m = hot_factor * (0.5 + hp.u as f64);
-        let extra = r.poisson(lambda * (m - 1.0).max(0.0));
-        let n = (extra as f64 * dn_per_e + 0.5).floor().min(1e9) as i32;
-        let v = &mut img.data[hp.y as usize * stride + hp.sample as usize];
-        *v = T::from_u32_sat((v.to_u32() as i32).saturating_add(n).clamp(0, max) as u32);
-    }
 }
 
 #[cfg(test)]

@@ -69,6 +69,72 @@ struct ByteForm {
     res: [u8; 64],
     exact_c: [u8; MAX_EXACT],
     exact: [[i8; 64]; MAX_EXACT],
+    /// The same form with two coarse tables instead of four, when it has one.
+    step: Option<StepForm>,
+}
+
+/// [`ByteForm`] in two coarse lookups instead of four, for tables whose simple buckets all step
+/// by the same `delta` (or not at all) and resolve, if anything, the entry just before the step
+/// (the monotone inverse-CDF tables of both effects at usual settings). `thr[c]` holds the step
+/// position (0..=64, 64 never) in bits 0..6 and "resolve the entry at f = thr - 1" in bit 7;
+/// entry f of simple bucket c is `base[c] + (f >= thr ? delta : 0)` in wrapping byte
+/// arithmetic. The exact buckets are the byte form's.
+#[derive(Clone, Debug, PartialEq)]
+struct StepForm {
+    base: [i8; 64],
+    thr: [u8; 64],
+    delta: i8,
+    /// Some bucket has an entry to resolve (bit 7 of some `thr`).
+    any_res: bool,
+}
+
+/// Bit 7 of a [`StepForm`] threshold: the entry at `thr - 1` is resolved.
+const STEP_RES: u8 = 0x80;
+
+impl StepForm {
+    /// The step form of `b` (with `n_exact` exact buckets), checked against every entry of
+    /// `table`.
+    fn of(b: &ByteForm, n_exact: usize, table: &[i32]) -> Option<StepForm> {
+        let exact = |c: usize| b.exact_c[..n_exact].contains(&(c as u8));
+        let mut delta = 0i8;
+        for c in (0..64).filter(|&c| !exact(c) && b.thr[c] < 64) {
+            if delta == 0 {
+                delta = b.delta[c];
+            } else if b.delta[c] != delta {
+                return None;
+            }
+        }
+        let mut s = StepForm { base: [0; 64], thr: [64; 64], delta, any_res: false };
+        for c in (0..64).filter(|&c| !exact(c)) {
+            let (base, thr, res) = match (b.thr[c], b.res[c]) {
+                (t, 255) => (b.base[c], t, false),
+                (t, r) if r < 64 && r + 1 == t => (b.base[c], t, true),
+                // No step, the first entry resolved: a step of `delta` at 1 from base - delta
+                // (wrapping: the entries from f = 1 on are base again).
+                (64, 0) => (b.base[c].wrapping_sub(delta), 1, true),
+                _ => return None,
+            };
+            s.base[c] = base;
+            s.thr[c] = thr | if res { STEP_RES } else { 0 };
+            s.any_res |= res;
+        }
+        // Belt and braces: the form must give back every entry.
+        (0..table.len()).all(|i| s.lookup(b, n_exact, i) == table[i]).then_some(s)
+    }
+
+    /// The entry of index `i` as the registers compute it (RESOLVE for entries to resolve).
+    fn lookup(&self, b: &ByteForm, n_exact: usize, i: usize) -> i32 {
+        let (c, f) = (i >> COARSE_BITS, (i & 63) as u8);
+        if let Some(k) = b.exact_c[..n_exact].iter().position(|&e| e as usize == c) {
+            let q = b.exact[k][f as usize];
+            return if q == BYTE_RESOLVE { RESOLVE } else { q as i32 };
+        }
+        let thr = self.thr[c] & !STEP_RES;
+        if self.thr[c] & STEP_RES != 0 && f + 1 == thr {
+            return RESOLVE;
+        }
+        self.base[c].wrapping_add(if f >= thr { self.delta } else { 0 }) as i32
+    }
 }
 
 /// Byte-form entry for "resolve" in an exact bucket table.
@@ -84,6 +150,7 @@ impl ByteForm {
             res: [255; 64],
             exact_c: [255; MAX_EXACT],
             exact: [[0; 64]; MAX_EXACT],
+            step: None,
         };
         for c in 0..64 {
             let (base, delta) = (t.base[c] as i32, t.delta[c] as i32);
@@ -141,6 +208,9 @@ impl TwoLevel {
             return None;
         }
         t.bytes = ByteForm::of(&t);
+        if let Some(b) = &mut t.bytes {
+            b.step = StepForm::of(b, t.n_exact, table);
+        }
         Some(t)
     }
 
@@ -192,6 +262,11 @@ impl TwoLevel {
     /// Whether the byte form exists (every offset in [-127, 127]).
     pub fn has_bytes(&self) -> bool {
         self.bytes.is_some()
+    }
+
+    /// Whether the byte form has the two-lookup step form (uniform steps).
+    pub fn has_step_form(&self) -> bool {
+        self.bytes.as_ref().is_some_and(|b| b.step.is_some())
     }
 }
 
@@ -258,7 +333,12 @@ pub fn add_table_noise<T: Sample>(
                 // SAFETY: the CPU supports AVX-512 F/BW/VL (checked just above).
                 _ if has_avx512() => unsafe { avx512::add_two_level(bytes, lanes, t, entries, bits, resolve) },
                 // SAFETY: the CPU supports AVX2 (checked above).
-                Some(b) => unsafe { avx2::add_byte_form(bytes, lanes, b, t.n_exact, entries, bits, resolve) },
+                Some(b) => unsafe {
+                    match &b.step {
+                        Some(st) => avx2::add_step_form(bytes, lanes, st, b, t.n_exact, entries, bits, resolve),
+                        None => avx2::add_byte_form(bytes, lanes, b, t.n_exact, entries, bits, resolve),
+                    }
+                },
                 // SAFETY: the CPU supports AVX2 (checked above); the table length was checked.
                 None => unsafe { avx2::add_table_noise(bytes, lanes, entries, bits, resolve) },
             }
@@ -347,7 +427,7 @@ impl Lanes {
 
 #[cfg(target_arch = "x86_64")]
 pub(crate) mod avx2 {
-    use super::{BYTE_RESOLVE, ByteForm, Lanes, MAX_EXACT, RESOLVE, RngLanes, Sample};
+    use super::{BYTE_RESOLVE, ByteForm, Lanes, MAX_EXACT, RESOLVE, RngLanes, Sample, StepForm};
     use std::arch::x86_64::*;
 
     #[inline(always)]
@@ -602,6 +682,189 @@ pub(crate) mod avx2 {
         store_state(lanes, &s);
         if n32 < row.len() {
             super::add_table_noise_scalar(&mut row[n32..], lanes, entries, bits, resolve);
+        }
+    }
+
+    /// [`add_byte_form`] for a table with the step form: two coarse lookups (base, and the step
+    /// position with its resolve flag) instead of four, specialised on the number of exact
+    /// buckets and on whether any simple bucket resolves. The same bytes.
+    ///
+    /// # Safety
+    /// The CPU supports AVX2; `n_exact` is the byte form's.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) unsafe fn add_step_form(
+        row: &mut [u8],
+        lanes: &mut RngLanes,
+        st: &StepForm,
+        b: &ByteForm,
+        n_exact: usize,
+        entries: &[i32],
+        bits: u32,
+        resolve: &mut dyn FnMut(usize) -> i32,
+    ) {
+        // SAFETY (every arm): the caller guarantees AVX2.
+        unsafe {
+            match (n_exact, st.any_res) {
+                (0, false) => step_form::<0, false>(row, lanes, st, b, entries, bits, resolve),
+                (0, true) => step_form::<0, true>(row, lanes, st, b, entries, bits, resolve),
+                (1, false) => step_form::<1, false>(row, lanes, st, b, entries, bits, resolve),
+                (1, true) => step_form::<1, true>(row, lanes, st, b, entries, bits, resolve),
+                (2, false) => step_form::<2, false>(row, lanes, st, b, entries, bits, resolve),
+                (2, true) => step_form::<2, true>(row, lanes, st, b, entries, bits, resolve),
+                (3, false) => step_form::<3, false>(row, lanes, st, b, entries, bits, resolve),
+                (3, true) => step_form::<3, true>(row, lanes, st, b, entries, bits, resolve),
+                (4, false) => step_form::<4, false>(row, lanes, st, b, entries, bits, resolve),
+                (4, true) => step_form::<4, true>(row, lanes, st, b, entries, bits, resolve),
+                _ => add_byte_form(row, lanes, b, n_exact, entries, bits, resolve),
+            }
+        }
+    }
+
+    /// [`add_step_form`] with `N` exact buckets; `RES`: some simple bucket resolves an entry.
+    #[target_feature(enable = "avx2")]
+    unsafe fn step_form<const N: usize, const RES: bool>(
+        row: &mut [u8],
+        lanes: &mut RngLanes,
+        st: &StepForm,
+        b: &ByteForm,
+        entries: &[i32],
+        bits: u32,
+        resolve: &mut dyn FnMut(usize) -> i32,
+    ) {
+        debug_assert_eq!(bits, 12);
+        let mut s = load_state(lanes);
+        let (base, thr) = (quarters(&st.base), quarters(&st.thr));
+        let exact: [(__m256i, [__m256i; 4]); N] =
+            std::array::from_fn(|k| (_mm256_set1_epi8(b.exact_c[k] as i8), quarters(&b.exact[k])));
+        let delta = _mm256_set1_epi8(st.delta);
+        let m3f = _mm256_set1_epi16(0x3f);
+        let (one, low7, flag) = (_mm256_set1_epi8(1), _mm256_set1_epi8(0x7f), _mm256_set1_epi8(-128));
+        let sentinel = _mm256_set1_epi8(BYTE_RESOLVE);
+        let zero = _mm256_setzero_si256();
+        let mut pending = Lanes::new();
+        // With entries to resolve in simple buckets (about one step in eight has a lane to
+        // resolve for the Poisson tables), the steps are recorded without a branch instead.
+        let mut rec = Records::new();
+        let n32 = row.len() / 32 * 32;
+        for bi in 0..n32 / 32 {
+            // Samples 0..16 in r0, 16..32 in r1 (16-bit elements, the scalar order).
+            let (r0, r1) = (next4(&mut s), next4(&mut s));
+            // Fine and coarse index as bytes, in `packus` order: s0-7, s16-23, s8-15, s24-31.
+            let f = _mm256_packus_epi16(_mm256_and_si256(r0, m3f), _mm256_and_si256(r1, m3f));
+            let c = _mm256_packus_epi16(
+                _mm256_and_si256(_mm256_srli_epi16::<6>(r0), m3f),
+                _mm256_and_si256(_mm256_srli_epi16::<6>(r1), m3f),
+            );
+            let sc = selectors(c);
+            let t = lookup64(&thr, c, sc);
+            // f >= thr <=> f + 1 > thr, signed bytes (both in 0..=64 without the flag bit).
+            let f1 = _mm256_add_epi8(f, one);
+            let (step, mut m_res) = if RES {
+                let step = _mm256_cmpgt_epi8(f1, _mm256_and_si256(t, low7));
+                // Flag set and f + 1 == thr.
+                (step, _mm256_cmpeq_epi8(_mm256_or_si256(f1, flag), t))
+            } else {
+                (_mm256_cmpgt_epi8(f1, t), zero)
+            };
+            let mut val = _mm256_add_epi8(lookup64(&base, c, sc), _mm256_and_si256(step, delta));
+            if N > 0 {
+                let sf = selectors(f);
+                for (ec, tab) in &exact {
+                    let mk = _mm256_cmpeq_epi8(c, *ec);
+                    val = _mm256_blendv_epi8(val, lookup64(tab, f, sf), mk);
+                }
+                m_res = _mm256_or_si256(m_res, _mm256_cmpeq_epi8(val, sentinel));
+            }
+            if RES {
+                // Lanes to resolve: left unchanged now (offset 0); this step is recorded (kept
+                // when some lane resolves) and resolved in sample order when the list is full
+                // or after the loop, from the sample itself.
+                let packed = _mm256_movemask_epi8(m_res) as u32;
+                let k = rec.len;
+                rec.mask[k] = packed;
+                rec.at[k] = bi as u32;
+                // SAFETY: 32 u16 = 64 bytes; unaligned stores.
+                unsafe {
+                    _mm256_storeu_si256(rec.ix[k].as_mut_ptr() as *mut __m256i, r0);
+                    _mm256_storeu_si256(rec.ix[k].as_mut_ptr().add(16) as *mut __m256i, r1);
+                }
+                rec.len = k + (packed != 0) as usize;
+                if rec.len == RECORDS {
+                    rec.flush(row, resolve);
+                }
+                val = _mm256_andnot_si256(m_res, val);
+            } else if N > 0 {
+                let packed = _mm256_movemask_epi8(m_res) as u32;
+                if packed != 0 {
+                    // Lanes to resolve: left unchanged now (offset 0), resolved in sample order
+                    // after the loop (or when the list is full), from the sample itself. The
+                    // mask's bytes 8..16 and 16..24 swap back to sample order.
+                    let in_order =
+                        (packed & 0xff00_00ff) | ((packed & 0x0000_ff00) << 8) | ((packed & 0x00ff_0000) >> 8);
+                    let mut ix = [0u16; 32];
+                    // SAFETY: 32 u16 = 64 bytes; unaligned stores.
+                    unsafe {
+                        _mm256_storeu_si256(ix.as_mut_ptr() as *mut __m256i, r0);
+                        _mm256_storeu_si256(ix.as_mut_ptr().add(16) as *mut __m256i, r1);
+                    }
+                    pending.push_mask(in_order as u64, bi * 32, &ix, row, resolve);
+                    val = _mm256_andnot_si256(m_res, val);
+                }
+            }
+            // Back to sample order.
+            let val = _mm256_permute4x64_epi64::<0b11_01_10_00>(val);
+            // SAFETY: 32 bytes at 32·bi lie inside the row (bi < n32 / 32); unaligned access.
+            unsafe {
+                let p = row.as_mut_ptr().add(bi * 32) as *mut __m256i;
+                let v = _mm256_loadu_si256(p);
+                // v + val clipped to [0, 255] (|val| <= 127): add the positive part, subtract
+                // the negative one, both saturating.
+                // v + val clipped to [0, 255] (|val| <= 127): v - 128 as a signed byte, a signed
+                // saturating add, + 128 back.
+                _mm256_storeu_si256(p, _mm256_xor_si256(_mm256_adds_epi8(_mm256_xor_si256(v, flag), val), flag));
+            }
+        }
+        rec.flush(row, resolve);
+        pending.flush(row, resolve);
+        store_state(lanes, &s);
+        if n32 < row.len() {
+            super::add_table_noise_scalar(&mut row[n32..], lanes, entries, bits, resolve);
+        }
+    }
+
+    /// Steps recorded by [`step_form`] with `RES`.
+    const RECORDS: usize = 16;
+
+    /// Steps of 32 samples with lanes to resolve (fixed capacity, no allocation): the sample
+    /// indices, the `packus`-order lane mask and the step number.
+    struct Records {
+        ix: [[u16; 32]; RECORDS],
+        mask: [u32; RECORDS],
+        at: [u32; RECORDS],
+        len: usize,
+    }
+
+    impl Records {
+        fn new() -> Records {
+            Records { ix: [[0; 32]; RECORDS], mask: [0; RECORDS], at: [0; RECORDS], len: 0 }
+        }
+
+        /// Resolve the recorded lanes in sample order (they still hold their input value).
+        #[inline(never)]
+        fn flush(&mut self, row: &mut [u8], resolve: &mut dyn FnMut(usize) -> i32) {
+            for k in 0..self.len {
+                let packed = self.mask[k];
+                // Bytes 8..16 and 16..24 of the mask swap back to sample order.
+                let mut m = (packed & 0xff00_00ff) | ((packed & 0x0000_ff00) << 8) | ((packed & 0x00ff_0000) >> 8);
+                let base = self.at[k] as usize * 32;
+                while m != 0 {
+                    let j = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    let v = &mut row[base + j];
+                    *v = (*v as i32).saturating_add(resolve((self.ix[k][j] & 0x0fff) as usize)).clamp(0, 255) as u8;
+                }
+            }
+            self.len = 0;
         }
     }
 
@@ -885,6 +1148,14 @@ mod tests {
                 // SAFETY: the CPU supports AVX2 (checked above).
                 unsafe { avx2::add_byte_form(bytes, lanes, b, tl.n_exact, t.entries(), t.bits(), res) }
             });
+            // And the two-lookup kernel of the step form, when the table has one.
+            if let Some(st) = &b.step {
+                compare_kernel::<T>(table, max, r, &|row, lanes, t, res| {
+                    let bytes = T::bytes_mut(row).expect("8-bit rows only");
+                    // SAFETY: the CPU supports AVX2 (checked above); `n_exact` is the form's.
+                    unsafe { avx2::add_step_form(bytes, lanes, st, b, tl.n_exact, t.entries(), t.bits(), res) }
+                });
+            }
         }
     }
 
@@ -962,6 +1233,10 @@ mod tests {
         };
         for sigma in [0.3, 1.0, 3.0, 4.0, 5.0, 6.0, 7.0, 20.0] {
             let t = table(&|m| (sigma * m + 0.5).floor() as i32);
+            // The chain's setting (original8.toml) has the two-lookup step form.
+            if sigma == 3.0 {
+                assert!(t.two_level().is_some_and(|tl| tl.has_step_form()), "gaussian sigma 3: no step form");
+            }
             match t.two_level() {
                 Some(tl) => assert!(sigma <= 7.0 && tl.exact_buckets() <= MAX_EXACT && tl.has_bytes()),
                 None => assert!(sigma > 7.0, "gaussian sigma {sigma}: no two-level form"),
@@ -975,6 +1250,10 @@ mod tests {
             let t = poisson.noise_table();
             if t.bits() == 12 {
                 assert!(t.two_level().is_some(), "poisson lambda {lambda}: no two-level form");
+            }
+            // The chain's setting (original8.toml: lambda = 4.95 e-, 1 DN per e-).
+            if dn_per_e == 1.0 && lambda < 5.0 && lambda > 4.9 {
+                assert!(t.two_level().is_some_and(|tl| tl.has_step_form()), "poisson {lambda}: no step form");
             }
             compare::<u8>(t, 255, &mut r);
         }
@@ -1020,6 +1299,54 @@ mod tests {
         let mut r = Rng::new(5);
         compare::<u8>(&table, 255, &mut r);
         compare::<u16>(&table, 65535, &mut r);
+    }
+
+    /// A table with the step form and every case of it: steps of 2 at every position, the entry
+    /// before the step resolved in every third bucket (dense: the fix-up list fills mid-row),
+    /// buckets without a step resolving their first entry (base - delta wraps in one of them) or
+    /// their last one, offsets of both signs up to the byte limit, and 0 to 4 exact buckets.
+    #[test]
+    fn step_form_kernel_with_dense_resolves_and_exact_buckets() {
+        let mut r = Rng::new(13);
+        for n_exact in 0..=MAX_EXACT {
+            let exact_c = &[3usize, 17, 40, 62][..n_exact];
+            let entries: Vec<i32> = (0..4096usize)
+                .map(|i| {
+                    let (c, f) = (i / 64, i % 64);
+                    if exact_c.contains(&c) {
+                        return if f % 9 == 4 { RESOLVE } else { (f as i32 * 37 % 255) - 127 };
+                    }
+                    let base = if c == 57 { -127 } else { 4 * (c as i32 % 32) - 64 };
+                    match c % 8 {
+                        1 => return if f == 0 { RESOLVE } else { base },
+                        5 => return if f == 63 { RESOLVE } else { base },
+                        _ => {}
+                    }
+                    let thr = 1 + (c * 5) % 63;
+                    if c % 3 == 0 && f + 1 == thr {
+                        RESOLVE
+                    } else if f >= thr {
+                        base + 2
+                    } else {
+                        base
+                    }
+                })
+                .collect();
+            let mut table = NoiseTable::default();
+            table.rebuild(12, entries);
+            let tl = table.two_level().expect("two-level form");
+            assert_eq!(tl.exact_buckets(), n_exact);
+            assert!(tl.has_step_form(), "{n_exact} exact buckets: no step form");
+            compare::<u8>(&table, 255, &mut r);
+        }
+        // Steps of different sizes: no step form (the four-lookup kernel runs).
+        let uneven: Vec<i32> =
+            (0..4096i32).map(|i| if i % 64 >= 32 { i / 64 * (1 + i / 2048) + 1 } else { 0 }).collect();
+        let mut table = NoiseTable::default();
+        table.rebuild(12, uneven);
+        let tl = table.two_level().expect("two-level form");
+        assert!(tl.has_bytes() && !tl.has_step_form());
+        compare::<u8>(&table, 255, &mut r);
     }
 
     #[test]
