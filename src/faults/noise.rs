@@ -17,7 +17,9 @@
 //!   computation with no memory lookups and no gathers, from 16-entry quarters of the 64-entry
 //!   byte tables (`vpshufb`, two `vpblendvb` on the coarse index's bits 4 and 5), 32 samples per
 //!   step; gathers are microcoded and slow on many AMD cores (Zen 2/3), so no AVX2 kernel uses
-//!   them;
+//!   them. When every simple bucket steps by the same amount and resolves at most the entry
+//!   before its step (`StepForm`, both effects' tables at usual settings) two such lookups
+//!   replace the four;
 //! - AVX2, other tables and 16-bit samples: xoshiro256++ lanes in registers, table entries by
 //!   scalar loads.
 
