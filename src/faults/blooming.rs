@@ -6,9 +6,7 @@
 //! loaded into a floating-point pool; everything else is never touched (or, with an exposure
 //! gain, only rescaled).
 
-use super::kit::{
-    RGB_CHANNEL_BITS, ge_mask_u8, lut_u8_row, max_of_row, multiversion, scale_q16_row, scale_q16_u8,
-};
+use super::kit::{RGB_CHANNEL_BITS, ge_mask_u8, lut_u8_row, max_of_row, multiversion, scale_q16_row, scale_q16_u8};
 use super::util::gaussian_kernel;
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, ImageMut, ImageRef, Sample};
@@ -233,9 +231,16 @@ impl Blooming {
                 load_span(row, v.gain, v.well, v.glow.is_some(), cur, exc, &mut any);
                 continue;
             }
-            // Gather the channel (scalar), then the arithmetic in vectors.
-            for (o, px) in sig[..xn].iter_mut().zip(row.chunks_exact(ch)) {
-                *o = px[v.c];
+            // Gather the channel (8-bit RGB: byte shuffles; else scalar), then the arithmetic in
+            // vectors.
+            if ch == 3
+                && let (Some(src), Some(dst)) = (T::bytes(row), T::bytes_mut(&mut sig[..xn]))
+            {
+                gather_rgb8(src, v.c, dst);
+            } else {
+                for (o, px) in sig[..xn].iter_mut().zip(row.chunks_exact(ch)) {
+                    *o = px[v.c];
+                }
             }
             load_span(&sig[..xn], v.gain, v.well, v.glow.is_some(), cur, exc, &mut any);
         }
@@ -646,8 +651,16 @@ multiversion! {
                 *o = T::from_f32(v);
             }
         } else {
-            for (o, &v) in row.iter_mut().step_by(ch).zip(src) {
-                *o = T::from_f32(v);
+            // Convert in vectors, then store with the stride.
+            let mut tmp = [T::default(); TILE];
+            for (src, row) in src.chunks(TILE).zip(row.chunks_mut(TILE * ch)) {
+                let tmp = &mut tmp[..src.len()];
+                for (o, &v) in tmp.iter_mut().zip(src) {
+                    *o = T::from_f32(v);
+                }
+                for (o, &t) in row.iter_mut().step_by(ch).zip(tmp.iter()) {
+                    *o = t;
+                }
             }
         }
     }
@@ -734,6 +747,59 @@ multiversion! {
     fn segment_max<T: Sample>(row: &[T], seg: usize, out: &mut [T]) {
         for (o, s) in out.iter_mut().zip(row.chunks(seg)) {
             *o = s.iter().fold(T::default(), |m, &v| if v > m { v } else { m });
+        }
+    }
+}
+
+/// Byte shuffle masks of [`gather_rgb8`]: `RGB8_GATHER[c][k]` moves the bytes of channel `c` held
+/// in part `k` (bytes 16k .. 16k + 16) of a 16-pixel block (48 bytes) to their pixel's position.
+const RGB8_GATHER: [[[u8; 16]; 3]; 3] = {
+    let mut m = [[[0x80u8; 16]; 3]; 3];
+    let mut c = 0;
+    while c < 3 {
+        let mut j = 0;
+        while j < 16 {
+            let b = 3 * j + c;
+            m[c][b / 16][j] = (b % 16) as u8;
+            j += 1;
+        }
+        c += 1;
+    }
+    m
+};
+
+/// Channel `c` of the first `out.len()` pixels of an interleaved 3-channel byte row into `out`
+/// (a full tile row: 16-byte shuffles with AVX2; otherwise scalar).
+fn gather_rgb8(row: &[u8], c: usize, out: &mut [u8]) {
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx2() && c < 3 && out.len() == TILE && row.len() >= 3 * TILE {
+        // SAFETY: the CPU supports AVX2 (checked just above), and the lengths were checked.
+        unsafe { gather_rgb8_avx2(row, c, out) };
+        return;
+    }
+    for (o, px) in out.iter_mut().zip(row.chunks_exact(3)) {
+        *o = px[c];
+    }
+}
+
+/// AVX2 (SSSE3 shuffles) version of [`gather_rgb8`] for a full tile row.
+/// # Safety
+/// AVX2; `c < 3`, `out.len() == TILE` and `row.len() >= 3 * TILE`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn gather_rgb8_avx2(row: &[u8], c: usize, out: &mut [u8]) {
+    use std::arch::x86_64::*;
+    // SAFETY: 16-byte loads from the 48-entry mask table of channel c < 3; the blocks read bytes
+    // 0 .. 96 = 3 * TILE of the row and write bytes 0 .. 32 = TILE of `out` (the caller's bounds).
+    unsafe {
+        let m = RGB8_GATHER[c].as_ptr() as *const __m128i;
+        let (m0, m1, m2) = (_mm_loadu_si128(m), _mm_loadu_si128(m.add(1)), _mm_loadu_si128(m.add(2)));
+        for blk in 0..TILE / 16 {
+            let p = row.as_ptr().add(48 * blk) as *const __m128i;
+            let a = _mm_shuffle_epi8(_mm_loadu_si128(p), m0);
+            let b = _mm_shuffle_epi8(_mm_loadu_si128(p.add(1)), m1);
+            let d = _mm_shuffle_epi8(_mm_loadu_si128(p.add(2)), m2);
+            _mm_storeu_si128(out.as_mut_ptr().add(16 * blk) as *mut __m128i, _mm_or_si128(_mm_or_si128(a, b), d));
         }
     }
 }
@@ -1155,6 +1221,19 @@ mod tests {
                     })
                     .collect();
                 assert_eq!(got, want, "w {w}, ch {ch}, density {density}");
+            }
+        }
+    }
+
+    #[test]
+    fn rgb8_channel_gather_equals_a_strided_copy() {
+        let row: Vec<u8> = (0..3 * TILE + 7).map(|i| (i * 7 + 3) as u8).collect();
+        for c in 0..3 {
+            for n in [TILE, 5, 31] {
+                let mut got = vec![0u8; n];
+                gather_rgb8(&row, c, &mut got);
+                let want: Vec<u8> = (0..n).map(|x| row[3 * x + c]).collect();
+                assert_eq!(got, want, "channel {c}, {n} pixels");
             }
         }
     }
