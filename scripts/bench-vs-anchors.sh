@@ -44,6 +44,10 @@ else
 fi
 
 CPU=$(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2- | sed 's/^ *//')
+# The model name alone does not tell Zen 3 from Zen 4 ("AMD EPYC" in these VMs): family and model too.
+FAM=$(awk -F': *' '/^cpu family/ {print $2; exit}' /proc/cpuinfo)
+MODEL=$(awk -F': *' '/^model[[:space:]]*:/ {print $2; exit}' /proc/cpuinfo)
+CPU="$CPU (family ${FAM:-?}, model ${MODEL:-?})"
 KIND=scalar
 grep -qw avx2 /proc/cpuinfo && KIND=AVX2
 grep -qw avx512bw /proc/cpuinfo && KIND=AVX-512
