@@ -753,6 +753,7 @@ multiversion! {
 
 /// Byte shuffle masks of [`gather_rgb8`]: `RGB8_GATHER[c][k]` moves the bytes of channel `c` held
 /// in part `k` (bytes 16k .. 16k + 16) of a 16-pixel block (48 bytes) to their pixel's position.
+#[cfg(target_arch = "x86_64")]
 const RGB8_GATHER: [[[u8; 16]; 3]; 3] = {
     let mut m = [[[0x80u8; 16]; 3]; 3];
     let mut c = 0;
