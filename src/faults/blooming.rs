@@ -751,24 +751,6 @@ multiversion! {
     }
 }
 
-/// Byte shuffle masks of [`gather_rgb8`]: `RGB8_GATHER[c][k]` moves the bytes of channel `c` held
-/// in part `k` (bytes 16k .. 16k + 16) of a 16-pixel block (48 bytes) to their pixel's position.
-#[cfg(target_arch = "x86_64")]
-const RGB8_GATHER: [[[u8; 16]; 3]; 3] = {
-    let mut m = [[[0x80u8; 16]; 3]; 3];
-    let mut c = 0;
-    while c < 3 {
-        let mut j = 0;
-        while j < 16 {
-            let b = 3 * j + c;
-            m[c][b / 16][j] = (b % 16) as u8;
-            j += 1;
-        }
-        c += 1;
-    }
-    m
-};
-
 /// Channel `c` of the first `out.len()` pixels of an interleaved 3-channel byte row into `out`
 /// (a full tile row: 16-byte shuffles with AVX2; otherwise scalar).
 fn gather_rgb8(row: &[u8], c: usize, out: &mut [u8]) {
@@ -790,10 +772,10 @@ fn gather_rgb8(row: &[u8], c: usize, out: &mut [u8]) {
 #[target_feature(enable = "avx2")]
 unsafe fn gather_rgb8_avx2(row: &[u8], c: usize, out: &mut [u8]) {
     use std::arch::x86_64::*;
-    // SAFETY: 16-byte loads from the 48-entry mask table of channel c < 3; the blocks read bytes
+    // SAFETY: 16-byte loads from the 48-entry split table of channel c < 3; the blocks read bytes
     // 0 .. 96 = 3 * TILE of the row and write bytes 0 .. 32 = TILE of `out` (the caller's bounds).
     unsafe {
-        let m = RGB8_GATHER[c].as_ptr() as *const __m128i;
+        let m = super::kit::RGB8_SPLIT[c].as_ptr() as *const __m128i;
         let (m0, m1, m2) = (_mm_loadu_si128(m), _mm_loadu_si128(m.add(1)), _mm_loadu_si128(m.add(2)));
         for blk in 0..TILE / 16 {
             let p = row.as_ptr().add(48 * blk) as *const __m128i;

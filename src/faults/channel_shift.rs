@@ -254,22 +254,7 @@ mod vbmi {
 mod ssse3 {
     use std::arch::x86_64::*;
 
-    /// `SPLIT[c][k]`: `pshufb` indices taking channel c of the 16 pixels from 16-byte part k of
-    /// 48 RGB bytes (0x80: not in this part).
-    const SPLIT: [[[u8; 16]; 3]; 3] = {
-        let mut t = [[[0x80u8; 16]; 3]; 3];
-        let mut c = 0;
-        while c < 3 {
-            let mut p = 0;
-            while p < 16 {
-                let pos = 3 * p + c;
-                t[c][pos / 16][p] = (pos % 16) as u8;
-                p += 1;
-            }
-            c += 1;
-        }
-        t
-    };
+    use crate::faults::kit::RGB8_SPLIT as SPLIT;
 
     /// `SPREAD[k]`: `pshufb` indices putting pixel (16k + j) / 3 of a 16-pixel plane chunk at
     /// byte j of 16-byte part k of its 48 RGB bytes; `CHANNEL[c][k]`: 0xff at the bytes of

@@ -9,6 +9,25 @@ use crate::frame::{Frame, PixelFormat, Sample};
 use crate::rng::Rng;
 use rayon::prelude::*;
 
+/// `RGB8_SPLIT[c][k]`: `pshufb` indices taking channel `c` of 16 interleaved RGB pixels from
+/// 16-byte part `k` of their 48 bytes (0x80: not in this part); OR-ing the three shuffled parts
+/// gives the channel's 16 samples in order (channel_shift's R/B split, blooming's tile loads).
+#[cfg(target_arch = "x86_64")]
+pub(crate) const RGB8_SPLIT: [[[u8; 16]; 3]; 3] = {
+    let mut t = [[[0x80u8; 16]; 3]; 3];
+    let mut c = 0;
+    while c < 3 {
+        let mut p = 0;
+        while p < 16 {
+            let pos = 3 * p + c;
+            t[c][pos / 16][p] = (pos % 16) as u8;
+            p += 1;
+        }
+        c += 1;
+    }
+    t
+};
+
 pub use super::util::ROWS_PER_TASK;
 
 /// Run `f(band, first_row, rows)` over bands of [`ROWS_PER_TASK`] rows in parallel. `rows` is the
