@@ -581,6 +581,23 @@ pub(crate) mod avx2 {
         })
     }
 
+    /// Fine (bits 0..5) and coarse (bits 6..11) index of 32 samples (16-bit elements, samples
+    /// 0..16 in `r0`, 16..32 in `r1`) as bytes; `packus` interleaves the 128-bit halves: byte
+    /// order s0-7, s16-23, s8-15, s24-31.
+    #[inline(always)]
+    fn fine_coarse(r0: __m256i, r1: __m256i) -> (__m256i, __m256i) {
+        // SAFETY: AVX2 context only (inlined into the AVX2 byte-form kernels).
+        unsafe {
+            let m3f = _mm256_set1_epi16(0x3f);
+            let f = _mm256_packus_epi16(_mm256_and_si256(r0, m3f), _mm256_and_si256(r1, m3f));
+            let c = _mm256_packus_epi16(
+                _mm256_and_si256(_mm256_srli_epi16::<6>(r0), m3f),
+                _mm256_and_si256(_mm256_srli_epi16::<6>(r1), m3f),
+            );
+            (f, c)
+        }
+    }
+
     /// Bit 4 and bit 5 of every byte of `i` moved to bit 7 (the `vpblendvb` selectors of
     /// [`lookup64`]).
     #[inline(always)]
@@ -623,7 +640,6 @@ pub(crate) mod avx2 {
         let n_exact = n_exact.min(MAX_EXACT);
         let exact: [(__m256i, [__m256i; 4]); MAX_EXACT] =
             std::array::from_fn(|k| (_mm256_set1_epi8(t.exact_c[k] as i8), quarters(&t.exact[k])));
-        let m3f = _mm256_set1_epi16(0x3f);
         let sentinel = _mm256_set1_epi8(BYTE_RESOLVE);
         let zero = _mm256_setzero_si256();
         let mut pending = Lanes::new();
@@ -631,13 +647,7 @@ pub(crate) mod avx2 {
         for bi in 0..n32 / 32 {
             // Samples 0..16 in r0, 16..32 in r1 (16-bit elements, the scalar order).
             let (r0, r1) = (next4(&mut s), next4(&mut s));
-            // Fine (bits 0..5) and coarse (bits 6..11) index of each sample as bytes; `packus`
-            // interleaves the 128-bit halves: byte order s0-7, s16-23, s8-15, s24-31.
-            let f = _mm256_packus_epi16(_mm256_and_si256(r0, m3f), _mm256_and_si256(r1, m3f));
-            let c = _mm256_packus_epi16(
-                _mm256_and_si256(_mm256_srli_epi16::<6>(r0), m3f),
-                _mm256_and_si256(_mm256_srli_epi16::<6>(r1), m3f),
-            );
+            let (f, c) = fine_coarse(r0, r1);
             let sc = selectors(c);
             let mut val = lookup64(&base, c, sc);
             // f >= thr[c] (unsigned): max(f, thr) == f; thr 64 never.
@@ -739,7 +749,6 @@ pub(crate) mod avx2 {
         let exact: [(__m256i, [__m256i; 4]); N] =
             std::array::from_fn(|k| (_mm256_set1_epi8(b.exact_c[k] as i8), quarters(&b.exact[k])));
         let delta = _mm256_set1_epi8(st.delta);
-        let m3f = _mm256_set1_epi16(0x3f);
         let (one, low7, flag) = (_mm256_set1_epi8(1), _mm256_set1_epi8(0x7f), _mm256_set1_epi8(-128));
         let sentinel = _mm256_set1_epi8(BYTE_RESOLVE);
         let zero = _mm256_setzero_si256();
@@ -751,12 +760,7 @@ pub(crate) mod avx2 {
         for bi in 0..n32 / 32 {
             // Samples 0..16 in r0, 16..32 in r1 (16-bit elements, the scalar order).
             let (r0, r1) = (next4(&mut s), next4(&mut s));
-            // Fine and coarse index as bytes, in `packus` order: s0-7, s16-23, s8-15, s24-31.
-            let f = _mm256_packus_epi16(_mm256_and_si256(r0, m3f), _mm256_and_si256(r1, m3f));
-            let c = _mm256_packus_epi16(
-                _mm256_and_si256(_mm256_srli_epi16::<6>(r0), m3f),
-                _mm256_and_si256(_mm256_srli_epi16::<6>(r1), m3f),
-            );
+            let (f, c) = fine_coarse(r0, r1);
             let sc = selectors(c);
             let t = lookup64(&thr, c, sc);
             // f >= thr <=> f + 1 > thr, signed bytes (both in 0..=64 without the flag bit).
