@@ -1689,6 +1689,17 @@ fn drop_one(
     let mut ev = evidence(steps[j].name, &steps[j].label, lw, current, k, material(planes, &pw), z_thr, 0);
     ev.accepted &= step_above_floor(&steps[j]);
     ev.params = Some(steps[j].params);
+    if std::env::var_os("FAULTCAM_DIAG_DEBUG").is_some() {
+        eprintln!(
+            "drop-one {}: z {:.1}, change {:.3} DN, above floor {}, accepted {} ({})",
+            steps[j].label,
+            ev.z,
+            ev.material_dn,
+            step_above_floor(&steps[j]),
+            ev.accepted,
+            steps.iter().map(|s| format!("{} {:?}", s.label, s.params)).collect::<Vec<_>>().join("; ")
+        );
+    }
     if matches!(steps[j].name, "gain_offset" | "gamma" | "dark_current" | "stray_light" | "vignetting") && ev.accepted {
         // A global tone or additive effect must be supported away from edges and saturated
         // pixels; evidence only there is the shape of a PSF or an interpolation that another
