@@ -539,7 +539,12 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         }
         ctx.loss.rows = Some(rows);
     }
-    let mut sel = select::select(&ctx, &cands, z, start, None)?;
+    // The proper likelihood trusts the noise model's level dependence, which a tone curve the
+    // library's power law does not match bends (see `LossData::set_exact`): once a tone curve
+    // is chosen, the pass stops and the selection is repeated in the Gaussian form, from the
+    // fixed steps (the effects chosen in the proper form are candidates again, not a start).
+    let start_fixed: Vec<select::Step> = start.iter().filter(|s| s.fixed).map(select::Step::boxed_clone).collect();
+    let mut sel = select::select(&ctx, &cands, z, start, None, Some(tone_selected))?;
     let selection_done = |ctx: &FitCtx| {
         super::progress(&format!(
             "selection done ({} evaluations)",
@@ -547,6 +552,30 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         ))
     };
     selection_done(&ctx);
+    if tone_selected(&sel.steps) {
+        ctx.loss.set_exact(false);
+        notes.push(
+            "a tone curve (gamma) was selected: the selection is repeated with the Gaussian form of the likelihood (without the density's normalisation and the exact Poisson–Gaussian probability at few electrons), which does not trust the noise model's level dependence under a curve the power law does not match".into(),
+        );
+        let start: Vec<select::Step> = start_fixed
+            .iter()
+            .map(|s| {
+                let mut c = s.boxed_clone();
+                if c.dither.is_some() {
+                    c.dither = Some(ctx.loss.noise().clone());
+                }
+                c
+            })
+            .collect();
+        let first_tests = std::mem::take(&mut sel.tests);
+        let prior = sel.best_z.clone();
+        super::progress("tone curve selected: selection repeated");
+        sel = select::select(&ctx, &cands, z, start, Some(&prior), None)?;
+        selection_done(&ctx);
+        let mut all = first_tests;
+        all.append(&mut sel.tests);
+        sel.tests = all;
+    }
     // The noise model was measured on real - sim; with the fitted effects taken out it may
     // differ (structure such as smear rows inflates it). If it changed, select again with it,
     // starting from the model found.
@@ -560,30 +589,15 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         .iter()
         .map(|&l| (renoise.var(l) / ctx.loss.noise().var(l) - 1.0).abs())
         .fold(0.0f64, f64::max);
-    // The proper likelihood trusts the noise model's level dependence, which a tone curve the
-    // library's power law does not match bends (see `LossData::set_exact`): with a tone curve
-    // selected, the selection is repeated in the Gaussian form.
-    let tone = tone_selected(&sel.steps);
-    if tone {
-        ctx.loss.set_exact(false);
-        notes.push(
-            "a tone curve (gamma) was selected: the selection is repeated with the Gaussian form of the likelihood (without the density's normalisation and the exact Poisson–Gaussian probability at few electrons), which does not trust the noise model's level dependence under a curve the power law does not match".into(),
-        );
-    }
-    if change > 0.15 || tone {
-        if change > 0.15 {
-            notes.push(format!(
-                "noise model re-measured on the residual of the fitted model (variance changed by up to {:.0} %): selection repeated with it",
-                100.0 * change
-            ));
-            ctx.loss.set_noise(renoise);
-        }
-        // In the other form the selection starts again from the fixed steps (the effects chosen
-        // in the proper form are candidates again, not a start).
+    if change > 0.15 {
+        notes.push(format!(
+            "noise model re-measured on the residual of the fitted model (variance changed by up to {:.0} %): selection repeated with it",
+            100.0 * change
+        ));
+        ctx.loss.set_noise(renoise);
         let start: Vec<select::Step> = sel
             .steps
             .iter()
-            .filter(|s| !tone || s.fixed)
             .map(|s| {
                 let mut c = s.boxed_clone();
                 if c.dither.is_some() {
@@ -594,12 +608,8 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             .collect();
         let first_tests = std::mem::take(&mut sel.tests);
         let prior = sel.best_z.clone();
-        super::progress(if tone {
-            "tone curve selected: selection repeated"
-        } else {
-            "noise model changed: selection repeated"
-        });
-        sel = select::select(&ctx, &cands, z, start, Some(&prior))?;
+        super::progress("noise model changed: selection repeated");
+        sel = select::select(&ctx, &cands, z, start, Some(&prior), None)?;
         selection_done(&ctx);
         let mut all = first_tests;
         all.append(&mut sel.tests);

@@ -255,19 +255,25 @@ pub fn distance_transform(mask: &[bool], w: usize, h: usize) -> Vec<f32> {
 pub fn planes_of(frame: &Frame) -> Vec<Plane> {
     let (w, h, c) = (frame.width as usize, frame.height as usize, frame.channels());
     let scale = 255.0 / frame.full_scale();
-    let mut out: Vec<Plane> = (0..c).map(|_| Plane::new(w, h)).collect();
-    for y in 0..h {
-        let base = y * frame.stride;
-        for x in 0..w {
-            for (ch, p) in out.iter_mut().enumerate() {
-                let i = base + x * c + ch;
-                let v = match &frame.data {
-                    FrameData::U8(d) => d[i] as f32,
-                    FrameData::U16(d) => d[i] as f32,
-                };
-                p.data[y * w + x] = v * scale;
+    let mut out: Vec<Plane> = (0..c).map(|_| Plane { w, h, data: Vec::with_capacity(w * h) }).collect();
+    // One pass per row and channel, the sample type matched once (this runs on every forward-
+    // model evaluation of `diagnose`).
+    fn rows<T: Copy>(d: &[T], stride: usize, w: usize, h: usize, out: &mut [Plane], f: impl Fn(T) -> f32) {
+        let c = out.len();
+        for y in 0..h {
+            let row = &d[y * stride..y * stride + w * c];
+            if c == 1 {
+                out[0].data.extend(row.iter().map(|&v| f(v)));
+            } else {
+                for (ch, p) in out.iter_mut().enumerate() {
+                    p.data.extend(row[ch..].iter().step_by(c).map(|&v| f(v)));
+                }
             }
         }
+    }
+    match &frame.data {
+        FrameData::U8(d) => rows(d, frame.stride, w, h, &mut out, |v| v as f32 * scale),
+        FrameData::U16(d) => rows(d, frame.stride, w, h, &mut out, |v| v as f32 * scale),
     }
     out
 }
@@ -496,6 +502,33 @@ mod tests {
         assert!((code_step(&f) - 1.0 / 257.0).abs() < 1e-12);
         let f8 = Frame::from_data(4, 1, 4, PixelFormat::Mono8, FrameData::U8(vec![1, 2, 3, 4])).unwrap();
         assert_eq!(code_step(&f8), 1.0);
+    }
+
+    /// Every sample of a padded (stride > width · channels) RGB frame and a 16-bit mono frame
+    /// lands in its channel's plane at its place, scaled to 8-bit DN.
+    #[test]
+    fn planes_of_reads_each_channel_at_its_place() {
+        let (w, h, stride) = (5usize, 3usize, 17usize);
+        let data: Vec<u8> = (0..stride * h).map(|i| (i * 7 % 256) as u8).collect();
+        let f = Frame::from_data(w as u32, h as u32, stride, PixelFormat::Rgb8, FrameData::U8(data.clone())).unwrap();
+        let p = planes_of(&f);
+        assert_eq!(p.len(), 3);
+        for (c, plane) in p.iter().enumerate() {
+            assert_eq!((plane.w, plane.h, plane.data.len()), (w, h, w * h));
+            for y in 0..h {
+                for x in 0..w {
+                    assert_eq!(plane.data[y * w + x], data[y * stride + x * 3 + c] as f32, "c {c} x {x} y {y}");
+                }
+            }
+        }
+        let d16: Vec<u16> = (0..(w + 2) * h).map(|i| (i * 4099 % 65536) as u16).collect();
+        let f = Frame::from_data(w as u32, h as u32, w + 2, PixelFormat::Mono16, FrameData::U16(d16.clone())).unwrap();
+        let p = planes_of(&f);
+        for y in 0..h {
+            for x in 0..w {
+                assert_eq!(p[0].data[y * w + x], d16[y * (w + 2) + x] as f32 * (255.0 / 65535.0));
+            }
+        }
     }
 
     #[test]

@@ -1737,6 +1737,7 @@ pub fn select(
     z_thr: f64,
     start: Vec<Step>,
     prior_z: Option<&[f64]>,
+    stop_on: Option<fn(&[Step]) -> bool>,
 ) -> Result<Selection, DiagnoseError> {
     let mut steps: Vec<Step> = start;
     let mut notes = Vec::new();
@@ -1795,6 +1796,23 @@ pub fn select(
             }
             steps = trial;
             refine(ctx, &mut steps)?;
+            if stop_on.is_some_and(|f| f(&steps)) {
+                // The caller repeats the selection in another form once this holds (a tone
+                // curve chosen: see `LossData::set_exact`), so the rest of this pass (further
+                // rounds, swaps, the backward check) would be discarded: stop here.
+                let current = ctx.eval(&mut steps)?;
+                return Ok(Selection {
+                    steps,
+                    evidence: Vec::new(),
+                    tests,
+                    loss_null,
+                    loss_final: current,
+                    notes,
+                    best_z,
+                    tone: None,
+                    level_position: None,
+                });
+            }
             if steps.len() >= 8 {
                 notes.push("selection stopped at 8 deterministic effects".into());
                 break;
