@@ -348,9 +348,13 @@ fn unshear_d(lv: u8, out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u1
     unshear_k(&mut out[done..], &b[done..], ch, g, a, dm, ds);
 }
 
-/// Output positions (pixels along a line) per column block: the block's running sums and held
-/// lines stay in the L1 cache while it runs down the band.
-const CHUNK: isize = 256;
+/// Output positions (pixels along a line) per column block of `ch`-sample pixels: the block's
+/// running sums and held lines (about 14 bytes per sample) stay in the L1/L2 caches while it
+/// runs down the band, and the per-line overhead is spread over many positions (on the Zen 3
+/// 384 rgb8 / 512 mono8 positions ran faster than 256; BENCHMARKS.md).
+fn chunk(ch: usize) -> isize {
+    if ch == 1 { 512 } else { 384 }
+}
 
 /// Lines ahead of the newest held line whose bytes [`prefetch`] asks the cache for: the block
 /// walks down the lines, one new source line per output line, a stride the hardware
@@ -511,13 +515,14 @@ fn band(
         let q = -plan.shift_q(i as isize);
         ((q >> 6) as isize, (q & 63) as u8)
     };
-    let len = (CHUNK as usize + 3) * ch;
+    let chunk = chunk(ch);
+    let len = (chunk as usize + 3) * ch;
     for v in [&mut slot.r, &mut slot.b].into_iter().chain(slot.a.iter_mut()) {
         if v.len() < len {
             v.resize(len, 0);
         }
     }
-    let tl = CHUNK as usize * ch;
+    let tl = chunk as usize * ch;
     if matches!(dst, Dst::Cols(_)) && slot.tile.len() < TILE * tl {
         slot.tile.resize(TILE * tl, 0);
     }
@@ -553,7 +558,7 @@ fn band(
     let (ka, kb) = (klo(i0).0, klo(i0 + rows - 1).0);
     let mut c0 = ka.min(kb);
     while c0 < ka.max(kb) + nl as isize {
-        let c1 = c0 + CHUNK;
+        let c1 = c0 + chunk;
         // State over k in [c0 - 1, c1 + 2), local index (k - base) ch.
         let base = c0 - 1;
         // Positions [v0, v1) hold valid running sums and lines (`None`: not started). The
@@ -907,6 +912,23 @@ pub fn blur_u8_at(
     let (count, nl) = if plan.vertical { (h, w) } else { (w, h) };
     let ls = nl * ch;
     if sc.src.len() < count * ls {
+        if sc.src.capacity() < count * ls {
+            // A fresh buffer asks for transparent huge pages before its first touch: the
+            // transposes and the line walk stride across the frame (one 4 KiB page per line),
+            // fewer TLB misses with 2 MiB pages (4-9 % on the Zen 3, BENCHMARKS.md).
+            let mut v: Vec<u8> = Vec::with_capacity(count * ls);
+            #[cfg(target_os = "linux")]
+            {
+                let (p, huge) = (v.as_mut_ptr() as usize, 1usize << 21);
+                let (a0, a1) = ((p + huge - 1) & !(huge - 1), (p + count * ls) & !(huge - 1));
+                if a1 > a0 {
+                    // SAFETY: advice on whole pages inside the buffer's own allocation (not yet
+                    // touched); it changes how the kernel backs them, never their contents.
+                    unsafe { libc::madvise(a0 as *mut libc::c_void, a1 - a0, libc::MADV_HUGEPAGE) };
+                }
+            }
+            sc.src = v;
+        }
         sc.src.resize(count * ls, 0);
     }
     if plan.vertical {
