@@ -285,7 +285,18 @@ dispatch!(step_v, step_k, (b: &mut [u16], r: &mut [u16], a0: &[u16], a1: &[u16],
 /// AVX-512 copy, untested here), the rest through [`step_v`]; the same 16-bit operations, so the
 /// same bytes.
 #[allow(clippy::too_many_arguments)]
-fn step_d(lv: u8, b: &mut [u16], r: &mut [u16], a0: &[u16], a1: &[u16], a2: &[u16], a3: &[u16], a4: &[u16], e0: u16, e1: u16) {
+fn step_d(
+    lv: u8,
+    b: &mut [u16],
+    r: &mut [u16],
+    a0: &[u16],
+    a1: &[u16],
+    a2: &[u16],
+    a3: &[u16],
+    a4: &[u16],
+    e0: u16,
+    e1: u16,
+) {
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
     if lv >= 1 && super::kit::has_avx2() && !(lv >= 2 && super::kit::has_avx512()) {
@@ -447,7 +458,8 @@ const TILE: usize = 8;
 fn flush_cols(lv: u8, cols: Cols, ch: usize, tile: &[u8], tl: usize, c0: isize, grp: &[(usize, isize, isize, isize)]) {
     let Some(&(ifirst, ..)) = grp.first() else { return };
     let ilast = grp[grp.len() - 1].0;
-    let (xlo, xhi) = grp.iter().fold((isize::MAX, isize::MIN), |(a, b), &(_, k, o0, o1)| (a.min(o0 - k), b.max(o1 - k)));
+    let (xlo, xhi) =
+        grp.iter().fold((isize::MAX, isize::MIN), |(a, b), &(_, k, o0, o1)| (a.min(o0 - k), b.max(o1 - k)));
     assert!(ilast < cols.cols && xlo >= 0 && xhi as usize <= cols.rows && grp.len() <= TILE);
     assert!(cols.len >= (cols.rows - 1) * cols.stride + cols.cols * ch && cols.cols * ch <= cols.stride);
     // Pixels [xs, xv) of every line in registers.
@@ -494,19 +506,11 @@ fn flush_cols(lv: u8, cols: Cols, ch: usize, tile: &[u8], tl: usize, c0: isize, 
     }
 }
 
-/// One band of output lines `i0..i0 + rows` (written to `dst`, lines `dstride` apart), block by
-/// block of output positions `k` (line `i` writes pixel `x = k - klo(i)`).
+/// One band of output lines `i0..i0 + rows` (written to `dst`: image rows, or image columns
+/// through the slot's tile), block by block of output positions `k` (line `i` writes pixel
+/// `x = k - klo(i)`).
 #[allow(clippy::too_many_arguments)]
-fn band(
-    lv: u8,
-    plan: &StreakPlan,
-    src: Lines,
-    i0: usize,
-    rows: usize,
-    mut dst: Dst,
-    taps: &[i32],
-    slot: &mut Slot,
-) {
+fn band(lv: u8, plan: &StreakPlan, src: Lines, i0: usize, rows: usize, mut dst: Dst, taps: &[i32], slot: &mut Slot) {
     let (nl, ch) = (src.nl, src.ch);
     let n = plan.n as isize;
     // Line i's output pixel x reads B at k = x + klo(i) and k + 1 (phase g); the cross filter
