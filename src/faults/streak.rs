@@ -176,15 +176,16 @@ struct Slot {
     a: [Vec<u16>; 5],
     b: Vec<u16>,
     pad: Vec<u8>,
+    // mostly horizontal streaks: the last output lines (up to `TILE`), a chunk's positions each
+    tile: Vec<u8>,
 }
 
 /// Scratch of [`blur_u8`]; grows only (allocation when the frame size or the streak grows).
 #[derive(Default)]
 pub struct Scratch {
-    // allocation: per frame size: the source (rows, or columns transposed) and, for mostly
-    // horizontal streaks, the transposed output
+    // allocation: per frame size: the source (rows, or columns transposed; mostly horizontal
+    // streaks write their output lines straight into the frame's columns, see `flush_cols`)
     src: Vec<u8>,
-    out: Vec<u8>,
     // allocation: per frame size, streak and thread count: one slot per band
     slots: Vec<Slot>,
     // allocation: per frame size and streak: the cross-filter tap of every line, and the
@@ -277,7 +278,34 @@ fn step_k(b: &mut [u16], r: &mut [u16], a0: &[u16], a1: &[u16], a2: &[u16], a3: 
         r[i] = r[i].wrapping_add(a3[i]).wrapping_sub(a2[i]);
     }
 }
-dispatch!(step_d, step_k, (b: &mut [u16], r: &mut [u16], a0: &[u16], a1: &[u16], a2: &[u16], a3: &[u16], a4: &[u16], e0: u16, e1: u16));
+dispatch!(step_v, step_k, (b: &mut [u16], r: &mut [u16], a0: &[u16], a1: &[u16], a2: &[u16], a3: &[u16], a4: &[u16], e0: u16, e1: u16));
+
+/// [`step_k`] in AVX2 registers on AVX2 CPUs (16 positions at a time, written out because LLVM
+/// widens the multiply-highs of this loop to 32-bit lanes; AVX-512 CPUs keep [`step_v`]'s
+/// AVX-512 copy, untested here), the rest through [`step_v`]; the same 16-bit operations, so the
+/// same bytes.
+#[allow(clippy::too_many_arguments)]
+fn step_d(
+    lv: u8,
+    b: &mut [u16],
+    r: &mut [u16],
+    a0: &[u16],
+    a1: &[u16],
+    a2: &[u16],
+    a3: &[u16],
+    a4: &[u16],
+    e0: u16,
+    e1: u16,
+) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if lv >= 1 && super::kit::has_avx2() && !(lv >= 2 && super::kit::has_avx512()) {
+        // SAFETY: AVX2 present (checked).
+        done = unsafe { simd::step(b, r, [a0, a1, a2, a3, a4], e0, e1) };
+    }
+    let t = done;
+    step_v(lv, &mut b[t..], &mut r[t..], &a0[t..], &a1[t..], &a2[t..], &a3[t..], &a4[t..], e0, e1);
+}
 
 /// Offset of the cross filter's result (its sharpening can undershoot by up to half the
 /// largest `B`, 2^14).
@@ -331,9 +359,13 @@ fn unshear_d(lv: u8, out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u1
     unshear_k(&mut out[done..], &b[done..], ch, g, a, dm, ds);
 }
 
-/// Output positions (pixels along a line) per column block: the block's running sums and held
-/// lines stay in the L1 cache while it runs down the band.
-const CHUNK: isize = 256;
+/// Output positions (pixels along a line) per column block of `ch`-sample pixels: the block's
+/// running sums and held lines (about 14 bytes per sample) stay in the L1/L2 caches while it
+/// runs down the band, and the per-line overhead is spread over many positions (on the Zen 3
+/// 384 rgb8 / 512 mono8 positions ran faster than 256; BENCHMARKS.md).
+fn chunk(ch: usize) -> isize {
+    if ch == 1 { 512 } else { 384 }
+}
 
 /// Lines ahead of the newest held line whose bytes [`prefetch`] asks the cache for: the block
 /// walks down the lines, one new source line per output line, a stride the hardware
@@ -362,20 +394,123 @@ fn prefetch(plan: &StreakPlan, src: Lines, j: isize, k0: isize, k1: isize) {
     let _ = (plan, src, j, k0, k1);
 }
 
-/// One band of output lines `i0..i0 + rows` (written to `dst`, lines `dstride` apart), block by
-/// block of output positions `k` (line `i` writes pixel `x = k - klo(i)`).
-#[allow(clippy::too_many_arguments)]
-fn band(
-    lv: u8,
-    plan: &StreakPlan,
-    src: Lines,
-    i0: usize,
+/// [`mirror`] without its division where `i` is within one line length of the line.
+#[inline(always)]
+fn mirror_near(i: isize, n: usize) -> usize {
+    let ni = n as isize;
+    if (0..ni).contains(&i) {
+        i as usize
+    } else if (-ni..0).contains(&i) {
+        (-1 - i) as usize
+    } else if (ni..2 * ni).contains(&i) {
+        (2 * ni - 1 - i) as usize
+    } else {
+        mirror(i, n)
+    }
+}
+
+/// `pad` = the pixels of `C` bytes of `line` (`nl` pixels) at `p0, p0 + 1, ..`, mirrored.
+#[inline(always)]
+fn pad_px<const C: usize>(pad: &mut [u8], line: &[u8], p0: isize, nl: usize) {
+    for (t, d) in pad.chunks_exact_mut(C).enumerate() {
+        let sp = mirror_near(p0 + t as isize, nl) * C;
+        let px: &[u8; C] = line[sp..sp + C].try_into().expect("C bytes");
+        d.copy_from_slice(px);
+    }
+}
+
+/// Where [`band`] writes its output lines.
+enum Dst<'a> {
+    /// Line `row` of the band at `dst[row * stride..]` (a mostly vertical streak: image rows).
+    Rows(&'a mut [u8], usize),
+    /// A mostly horizontal streak: output line `i` is image column `i`, its pixel `x` image row
+    /// `x`; lines go through the slot's tile, [`TILE`] lines at a time (see [`flush_cols`]).
+    Cols(Cols),
+}
+
+/// The frame as columns: sample `c` of pixel `x` of column `i` at `ptr + x * stride + i * ch + c`
+/// (`x < rows`, `i < cols`). Bands write disjoint columns.
+#[derive(Clone, Copy)]
+struct Cols {
+    ptr: *mut u8,
+    len: usize,
+    stride: usize,
     rows: usize,
-    dst: &mut [u8],
-    dstride: usize,
-    taps: &[i32],
-    slot: &mut Slot,
-) {
+    cols: usize,
+}
+
+// SAFETY: `Cols` is a view of a frame that `blur_u8_at` borrows mutably for the whole parallel
+// section; each band writes only the columns of its own lines, so no two threads write the same
+// byte and nobody reads the frame meanwhile.
+unsafe impl Send for Cols {}
+// SAFETY: as for `Send`.
+unsafe impl Sync for Cols {}
+
+/// Output lines held in a slot's tile before [`flush_cols`] transposes them into the frame.
+const TILE: usize = 8;
+
+/// Writes the tile's `grp.len()` (<= [`TILE`]) consecutive output lines into frame columns:
+/// tile row `t` holds line `grp[t].0` over positions `[grp[t].2, grp[t].3)` of the chunk starting
+/// at `c0` (`tl` bytes a row, `ch` per position); position `o` of the line is its pixel `o - k`,
+/// `k = grp[t].1`. With [`TILE`] lines and AVX2 (level `lv` >= 1), the pixels all of them hold
+/// go 8 x 8 at a time through registers, the rest pixel by pixel (byte copies: the same bytes
+/// either way).
+fn flush_cols(lv: u8, cols: Cols, ch: usize, tile: &[u8], tl: usize, c0: isize, grp: &[(usize, isize, isize, isize)]) {
+    let Some(&(ifirst, ..)) = grp.first() else { return };
+    let ilast = grp[grp.len() - 1].0;
+    let (xlo, xhi) =
+        grp.iter().fold((isize::MAX, isize::MIN), |(a, b), &(_, k, o0, o1)| (a.min(o0 - k), b.max(o1 - k)));
+    assert!(ilast < cols.cols && xlo >= 0 && xhi as usize <= cols.rows && grp.len() <= TILE);
+    assert!(cols.len >= (cols.rows - 1) * cols.stride + cols.cols * ch && cols.cols * ch <= cols.stride);
+    // Pixels [xs, xv) of every line in registers.
+    let (xs, xe) = grp.iter().fold((isize::MIN, isize::MAX), |(a, b), &(_, k, o0, o1)| (a.max(o0 - k), b.min(o1 - k)));
+    #[cfg(target_arch = "x86_64")]
+    let simd = lv >= 1 && grp.len() == TILE && xe > xs && super::kit::has_avx2();
+    #[cfg(not(target_arch = "x86_64"))]
+    let simd = {
+        let _ = lv;
+        false
+    };
+    let xv = if simd { xs + (xe - xs) / 8 * 8 } else { xs };
+    #[cfg(target_arch = "x86_64")]
+    if simd {
+        for x in (xs..xv).step_by(8) {
+            let src: [*const u8; TILE] = std::array::from_fn(|t| {
+                let (_, k, ..) = grp[t];
+                let at = t * tl + (x + k - c0) as usize * ch;
+                tile[at..at + 8 * ch].as_ptr()
+            });
+            // SAFETY: AVX2 present (checked with `simd`); each source row has its 8 pixels
+            // inside `tile` (sliced above); the 8 destination rows x..x + 8 < rows have columns
+            // ifirst..ifirst + 8 <= cols inside the frame (asserted above), which only this band
+            // writes (see `Cols`).
+            unsafe {
+                let d = cols.ptr.add(x as usize * cols.stride + ifirst * ch);
+                match ch {
+                    1 => simd::t8x8_rows::<1>(src, d, cols.stride),
+                    _ => simd::t8x8_rows::<3>(src, d, cols.stride),
+                }
+            }
+        }
+    }
+    for (t, &(i, k, o0, o1)) in grp.iter().enumerate() {
+        for x in (o0 - k..o1 - k).filter(|x| !(xs..xv).contains(x)) {
+            let at = t * tl + (x + k - c0) as usize * ch;
+            let px = &tile[at..at + ch];
+            // SAFETY: x < rows, i < cols (asserted above): inside the frame, in this band's
+            // column (see `Cols`); `px` is in `tile`, which does not overlap the frame.
+            unsafe {
+                std::ptr::copy_nonoverlapping(px.as_ptr(), cols.ptr.add(x as usize * cols.stride + i * ch), ch);
+            }
+        }
+    }
+}
+
+/// One band of output lines `i0..i0 + rows` (written to `dst`: image rows, or image columns
+/// through the slot's tile), block by block of output positions `k` (line `i` writes pixel
+/// `x = k - klo(i)`).
+#[allow(clippy::too_many_arguments)]
+fn band(lv: u8, plan: &StreakPlan, src: Lines, i0: usize, rows: usize, mut dst: Dst, taps: &[i32], slot: &mut Slot) {
     let (nl, ch) = (src.nl, src.ch);
     let n = plan.n as isize;
     // Line i's output pixel x reads B at k = x + klo(i) and k + 1 (phase g); the cross filter
@@ -384,11 +519,16 @@ fn band(
         let q = -plan.shift_q(i as isize);
         ((q >> 6) as isize, (q & 63) as u8)
     };
-    let len = (CHUNK as usize + 3) * ch;
+    let chunk = chunk(ch);
+    let len = (chunk as usize + 3) * ch;
     for v in [&mut slot.r, &mut slot.b].into_iter().chain(slot.a.iter_mut()) {
         if v.len() < len {
             v.resize(len, 0);
         }
+    }
+    let tl = chunk as usize * ch;
+    if matches!(dst, Dst::Cols(_)) && slot.tile.len() < TILE * tl {
+        slot.tile.resize(TILE * tl, 0);
     }
     // A(j, k) for k in [k0, k1) into `a` (index (k - base) ch).
     let fill = |a: &mut [u16], pad: &mut Vec<u8>, base: isize, j: isize, k0: isize, k1: isize| {
@@ -405,12 +545,15 @@ fn band(
         }
         for (e0, e1) in [(k0, i0), (i1, k1)] {
             if e1 > e0 {
-                pad.clear();
-                for p in e0 + s..e1 + s + 1 {
-                    let sp = mirror(p, nl) * ch;
-                    pad.extend_from_slice(&line[sp..sp + ch]);
+                let cnt = (e1 - e0 + 1) as usize;
+                if pad.len() < cnt * ch {
+                    pad.resize(cnt * ch, 0);
                 }
-                lerp_d(lv, &mut a[x(e0)..x(e1)], pad, ch, f, plan.q);
+                match ch {
+                    1 => pad_px::<1>(&mut pad[..cnt], line, e0 + s, nl),
+                    _ => pad_px::<3>(&mut pad[..cnt * 3], line, e0 + s, nl),
+                }
+                lerp_d(lv, &mut a[x(e0)..x(e1)], &pad[..cnt * ch], ch, f, plan.q);
             }
         }
     };
@@ -419,7 +562,7 @@ fn band(
     let (ka, kb) = (klo(i0).0, klo(i0 + rows - 1).0);
     let mut c0 = ka.min(kb);
     while c0 < ka.max(kb) + nl as isize {
-        let c1 = c0 + CHUNK;
+        let c1 = c0 + chunk;
         // State over k in [c0 - 1, c1 + 2), local index (k - base) ch.
         let base = c0 - 1;
         // Positions [v0, v1) hold valid running sums and lines (`None`: not started). The
@@ -428,6 +571,9 @@ fn band(
         // dropped (never needed again), so the block computes only about the positions its
         // lines output (the sheared parallelogram, not its bounding rectangle).
         let mut valid: Option<(isize, isize)> = None;
+        // The lines in the tile (mostly horizontal streaks): (i, k, o0, o1).
+        let mut grp = [(0usize, 0isize, 0isize, 0isize); TILE];
+        let mut glen = 0;
         for (row, i) in (i0..i0 + rows).enumerate() {
             let (k, g) = klo(i);
             let (o0, o1) = (c0.max(k), c1.min(k + nl as isize));
@@ -438,7 +584,7 @@ fn band(
                 continue;
             }
             let (n0, n1) = (o0 - 1, o1 + 2);
-            let Slot { r, a, b, pad } = &mut *slot;
+            let Slot { r, a, b, pad, tile } = &mut *slot;
             // Running sums and held lines at line i over [g0, g1).
             let mut init = |g0: isize, g1: isize| {
                 let (x0, x1) = ((g0 - base) as usize * ch, (g1 - base) as usize * ch);
@@ -488,9 +634,23 @@ fn band(
             let (a0, a1, a2, a3, a4) = (&a0[y0..y1], &a1[y0..y1], &a2[y0..y1], &a3[y0..y1], &a4[y0..y1]);
             step_d(lv, &mut b[y0..y1], &mut r[y0..y1], a0, a1, a2, a3, a4, plan.eq[0], plan.eq[1]);
             let (x0, x1) = ((n0 - base) as usize * ch, (n1 - base) as usize * ch);
-            let p0 = row * dstride + (o0 - k) as usize * ch;
-            let orow = &mut dst[p0..p0 + (o1 - o0) as usize * ch];
-            unshear_d(lv, orow, &b[x0..x1], ch, g, taps[row], plan.dm, plan.ds);
+            let bx = &b[x0..x1];
+            match &mut dst {
+                Dst::Rows(d, stride) => {
+                    let p0 = row * *stride + (o0 - k) as usize * ch;
+                    unshear_d(lv, &mut d[p0..p0 + (o1 - o0) as usize * ch], bx, ch, g, taps[row], plan.dm, plan.ds);
+                }
+                Dst::Cols(cols) => {
+                    let p0 = glen * tl + (o0 - c0) as usize * ch;
+                    unshear_d(lv, &mut tile[p0..p0 + (o1 - o0) as usize * ch], bx, ch, g, taps[row], plan.dm, plan.ds);
+                    grp[glen] = (i, k, o0, o1);
+                    glen += 1;
+                    if glen == TILE {
+                        flush_cols(lv, *cols, ch, tile, tl, c0, &grp);
+                        glen = 0;
+                    }
+                }
+            }
             if row + 1 == rows {
                 break;
             }
@@ -503,6 +663,9 @@ fn band(
             a.swap(3, 4);
             fill(&mut a[4], pad, base, i as isize + 1 + n + 2, v0, v1);
             prefetch(plan, src, i as isize + 1 + n + 2 + AHEAD, v0, v1);
+        }
+        if let Dst::Cols(cols) = &dst {
+            flush_cols(lv, *cols, ch, &slot.tile, tl, c0, &grp[..glen]);
         }
         c0 = c1;
     }
@@ -600,6 +763,35 @@ mod simd {
         r
     }
 
+    /// [`super::step_k`] over the first `b.len() / 16 * 16` positions (returned), 16 at a time.
+    ///
+    /// # Safety
+    /// AVX2.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn step(b: &mut [u16], r: &mut [u16], a: [&[u16]; 5], e0: u16, e1: u16) -> usize {
+        let n = b.len() / 16 * 16;
+        assert!(r.len() >= n && a.iter().all(|v| v.len() >= n));
+        let (e0v, e1v, one) = (_mm256_set1_epi16(e0 as i16), _mm256_set1_epi16(e1 as i16), _mm256_set1_epi16(1));
+        for i in (0..n).step_by(16) {
+            // SAFETY: AVX2 (the caller's contract); every load and store covers 16 values
+            // below n of its slice (asserted).
+            unsafe {
+                let l = |v: &[u16]| _mm256_loadu_si256(v.as_ptr().add(i).cast::<__m256i>());
+                let rv = l(r);
+                let (x0, x1, x2, x3, x4) = (l(a[0]), l(a[1]), l(a[2]), l(a[3]), l(a[4]));
+                let t = _mm256_add_epi16(
+                    _mm256_add_epi16(rv, mulhi(_mm256_add_epi16(x1, x3), e0v)),
+                    mulhi(_mm256_add_epi16(x0, x4), e1v),
+                );
+                let bv = _mm256_srli_epi16(_mm256_add_epi16(t, one), 1);
+                _mm256_storeu_si256(b.as_mut_ptr().add(i).cast::<__m256i>(), bv);
+                let rn = _mm256_sub_epi16(_mm256_add_epi16(rv, x3), x2);
+                _mm256_storeu_si256(r.as_mut_ptr().add(i).cast::<__m256i>(), rn);
+            }
+        }
+        n
+    }
+
     /// [`super::unshear_k`] over the first `out.len() / 16 * 16` outputs (returned), 16 at a time.
     ///
     /// # Safety
@@ -645,6 +837,16 @@ mod simd {
     /// AVX2; 8 rows of `8 C` bytes readable at `src + r * ss`, writable at `dst + c * ds`.
     #[target_feature(enable = "avx2")]
     pub unsafe fn t8x8_px<const C: usize>(src: *const u8, ss: usize, dst: *mut u8, ds: usize) {
+        // SAFETY: as documented (row r at src + r ss).
+        unsafe { t8x8_rows::<C>(std::array::from_fn(|r| src.add(r * ss)), dst, ds) }
+    }
+
+    /// [`t8x8_px`] with the 8 source rows at `src[r]`.
+    ///
+    /// # Safety
+    /// AVX2; `8 C` bytes readable at each `src[r]`, writable at `dst + c * ds` for c < 8.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn t8x8_rows<const C: usize>(src: [*const u8; 8], dst: *mut u8, ds: usize) {
         // SAFETY: as documented; every load and store stays within the 8 C bytes of its row.
         unsafe {
             let widen = _mm256_setr_epi8(
@@ -652,7 +854,7 @@ mod simd {
                 15, -1,
             );
             let ld = |r: usize| {
-                let p = src.add(r * ss);
+                let p = src[r];
                 if C == 3 {
                     // Pixels 0..4 from bytes 0..12, pixels 4..8 from bytes 12..24 (lane 1 loads
                     // from byte 8).
@@ -714,6 +916,23 @@ pub fn blur_u8_at(
     let (count, nl) = if plan.vertical { (h, w) } else { (w, h) };
     let ls = nl * ch;
     if sc.src.len() < count * ls {
+        if sc.src.capacity() < count * ls {
+            // A fresh buffer asks for transparent huge pages before its first touch: the
+            // transposes and the line walk stride across the frame (one 4 KiB page per line),
+            // fewer TLB misses with 2 MiB pages (4-9 % on the Zen 3, BENCHMARKS.md).
+            let mut v: Vec<u8> = Vec::with_capacity(count * ls);
+            #[cfg(target_os = "linux")]
+            {
+                let (p, huge) = (v.as_mut_ptr() as usize, 1usize << 21);
+                let (a0, a1) = ((p + huge - 1) & !(huge - 1), (p + count * ls) & !(huge - 1));
+                if a1 > a0 {
+                    // SAFETY: advice on whole pages inside the buffer's own allocation (not yet
+                    // touched); it changes how the kernel backs them, never their contents.
+                    unsafe { libc::madvise(a0 as *mut libc::c_void, a1 - a0, libc::MADV_HUGEPAGE) };
+                }
+            }
+            sc.src = v;
+        }
         sc.src.resize(count * ls, 0);
     }
     if plan.vertical {
@@ -723,9 +942,6 @@ pub fn blur_u8_at(
             .for_each(|(y, l)| l.copy_from_slice(&d[y * stride..y * stride + ls]));
     } else {
         transpose(lv, d, stride, w, h, ch, &mut sc.src[..count * ls], ls);
-        if sc.out.len() < count * ls {
-            sc.out.resize(count * ls, 0);
-        }
     }
     let threads = rayon::current_num_threads().max(1);
     let per = count.div_ceil(threads).max(64);
@@ -740,15 +956,22 @@ pub fn blur_u8_at(
     }
     let src = Lines { data: &sc.src, stride: ls, count, nl, ch };
     let taps = &sc.taps;
-    let (dst, dstride): (&mut [u8], usize) = if plan.vertical { (d, stride) } else { (&mut sc.out[..count * ls], ls) };
-    let used = dst.len().min(dstride * count);
-    dst[..used].par_chunks_mut(dstride * per).zip(sc.slots.par_iter_mut()).enumerate().for_each(|(b, (out, slot))| {
-        let i0 = b * per;
-        let rows = per.min(count - i0);
-        band(lv, plan, src, i0, rows, out, dstride, &taps[i0..i0 + rows], slot);
-    });
-    if !plan.vertical {
-        transpose(lv, &sc.out, ls, h, w, ch, d, stride);
+    if plan.vertical {
+        let used = d.len().min(stride * count);
+        d[..used].par_chunks_mut(stride * per).zip(sc.slots.par_iter_mut()).enumerate().for_each(|(b, (out, slot))| {
+            let i0 = b * per;
+            let rows = per.min(count - i0);
+            band(lv, plan, src, i0, rows, Dst::Rows(out, stride), &taps[i0..i0 + rows], slot);
+        });
+    } else {
+        // Output lines are the frame's columns, written by each band (disjoint columns).
+        assert!(d.len() >= (h - 1) * stride + w * ch && w * ch <= stride);
+        let cols = Cols { ptr: d.as_mut_ptr(), len: d.len(), stride, rows: h, cols: w };
+        sc.slots[..nb].par_iter_mut().enumerate().for_each(|(b, slot)| {
+            let i0 = b * per;
+            let rows = per.min(count - i0);
+            band(lv, plan, src, i0, rows, Dst::Cols(cols), &taps[i0..i0 + rows], slot);
+        });
     }
 }
 
