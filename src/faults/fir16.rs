@@ -128,8 +128,31 @@ fn fir_scalar(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usiz
 
 /// `out[i] = clamp(round(acc[i] / 2^6), 0, 255)` (round half up).
 pub fn q6_to_u8(out: &mut [u8], acc: &[i16]) {
-    for (o, &a) in out.iter_mut().zip(acc) {
+    let n = out.len().min(acc.len());
+    let (out, acc) = (&mut out[..n], &acc[..n]);
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx2() {
+        // SAFETY: AVX2 present (checked); both slices hold n values.
+        done = unsafe { simd::q6_to_u8_avx2(out, acc) };
+    }
+    for (o, &a) in out[done..].iter_mut().zip(&acc[done..]) {
         *o = ((a.max(0) as i32 + 32) >> SAMPLE_Q).min(255) as u8;
+    }
+}
+
+/// `out[i] = src[i] << 6` (8-bit samples to Q6), the first `min(len)` values.
+pub fn u8_to_q6(out: &mut [i16], src: &[u8]) {
+    let n = out.len().min(src.len());
+    let (out, src) = (&mut out[..n], &src[..n]);
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx2() {
+        // SAFETY: AVX2 present (checked); both slices hold n values.
+        done = unsafe { simd::u8_to_q6_avx2(out, src) };
+    }
+    for (p, &v) in out[done..].iter_mut().zip(&src[done..]) {
+        *p = (v as i16) << SAMPLE_Q;
     }
 }
 
@@ -171,6 +194,45 @@ mod simd {
             i += 64;
         }
         let _ = mulhrs;
+        n
+    }
+
+    /// [`super::q6_to_u8`] on whole chunks of 32 values (`out.len() == acc.len()`): `(a + 32) >> 6`
+    /// with a saturating add, then `vpackuswb` clamps to 0..=255, which equals the scalar form
+    /// for every i16 (a saturated sum is >= 32735, far above 255 * 64). Returns the count done.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn q6_to_u8_avx2(out: &mut [u8], acc: &[i16]) -> usize {
+        let n = out.len().min(acc.len()) / 32 * 32;
+        let half = _mm256_set1_epi16(32);
+        let mut i = 0;
+        while i < n {
+            // SAFETY (block): i + 32 <= n <= both lengths.
+            unsafe {
+                let a = _mm256_loadu_si256(acc.as_ptr().add(i) as *const __m256i);
+                let b = _mm256_loadu_si256(acc.as_ptr().add(i + 16) as *const __m256i);
+                let a = _mm256_srai_epi16::<6>(_mm256_adds_epi16(a, half));
+                let b = _mm256_srai_epi16::<6>(_mm256_adds_epi16(b, half));
+                let p = _mm256_permute4x64_epi64::<0xD8>(_mm256_packus_epi16(a, b));
+                _mm256_storeu_si256(out.as_mut_ptr().add(i) as *mut __m256i, p);
+            }
+            i += 32;
+        }
+        n
+    }
+
+    /// [`super::u8_to_q6`] on whole chunks of 16 values; returns the count done.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn u8_to_q6_avx2(out: &mut [i16], src: &[u8]) -> usize {
+        let n = out.len().min(src.len()) / 16 * 16;
+        let mut i = 0;
+        while i < n {
+            // SAFETY (block): i + 16 <= n <= both lengths.
+            unsafe {
+                let v = _mm256_cvtepu8_epi16(_mm_loadu_si128(src.as_ptr().add(i) as *const __m128i));
+                _mm256_storeu_si256(out.as_mut_ptr().add(i) as *mut __m256i, _mm256_slli_epi16::<6>(v));
+            }
+            i += 16;
+        }
         n
     }
 
@@ -340,6 +402,22 @@ mod tests {
                     assert_eq!(*f, slow, "r {r} n {n} centre {c}");
                 }
             }
+        }
+        // The conversions: every i16 and every byte, at lengths around the chunk sizes.
+        let all: Vec<i16> = (i16::MIN..=i16::MAX).collect();
+        let mut fast = vec![0u8; all.len()];
+        q6_to_u8(&mut fast, &all);
+        for (&a, &f) in all.iter().zip(&fast) {
+            assert_eq!(f, ((a.max(0) as i32 + 32) >> SAMPLE_Q).min(255) as u8, "{a}");
+        }
+        for n in [0usize, 1, 15, 16, 17, 31, 32, 33, 300] {
+            let src: Vec<u8> = (0..n).map(|i| (i * 37 % 256) as u8).collect();
+            let mut q6 = vec![0i16; n];
+            u8_to_q6(&mut q6, &src);
+            assert!(q6.iter().zip(&src).all(|(&p, &v)| p == (v as i16) << SAMPLE_Q), "{n}");
+            let mut back = vec![0u8; n];
+            q6_to_u8(&mut back, &q6);
+            assert_eq!(back, src, "{n}");
         }
         // mulhrs is round-to-nearest (ties up) of a * b / 2^15.
         for &(a, b) in &[(16320i16, 32767i16), (1, 16384), (3, 16384), (-5, 9000), (32640, 1)] {
