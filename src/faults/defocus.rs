@@ -168,9 +168,7 @@ fn from_halo(yv: isize, y0: usize, y1: usize, h: usize) -> bool {
 /// Q6 (`v * 64`) copy of 8-bit row `src`, mirrored by `r` pixels at both ends, into `pad`.
 pub(crate) fn pad_row_q6(src: &[u8], w: usize, ch: usize, r: usize, pad: &mut [i16]) {
     let c = r * ch;
-    for (p, v) in pad[c..c + w * ch].iter_mut().zip(src) {
-        *p = (*v as i16) << fir16::SAMPLE_Q;
-    }
+    fir16::u8_to_q6(&mut pad[c..c + w * ch], src);
     for px in (0..r).chain(r + w..w + 2 * r) {
         let sx = mirror(px as isize - r as isize, w);
         for k in 0..ch {

@@ -93,22 +93,25 @@ pub fn sym_fir(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usi
 pub fn sym_fir2(out0: &mut [i16], out1: &mut [i16], base: &[i16], rows: &[usize], q: &[i16]) {
     let n = out0.len();
     let r = q.len() - 1;
-    assert!(out1.len() == n && rows.len() == 2 * r + 2 && !q.is_empty());
+    assert!(out1.len() == n && rows.len() == 2 * r + 2 && !q.is_empty() && r <= super::defocus::MAX_R);
     for &o in rows {
         assert!(o + n <= base.len(), "fir: rows inside the buffer");
     }
-    let offs = |c: usize| -> [(usize, usize); 2 * (super::defocus::MAX_R + 1)] {
-        std::array::from_fn(|k| if k <= r && k > 0 { (rows[c - k], rows[c + k]) } else { (0, 0) })
-    };
-    let (o0, o1) = (offs(r), offs(r + 1));
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
     if super::kit::has_avx2() {
         // SAFETY: AVX2 present (checked); reads are in bounds (asserted above).
         done = unsafe { simd::fir2_avx2(out0, out1, base, rows, q) };
     }
-    fir_scalar(&mut out0[done..], base, rows[r] + done, &o0[..=r], q, done);
-    fir_scalar(&mut out1[done..], base, rows[r + 1] + done, &o1[..=r], q, done);
+    if done < n {
+        // The tail (fewer than 32 outputs) in scalar code; its tap offsets only built then.
+        let offs = |c: usize| -> [(usize, usize); 2 * (super::defocus::MAX_R + 1)] {
+            std::array::from_fn(|k| if k <= r && k > 0 { (rows[c - k], rows[c + k]) } else { (0, 0) })
+        };
+        let (o0, o1) = (offs(r), offs(r + 1));
+        fir_scalar(&mut out0[done..], base, rows[r] + done, &o0[..=r], q, done);
+        fir_scalar(&mut out1[done..], base, rows[r + 1] + done, &o1[..=r], q, done);
+    }
 }
 
 /// Scalar reference of [`sym_fir`] (outputs from `skip` on: tap offsets are shifted by it).
@@ -125,8 +128,31 @@ fn fir_scalar(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usiz
 
 /// `out[i] = clamp(round(acc[i] / 2^6), 0, 255)` (round half up).
 pub fn q6_to_u8(out: &mut [u8], acc: &[i16]) {
-    for (o, &a) in out.iter_mut().zip(acc) {
+    let n = out.len().min(acc.len());
+    let (out, acc) = (&mut out[..n], &acc[..n]);
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx2() {
+        // SAFETY: AVX2 present (checked); both slices hold n values.
+        done = unsafe { simd::q6_to_u8_avx2(out, acc) };
+    }
+    for (o, &a) in out[done..].iter_mut().zip(&acc[done..]) {
         *o = ((a.max(0) as i32 + 32) >> SAMPLE_Q).min(255) as u8;
+    }
+}
+
+/// `out[i] = src[i] << 6` (8-bit samples to Q6), the first `min(len)` values.
+pub fn u8_to_q6(out: &mut [i16], src: &[u8]) {
+    let n = out.len().min(src.len());
+    let (out, src) = (&mut out[..n], &src[..n]);
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx2() {
+        // SAFETY: AVX2 present (checked); both slices hold n values.
+        done = unsafe { simd::u8_to_q6_avx2(out, src) };
+    }
+    for (p, &v) in out[done..].iter_mut().zip(&src[done..]) {
+        *p = (v as i16) << SAMPLE_Q;
     }
 }
 
@@ -171,36 +197,110 @@ mod simd {
         n
     }
 
-    /// [`super::sym_fir2`] on whole chunks of 32 outputs; returns how many were written.
+    /// [`super::q6_to_u8`] on whole chunks of 32 values (`out.len() == acc.len()`): `(a + 32) >> 6`
+    /// with a saturating add, then `vpackuswb` clamps to 0..=255, which equals the scalar form
+    /// for every i16 (a saturated sum is >= 32735, far above 255 * 64). Returns the count done.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn q6_to_u8_avx2(out: &mut [u8], acc: &[i16]) -> usize {
+        let n = out.len().min(acc.len()) / 32 * 32;
+        let half = _mm256_set1_epi16(32);
+        let mut i = 0;
+        while i < n {
+            // SAFETY (block): i + 32 <= n <= both lengths.
+            unsafe {
+                let a = _mm256_loadu_si256(acc.as_ptr().add(i) as *const __m256i);
+                let b = _mm256_loadu_si256(acc.as_ptr().add(i + 16) as *const __m256i);
+                let a = _mm256_srai_epi16::<6>(_mm256_adds_epi16(a, half));
+                let b = _mm256_srai_epi16::<6>(_mm256_adds_epi16(b, half));
+                let p = _mm256_permute4x64_epi64::<0xD8>(_mm256_packus_epi16(a, b));
+                _mm256_storeu_si256(out.as_mut_ptr().add(i) as *mut __m256i, p);
+            }
+            i += 32;
+        }
+        n
+    }
+
+    /// [`super::u8_to_q6`] on whole chunks of 16 values; returns the count done.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn u8_to_q6_avx2(out: &mut [i16], src: &[u8]) -> usize {
+        let n = out.len().min(src.len()) / 16 * 16;
+        let mut i = 0;
+        while i < n {
+            // SAFETY (block): i + 16 <= n <= both lengths.
+            unsafe {
+                let v = _mm256_cvtepu8_epi16(_mm_loadu_si128(src.as_ptr().add(i) as *const __m128i));
+                _mm256_storeu_si256(out.as_mut_ptr().add(i) as *mut __m256i, _mm256_slli_epi16::<6>(v));
+            }
+            i += 16;
+        }
+        n
+    }
+
+    /// [`super::sym_fir2`] on whole chunks of 32 outputs; returns how many were written. The
+    /// row addresses and the broadcast weights are set up once per call, and the tap loop is
+    /// unrolled by two so the rows loaded for one tap serve the next without register copies
+    /// (the loop was bound by its scalar bookkeeping: index loads, bounds checks, moves).
     #[target_feature(enable = "avx2")]
     pub unsafe fn fir2_avx2(out0: &mut [i16], out1: &mut [i16], base: &[i16], rows: &[usize], q: &[i16]) -> usize {
         let n = out0.len() / 32 * 32;
         let r = q.len() - 1;
+        if n == 0 {
+            return 0;
+        }
+        const M: usize = super::super::defocus::MAX_R;
+        assert!(r <= M && rows.len() == 2 * r + 2 && out1.len() >= n);
         let bp = base.as_ptr();
+        // Row t's first sample (offsets inside `base`, checked by the caller).
+        let mut rp = [bp; 2 * M + 2];
+        for (p, &o) in rp.iter_mut().zip(rows) {
+            // SAFETY: o + n <= base.len() (checked by the caller).
+            *p = unsafe { bp.add(o) };
+        }
+        let mut qv = [_mm256_setzero_si256(); M + 1];
+        for (v, &w) in qv.iter_mut().zip(q) {
+            *v = _mm256_set1_epi16(w);
+        }
         let mut i = 0;
         while i < n {
-            // SAFETY (block): rows[t] + i + 32 <= rows[t] + n <= base.len() (checked by the
-            // caller); out0 and out1 hold n >= i + 32 values.
+            // SAFETY (block): t < 2r + 2 = rows.len() and k <= r index rp and qv in bounds;
+            // rows[t] + i + 32 <= rows[t] + n <= base.len() (checked by the caller); out0 and
+            // out1 hold n >= i + 32 values.
             unsafe {
-                let ld = |p: usize| _mm256_loadu_si256(bp.add(p + i) as *const __m256i);
-                let q0 = _mm256_set1_epi16(q[0]);
-                let (x0a, x0b) = (ld(rows[r]), ld(rows[r] + 16));
-                let (x1a, x1b) = (ld(rows[r + 1]), ld(rows[r + 1] + 16));
+                let ld = |t: usize, o: usize| _mm256_loadu_si256(rp.get_unchecked(t).add(i + o) as *const __m256i);
+                let q0 = *qv.get_unchecked(0);
+                let (x0a, x0b) = (ld(r, 0), ld(r, 16));
+                let (x1a, x1b) = (ld(r + 1, 0), ld(r + 1, 16));
                 let mut a0a = _mm256_mulhrs_epi16(x0a, q0);
                 let mut a0b = _mm256_mulhrs_epi16(x0b, q0);
                 let mut a1a = _mm256_mulhrs_epi16(x1a, q0);
                 let mut a1b = _mm256_mulhrs_epi16(x1b, q0);
-                // pl = row r + 1 - k (out1's low tap), ph = row r + k (out0's high tap).
+                // Tap pair k: out0 += (row r - k) + (row r + k), out1 += (row r + 1 - k) + (row
+                // r + 1 + k); `p*` hold the rows r + 1 - k (low) and r + k (high) of the step
+                // before, `n*` the rows loaded in this step.
+                macro_rules! step {
+                    ($k:expr, $pla:ident, $plb:ident, $pha:ident, $phb:ident, $nla:ident, $nlb:ident, $nha:ident, $nhb:ident) => {
+                        let qk = *qv.get_unchecked($k);
+                        $nla = ld(r - $k, 0);
+                        $nlb = ld(r - $k, 16);
+                        $nha = ld(r + 1 + $k, 0);
+                        $nhb = ld(r + 1 + $k, 16);
+                        a0a = _mm256_add_epi16(a0a, _mm256_mulhrs_epi16(_mm256_add_epi16($nla, $pha), qk));
+                        a0b = _mm256_add_epi16(a0b, _mm256_mulhrs_epi16(_mm256_add_epi16($nlb, $phb), qk));
+                        a1a = _mm256_add_epi16(a1a, _mm256_mulhrs_epi16(_mm256_add_epi16($pla, $nha), qk));
+                        a1b = _mm256_add_epi16(a1b, _mm256_mulhrs_epi16(_mm256_add_epi16($plb, $nhb), qk));
+                    };
+                }
                 let (mut pla, mut plb, mut pha, mut phb) = (x0a, x0b, x1a, x1b);
-                for k in 1..=r {
-                    let qk = _mm256_set1_epi16(q[k]);
-                    let (la, lb) = (ld(rows[r - k]), ld(rows[r - k] + 16));
-                    let (ha, hb) = (ld(rows[r + 1 + k]), ld(rows[r + 1 + k] + 16));
-                    a0a = _mm256_add_epi16(a0a, _mm256_mulhrs_epi16(_mm256_add_epi16(la, pha), qk));
-                    a0b = _mm256_add_epi16(a0b, _mm256_mulhrs_epi16(_mm256_add_epi16(lb, phb), qk));
-                    a1a = _mm256_add_epi16(a1a, _mm256_mulhrs_epi16(_mm256_add_epi16(pla, ha), qk));
-                    a1b = _mm256_add_epi16(a1b, _mm256_mulhrs_epi16(_mm256_add_epi16(plb, hb), qk));
-                    (pla, plb, pha, phb) = (la, lb, ha, hb);
+                let (mut la, mut lb, mut ha, mut hb);
+                let mut k = 1;
+                while k < r {
+                    step!(k, pla, plb, pha, phb, la, lb, ha, hb);
+                    step!(k + 1, la, lb, ha, hb, pla, plb, pha, phb);
+                    k += 2;
+                }
+                if k == r {
+                    step!(k, pla, plb, pha, phb, la, lb, ha, hb);
+                    let _ = (la, lb, ha, hb);
                 }
                 let p0 = out0.as_mut_ptr().add(i) as *mut __m256i;
                 let p1 = out1.as_mut_ptr().add(i) as *mut __m256i;
@@ -288,17 +388,36 @@ mod tests {
             fir_scalar(&mut slow, &base, 50, &offs, &q, 0);
             assert_eq!(fast, slow, "{n}");
         }
-        // Two centres at once: the same values as two single calls.
-        for n in [0usize, 1, 31, 32, 33, 95, 700] {
-            let rows: Vec<usize> = (0..10).map(|t| (t * 211) % 2000).collect();
-            let (mut f0, mut f1) = (vec![0i16; n], vec![0i16; n]);
-            sym_fir2(&mut f0, &mut f1, &base, &rows, &q);
-            for (c, f) in [(4usize, &f0), (5, &f1)] {
-                let offs: Vec<(usize, usize)> = (0..5).map(|k| (rows[c - k], rows[c + k])).collect();
-                let mut slow = vec![0i16; n];
-                fir_scalar(&mut slow, &base, rows[c], &offs, &q, 0);
-                assert_eq!(*f, slow, "{n} centre {c}");
+        // Two centres at once: the same values as two single calls (even and odd r, r = 0).
+        for r in [4usize, 3, 1, 0] {
+            let q = &q[..=r];
+            for n in [0usize, 1, 31, 32, 33, 95, 700] {
+                let rows: Vec<usize> = (0..2 * r + 2).map(|t| (t * 211) % 2000).collect();
+                let (mut f0, mut f1) = (vec![0i16; n], vec![0i16; n]);
+                sym_fir2(&mut f0, &mut f1, &base, &rows, q);
+                for (c, f) in [(r, &f0), (r + 1, &f1)] {
+                    let offs: Vec<(usize, usize)> = (0..=r).map(|k| (rows[c - k], rows[c + k])).collect();
+                    let mut slow = vec![0i16; n];
+                    fir_scalar(&mut slow, &base, rows[c], &offs, q, 0);
+                    assert_eq!(*f, slow, "r {r} n {n} centre {c}");
+                }
             }
+        }
+        // The conversions: every i16 and every byte, at lengths around the chunk sizes.
+        let all: Vec<i16> = (i16::MIN..=i16::MAX).collect();
+        let mut fast = vec![0u8; all.len()];
+        q6_to_u8(&mut fast, &all);
+        for (&a, &f) in all.iter().zip(&fast) {
+            assert_eq!(f, ((a.max(0) as i32 + 32) >> SAMPLE_Q).min(255) as u8, "{a}");
+        }
+        for n in [0usize, 1, 15, 16, 17, 31, 32, 33, 300] {
+            let src: Vec<u8> = (0..n).map(|i| (i * 37 % 256) as u8).collect();
+            let mut q6 = vec![0i16; n];
+            u8_to_q6(&mut q6, &src);
+            assert!(q6.iter().zip(&src).all(|(&p, &v)| p == (v as i16) << SAMPLE_Q), "{n}");
+            let mut back = vec![0u8; n];
+            q6_to_u8(&mut back, &q6);
+            assert_eq!(back, src, "{n}");
         }
         // mulhrs is round-to-nearest (ties up) of a * b / 2^15.
         for &(a, b) in &[(16320i16, 32767i16), (1, 16384), (3, 16384), (-5, 9000), (32640, 1)] {
