@@ -307,6 +307,7 @@ fn strip_rows<'a, const LV: u8>(
 /// Write byte columns `jb..jb + n` (n <= 8) of `rows` rows from `ring[k][l]` (column `jb + k`,
 /// row `l`, values <= 255) into `band` (rows of `stride` bytes).
 #[inline(always)]
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
 fn flush8(lv: u8, ring: &[Lane], band: &mut [u8], stride: usize, rows: usize, jb: usize, n: usize) {
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
@@ -557,6 +558,7 @@ pub fn cpu_level() -> u8 {
 
 macro_rules! dispatch {
     ($name:ident, $body:ident, ($($a:ident: $t:ty),*)) => {
+        #[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
         fn $name(lv: u8, $($a: $t),*) {
             #[cfg(target_arch = "x86_64")]
             {
@@ -581,6 +583,7 @@ macro_rules! dispatch {
 dispatch!(super_band_d, super_band, (plan: &BoxPlan, w: usize, ch: usize, stride: usize, y_start: usize, y_end: usize, sb: &mut [u8], halo: &[u8], scratch: &mut [Lane]));
 
 /// `dst[j][l] = src[l][j]` for `l < src.len()` (<= LANES) and `j < LANES`.
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
 fn transpose_in(lv: u8, src: &[Lane], dst: &mut [Lane]) {
     let rows = src.len();
     let full = rows / 8 * 8;

@@ -90,6 +90,7 @@ pub fn sym_fir(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usi
 /// q.len()`), `out0` is [`sym_fir`] centred on `rows[r]`, `out1` centred on `rows[r + 1]`. The
 /// same integer operations in the same order as [`sym_fir`], so the same values; each row is
 /// loaded once for both outputs (half the loads of two [`sym_fir`] calls).
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
 pub fn sym_fir2(out0: &mut [i16], out1: &mut [i16], base: &[i16], rows: &[usize], q: &[i16]) {
     let n = out0.len();
     let r = q.len() - 1;
@@ -127,6 +128,7 @@ fn fir_scalar(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usiz
 }
 
 /// `out[i] = clamp(round(acc[i] / 2^6), 0, 255)` (round half up).
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
 pub fn q6_to_u8(out: &mut [u8], acc: &[i16]) {
     let n = out.len().min(acc.len());
     let (out, acc) = (&mut out[..n], &acc[..n]);
@@ -142,6 +144,7 @@ pub fn q6_to_u8(out: &mut [u8], acc: &[i16]) {
 }
 
 /// `out[i] = src[i] << 6` (8-bit samples to Q6), the first `min(len)` values.
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
 pub fn u8_to_q6(out: &mut [i16], src: &[u8]) {
     let n = out.len().min(src.len());
     let (out, src) = (&mut out[..n], &src[..n]);

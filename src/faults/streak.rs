@@ -214,6 +214,7 @@ impl Lines<'_> {
 macro_rules! dispatch {
     ($name:ident, $body:ident, ($($a:ident: $t:ty),*)) => {
         #[inline]
+        #[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
         fn $name(lv: u8, $($a: $t),*) {
             #[cfg(target_arch = "x86_64")]
             {
@@ -285,6 +286,7 @@ dispatch!(step_v, step_k, (b: &mut [u16], r: &mut [u16], a0: &[u16], a1: &[u16],
 /// AVX-512 copy, untested here), the rest through [`step_v`]; the same 16-bit operations, so the
 /// same bytes.
 #[allow(clippy::too_many_arguments)]
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
 fn step_d(
     lv: u8,
     b: &mut [u16],
@@ -347,6 +349,7 @@ fn unshear_k(out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u
 /// written out because LLVM widens the sums of multiply-highs to 32 bits), the rest scalar; the
 /// same 16-bit operations, so the same bytes.
 #[allow(clippy::too_many_arguments)]
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
 fn unshear_d(lv: u8, out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u32) {
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
@@ -455,6 +458,7 @@ const TILE: usize = 8;
 /// `k = grp[t].1`. With [`TILE`] lines and AVX2 (level `lv` >= 1), the pixels all of them hold
 /// go 8 x 8 at a time through registers, the rest pixel by pixel (byte copies: the same bytes
 /// either way).
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
 fn flush_cols(lv: u8, cols: Cols, ch: usize, tile: &[u8], tl: usize, c0: isize, grp: &[(usize, isize, isize, isize)]) {
     let Some(&(ifirst, ..)) = grp.first() else { return };
     let ilast = grp[grp.len() - 1].0;
