@@ -404,6 +404,33 @@ fn noise_through_model(
 
 /// Whether the selection holds a fitted `gamma` step away from identity (a tone curve the noise
 /// passed through).
+/// The selection again from `start` (a JPEG step's dither re-read from the current noise model),
+/// with the earlier pass `prev`'s best z per candidate as the prior; the earlier pass's trials
+/// stay in the report's table before the new ones.
+fn reselect(
+    ctx: &FitCtx,
+    cands: &[Candidate],
+    z: f64,
+    start: &[select::Step],
+    prev: select::Selection,
+) -> Result<select::Selection, DiagnoseError> {
+    let start: Vec<select::Step> = start
+        .iter()
+        .map(|s| {
+            let mut c = s.boxed_clone();
+            if c.dither.is_some() {
+                c.dither = Some(ctx.loss.noise().clone());
+            }
+            c
+        })
+        .collect();
+    let mut sel = select::select(ctx, cands, z, start, Some(&prev.best_z), None)?;
+    let mut tests = prev.tests;
+    tests.append(&mut sel.tests);
+    sel.tests = tests;
+    Ok(sel)
+}
+
 fn tone_selected(steps: &[select::Step]) -> bool {
     steps.iter().filter(|s| !s.fixed && s.name == "gamma").any(|s| {
         let g = s.params.get("gamma");
@@ -557,24 +584,9 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         notes.push(
             "a tone curve (gamma) was selected: the selection is repeated with the Gaussian form of the likelihood (without the density's normalisation and the exact Poisson–Gaussian probability at few electrons), which does not trust the noise model's level dependence under a curve the power law does not match".into(),
         );
-        let start: Vec<select::Step> = start_fixed
-            .iter()
-            .map(|s| {
-                let mut c = s.boxed_clone();
-                if c.dither.is_some() {
-                    c.dither = Some(ctx.loss.noise().clone());
-                }
-                c
-            })
-            .collect();
-        let first_tests = std::mem::take(&mut sel.tests);
-        let prior = sel.best_z.clone();
         super::progress("tone curve selected: selection repeated");
-        sel = select::select(&ctx, &cands, z, start, Some(&prior), None)?;
+        sel = reselect(&ctx, &cands, z, &start_fixed, sel)?;
         selection_done(&ctx);
-        let mut all = first_tests;
-        all.append(&mut sel.tests);
-        sel.tests = all;
     }
     // The noise model was measured on real - sim; with the fitted effects taken out it may
     // differ (structure such as smear rows inflates it). If it changed, select again with it,
@@ -595,25 +607,10 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
             100.0 * change
         ));
         ctx.loss.set_noise(renoise);
-        let start: Vec<select::Step> = sel
-            .steps
-            .iter()
-            .map(|s| {
-                let mut c = s.boxed_clone();
-                if c.dither.is_some() {
-                    c.dither = Some(ctx.loss.noise().clone());
-                }
-                c
-            })
-            .collect();
-        let first_tests = std::mem::take(&mut sel.tests);
-        let prior = sel.best_z.clone();
         super::progress("noise model changed: selection repeated");
-        sel = select::select(&ctx, &cands, z, start, Some(&prior), None)?;
+        let found: Vec<select::Step> = sel.steps.iter().map(select::Step::boxed_clone).collect();
+        sel = reselect(&ctx, &cands, z, &found, sel)?;
         selection_done(&ctx);
-        let mut all = first_tests;
-        all.append(&mut sel.tests);
-        sel.tests = all;
         model_planes.clear();
         for (k, p) in pairs.iter().enumerate() {
             model_planes.push(select::apply_steps(&mut sel.steps, &p.sim_frame, k as u64, seed)?);
