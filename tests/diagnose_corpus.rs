@@ -193,6 +193,27 @@ fn vignetting_is_found_on_large_frames_of_dark_sky() {
     assert!(problems.is_empty(), "vignetting at 960x600:\n{}", problems.join("\n"));
 }
 
+/// Issue 13: "a weak (but matched-filter-visible) vignetting was missed", and "PRNU of a few
+/// percent on a mono scene was missed". A 2.5-3 % vignetting on a scene whose level falls off
+/// towards the corners passes neither test of the level-or-position regression (weak position
+/// terms given a free level response, no curvature), and was replaced by a straight gain and
+/// offset (Earth scene: a false `gain_offset` whose own drop-one test failed) or by a dark level
+/// under a tone curve (lab wall: two false discoveries); without a curved level response the
+/// reading must now fit the pixels better than the spatial effect by BIC. A 2 % PRNU on a mono
+/// Earth scene with few bright flat pixels is found from the textured pixels where the scene
+/// moved between the two frames (a misfit follows the scene, PRNU the photosite). Release only:
+/// `cargo test --release --test diagnose_corpus -- --ignored weak_vignetting`.
+#[test]
+#[ignore = "three cases of the full corpus: run in a release build with --ignored"]
+fn weak_vignetting_and_mono_prnu_are_found() {
+    let names = ["vignetting_weak_mono", "vignetting_weak_lab_mono", "prnu_mono"];
+    let cases: Vec<Case> = corpus().into_iter().filter(|c| names.contains(&c.name.as_str())).collect();
+    assert_eq!(cases.len(), names.len());
+    let scores = run_all(&cases);
+    let problems = subset_problems(&scores);
+    assert!(problems.is_empty(), "weak vignetting / mono PRNU:\n{}", problems.join("\n"));
+}
+
 /// h26tone: tone curve against stray light and veiling glare (issue 13: "a generalised sRGB
 /// tone curve on an RGB 10-bit lab scene was not found and a false stray_light was reported
 /// instead"). On a lamp-lit lab wall (10-bit data in 16-bit PNG) the curve's change is a smooth

@@ -12,7 +12,12 @@ use super::img::{FS, Pair, Plane};
 use super::stats::{self, Wls};
 use super::types::{Profile, Signature};
 
-/// PRNU by cross-frame covariance. Returns the signature and the variance coefficient c =
+/// Relative change of the model level between two frames above which a textured pixel counts
+/// as showing other scene content (see [`prnu`]).
+pub const MOVED_FRACTION: f64 = 0.1;
+
+/// PRNU by cross-frame covariance of the relative high-passed residual, on bright pixels that
+/// are flat in both frames or whose scene content differs between them. Returns the signature and the variance coefficient c =
 /// sigma² (0 when not detected) for the noise model.
 pub fn prnu(
     pairs: &[Pair],
@@ -41,8 +46,7 @@ pub fn prnu(
                         for x in 1..w - 1 {
                             let i = y * w + x;
                             let cross = [i, i - 1, i + 1, i - w, i + w];
-                            if !quiet[k][i]
-                                || masks[k].dist_sat.get(i) <= 3.0
+                            if masks[k].dist_sat.get(i) <= 3.0
                                 || s[i] < 30.0
                                 || cross.iter().any(|&j| hot[k][j] || r[j] <= 0.0 || r[j] >= FS)
                             {
@@ -82,6 +86,15 @@ pub fn prnu(
                         continue;
                     }
                     let (s1, s2) = (sa[i] as f64, sb[i] as f64);
+                    // A pixel flat in both frames, or one where the scene moved between the two
+                    // frames (its level changed by MOVED_FRACTION or more): PRNU stays with the
+                    // photosite, while a misfit of the model follows the scene's texture, so on
+                    // textured pixels only products of different scene content keep the honest
+                    // null. A static scene falls back to the flat pixels.
+                    let flat = quiet[a][i] && quiet[b][i];
+                    if !flat && (s1 - s2).abs() < MOVED_FRACTION * s1.max(s2) {
+                        continue;
+                    }
                     let v1 = 1.25 * noise.var(s1) / (s1 * s1);
                     let v2 = 1.25 * noise.var(s2) / (s2 * s2);
                     if u1.abs() > 8.0 * v1.sqrt() + 0.3 || u2.abs() > 8.0 * v2.sqrt() + 0.3 {
@@ -96,7 +109,7 @@ pub fn prnu(
         }
     }
     let Some(f) = wls.fit() else {
-        sig.evidence = format!("too few bright flat pixels shared by two frames ({nprod})");
+        sig.evidence = format!("too few bright pixels shared by two frames ({nprod})");
         return (sig, 0.0);
     };
     let s2 = f.beta[0];
@@ -107,7 +120,9 @@ pub fn prnu(
     sig.size_unit = "relative gain sigma";
     sig.set_param("sigma", sd);
     sig.stderr = vec![("sigma".into(), se / (2.0 * sd.max(1e-3)))];
-    sig.where_ = format!("bright flat regions shared by {npairs} frame pairs ({nprod} pixel products)");
+    sig.where_ = format!(
+        "bright pixels flat in both frames or where the scene moved between them, {npairs} frame pairs ({nprod} pixel products)"
+    );
     sig.evidence = format!(
         "relative residual correlates between frames: sigma² = {s2:.3e} ± {se:.1e} (z = {:.1}), additive fixed pattern {:.3} DN²",
         sig.z, f.beta[1]
