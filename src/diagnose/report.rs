@@ -155,13 +155,20 @@ pub fn build(pairs: &[Pair], loc: &Located, fitted: &Fitted, mut notes: Vec<Stri
                     a.push(Alternative {
                         effect: effects.join(" + "),
                         label: format!("level response read as {}", effects.join(" + ")),
-                        bic_gap: round_sig(*gap, 3),
+                        bic_gap: round_sig(gap.max(0.0), 3),
                         z: f64::NAN,
-                        evidence: format!(
-                            "the level response reads about as well ({describe}; BIC difference {gap:.2} < {}) as {}: the data do not tell them apart",
-                            super::select::TONE_ALTERNATIVE_BIC,
-                            e.name
-                        ),
+                        evidence: if *gap < 0.0 {
+                            format!(
+                                "the level response reads it better ({describe}; BIC better by {:.2}) than the effects reported with {}, which the forward model kept on every pixel or which the level-response rules prefer (a gain and offset must show full scale moved): the data do not settle it",
+                                -gap, e.name
+                            )
+                        } else {
+                            format!(
+                                "the level response reads about as well ({describe}; BIC difference {gap:.2} < {}) as {}: the data do not tell them apart",
+                                super::select::TONE_ALTERNATIVE_BIC,
+                                e.name
+                            )
+                        },
                     });
                 }
                 a

@@ -1143,8 +1143,10 @@ pub struct ToneOutcome {
     pub effects: Vec<&'static str>,
     /// Evidence line for their findings.
     pub evidence: String,
-    /// Readings with other effects that explain the level response about as well: (effects,
-    /// description, BIC difference).
+    /// Readings with other effects that explain the level response about as well or better:
+    /// (effects, description, BIC difference to the final reading; negative when the
+    /// alternative reads the response better and was not kept, e.g. a gain and offset that moves
+    /// full scale by an amount the scene's levels do not reach).
     pub alternatives: Vec<(Vec<&'static str>, String, f64)>,
 }
 
@@ -1209,6 +1211,30 @@ pub fn tone_replacement(rs: &[tone::Reading], chosen: &[&str]) -> Option<tone::R
         }
     }
     None
+}
+
+/// A reading that extends the selection's tone effects `chosen` by another tone effect (a dark
+/// level under the chosen tone curve): the best valid reading whose effects include every chosen
+/// one and more (other readings may read the response as well or better: they stay listed as
+/// alternatives with their evidence), when it reads the level response better than the chosen effects by more than
+/// [`TONE_ALTERNATIVE_BIC`] (positive evidence), a reading with `gain_offset` counted
+/// [`TONE_GAIN_FS_BIC`] worse as in [`best_reading`]. The forward-model selection adds one effect
+/// at a time with the others held at their fit: a dark level `d` under a power law is absorbed by
+/// a stronger power (over mid-tones, `((s + d)/FS)^q ≈ (s/FS)^q'` with `q' < q`), so added to the
+/// chosen power law alone it fits to nothing — the two parameters must move together (the dark
+/// level up, the power back towards 1), which the level response's joint fit does. The physics
+/// that separates them is the local log-log slope `d ln m / d ln s = q·s/(s + d)`: constant for a
+/// power law, rising with the level under a dark level.
+pub fn tone_extension(rs: &[tone::Reading], chosen: &[&str]) -> Option<tone::Reading> {
+    let cur = tone::reading_of(rs, chosen)?;
+    let extends = |r: &tone::Reading| {
+        tone_reading_valid(r)
+            && chosen.iter().all(|c| r.shape.effects().contains(c))
+            && r.shape.effects().len() > chosen.len()
+    };
+    let b = best_reading(rs, &extends)?;
+    let cost = b.bic + if b.shape.effects().contains(&"gain_offset") { TONE_GAIN_FS_BIC } else { 0.0 };
+    (cur.bic - cost > TONE_ALTERNATIVE_BIC).then(|| b.clone())
 }
 
 /// The best reading among those `ok` accepts, a reading with gain_offset counted
@@ -1481,6 +1507,85 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
         );
         final_reading = b;
     }
+    // An extension the forward model did not keep, with its evidence (for its alternative).
+    let mut untaken: Option<(tone::Shape, String)> = None;
+    if final_reading.shape == cur.shape
+        && let Some(b) = tone_extension(&rs, &chosen)
+    {
+        // The forward model judges the extension on every pixel, started at the joint optimum
+        // the level response located: kept only when each of its effects passes its drop-one
+        // test (removing it and refitting the rest raises the loss significantly and materially).
+        // Also as a whole: the extended model against the chosen one as fitted, both evaluated
+        // here (the selection's final loss may come from another likelihood form or subsample).
+        let (steps0, ev0, loss0) = (clone_steps(&sel.steps), sel.evidence.clone(), sel.loss_final);
+        let mut st0 = clone_steps(&sel.steps);
+        let l0 = ctx.eval(&mut st0)?;
+        let p0 = ctx.physical_planes(&st0)?;
+        let added: Vec<&str> = b.shape.effects().iter().copied().filter(|e| !chosen.contains(e)).collect();
+        let mut ok = replace_by_reading(ctx, sel, &|n| TONE_EFFECTS.contains(&n), &b, z_thr)?;
+        let mut drops: Vec<String> = Vec::new();
+        if ok {
+            let p1 = ctx.physical_planes(&sel.steps)?;
+            let whole =
+                self::evidence(added[0], added[0], l0, sel.loss_final, added.len(), material(&p1, &p0), z_thr, 0);
+            ok = whole.accepted
+                && b.shape.effects().iter().all(|e| sel.evidence.iter().any(|ev| ev.effect == *e && ev.accepted));
+            drops.push(format!(
+                "against {} as fitted z = {:.1} (threshold {z_thr}), change {:.2} DN",
+                chosen.join(" + "),
+                whole.z,
+                whole.material_dn
+            ));
+        }
+        // The drop-one tests refit the remaining effects quickly: the comparison with the chosen
+        // model as fitted (above) is the one that decides.
+        drops.extend(
+            sel.evidence
+                .iter()
+                .filter(|ev| b.shape.effects().contains(&ev.effect.as_str()))
+                .map(|ev| format!("drop-one {} z = {:.1}", ev.effect, ev.z)),
+        );
+        if ok {
+            sel.notes.push(format!(
+                "level response: {} extended to {} (BIC better by {:.1}; forward model on every pixel: {}): {}",
+                chosen.join(" + "),
+                b.shape.effects().join(" + "),
+                cur.bic - b.bic,
+                drops.join(", "),
+                b.describe()
+            ));
+            evidence = format!(
+                "level response (real against the model without the tone effects, {} bins of {} values) read as {}; {} alone (the forward-model choice, which adds one effect at a time and cannot move two aliased parameters together) reads it as {}, BIC worse by {:.1}; the forward model, started at the level response's reading, keeps each effect ({})",
+                pts.len(),
+                n_values,
+                b.describe(),
+                chosen.join(" + "),
+                cur.describe(),
+                cur.bic - b.bic,
+                drops.join(", ")
+            );
+            final_reading = b;
+        } else {
+            sel.notes.push(format!(
+                "level response: {} read better as {} (BIC better by {:.1}), but the forward model does not keep it (on every pixel: {}); listed as an alternative",
+                chosen.join(" + "),
+                b.shape.effects().join(" + "),
+                cur.bic - b.bic,
+                drops.join(", ")
+            ));
+            untaken = Some((
+                b.shape,
+                format!(
+                    "; the forward model started at this reading does not tell it from {} ({})",
+                    chosen.join(" + "),
+                    drops.join(", ")
+                ),
+            ));
+            sel.steps = steps0;
+            sel.evidence = ev0;
+            sel.loss_final = loss0;
+        }
+    }
     let effects: Vec<&'static str> = final_reading.shape.effects().to_vec();
     let mut alternatives: Vec<(Vec<&'static str>, String, f64)> = Vec::new();
     for r in &rs {
@@ -1490,7 +1595,8 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
             && tone_reading_valid(r)
             && !alternatives.iter().any(|a| same(&a.0, r.shape.effects()))
         {
-            alternatives.push((r.shape.effects().to_vec(), r.describe(), gap.max(0.0)));
+            let fwd = untaken.as_ref().filter(|u| u.0 == r.shape).map(|u| u.1.as_str()).unwrap_or("");
+            alternatives.push((r.shape.effects().to_vec(), format!("{}{fwd}", r.describe()), gap));
         }
     }
     sel.tone = Some(ToneOutcome { effects, evidence, alternatives });
@@ -2027,6 +2133,26 @@ mod tests {
         let r = tone_replacement(&rs, &["gain_offset"]).expect("dark under tone replaces gain_offset");
         assert_eq!(r.shape.effects(), ["dark_current", "gamma"]);
         assert!((r.d - 2.5).abs() < 0.2, "dark {}", r.d);
+    }
+
+    /// h31tone: a dark level under a power law, seen on mid-tones only (a lab wall: 60–200 DN),
+    /// is read by the level response as the chosen power law extended by a dark level (the local
+    /// log-log slope `q·s/(s + d)` rises with the level); a pure power law is not extended, and
+    /// neither is a reading that already has its dark level.
+    #[test]
+    fn tone_extension_adds_a_dark_level_under_the_chosen_power_law() {
+        use super::super::tone::{LevelPoint, readings};
+        let fs = FS as f64;
+        let pts = |f: &dyn Fn(f64) -> f64| -> Vec<LevelPoint> {
+            (60..200).step_by(2).map(|s| LevelPoint { s: s as f64, m: f(s as f64), se: 0.1, n: 2000 }).collect()
+        };
+        let rs = readings(&pts(&|s| fs * ((s + 2.5) / fs).powf(0.96)), 100_000);
+        let r = tone_extension(&rs, &["gamma"]).expect("dark level under the power law");
+        assert_eq!(r.shape.effects(), ["dark_current", "gamma"]);
+        assert!((r.d - 2.5).abs() < 0.5 && (r.gamma - 0.96).abs() < 0.01, "{}", r.describe());
+        assert!(tone_extension(&rs, &["dark_current", "gamma"]).is_none());
+        let rs = readings(&pts(&|s| fs * (s / fs).powf(0.93)), 100_000);
+        assert!(tone_extension(&rs, &["gamma"]).is_none());
     }
 
     /// h27tone: a dark level under an sRGB curve seen only on levels inside the curve's linear
