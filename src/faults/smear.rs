@@ -303,6 +303,49 @@ mod tests {
         }
     }
 
+    /// (h31bloom) A photosite at its full well takes no smear charge: with `well` set, samples at
+    /// or above it keep their value and the others gain the column's (row's) smear as before.
+    #[test]
+    fn full_photosites_take_no_smear() {
+        for (fmt, dir) in
+            [(PixelFormat::Mono8, "vertical"), (PixelFormat::Mono16, "vertical"), (PixelFormat::Rgb8, "horizontal")]
+        {
+            let mut f = scene(fmt, 40, 30, 4);
+            let fs = fmt.full_scale();
+            let well = (0.96 * fs).round();
+            // Saturated photosites read the well (as after blooming); one bright sample under it.
+            for t in 10..16 {
+                for c in 0..fmt.channels() {
+                    if dir == "vertical" { f.set(7, t, c, well) } else { f.set(t, 7, c, well) }
+                }
+            }
+            let under = (0.9 * fs).round();
+            if dir == "vertical" {
+                f.set(7, 3, 0, under)
+            } else {
+                f.set(3, 7, 0, under)
+            }
+            let orig = f.clone();
+            let mut p = Params::defaults(&INFO);
+            p.set("strength", 0.01).unwrap();
+            p.set_choice("direction", dir).unwrap();
+            p.set("sat_level", 0.955).unwrap();
+            p.set("well", 0.96).unwrap();
+            Smear::default().apply(&mut f, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
+            let o = offset_dn(6, 0.01, fs as f64) as f32;
+            for y in 0..30 {
+                for x in 0..40 {
+                    for c in 0..fmt.channels() {
+                        let line = if dir == "vertical" { x == 7 } else { y == 7 };
+                        let v = orig.get(x, y, c);
+                        let want = if !line || v >= well { v } else { (v + o).min(fs) };
+                        assert_eq!(f.get(x, y, c), want, "{fmt} {dir} x {x} y {y} c {c}");
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn identity_without_strength_or_saturation() {
         let mut f = scene(PixelFormat::Mono8, 50, 40, 3);
