@@ -830,6 +830,11 @@ fn sync_coupled(steps: &mut [Step]) {
             None => 1.0 - 0.5 / 65535.0,
         };
         let _ = s.params.set("sat_level", lvl);
+        // A full photosite cannot take the smear charge its column's transfer adds (it
+        // overflows): with blooming the smear stops at the well, so a saturated plateau reads W
+        // beside a smear streak instead of W + smear clipped at FS. Without it the well would
+        // have to trade against the smear (a strong smear column hid the plateau deficit).
+        let _ = s.params.set("well", well.unwrap_or(1.0));
     }
 }
 

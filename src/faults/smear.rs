@@ -21,7 +21,9 @@ pub static INFO: EffectInfo = EffectInfo {
             strength is the smear per saturated pixel as a fraction of full scale (typically the ratio of the \
             per-row transfer time to the exposure time); 0 is the identity, as is a frame with no saturated \
             pixel. When blooming runs first (saturated pixels then read W = full_well_fraction * FS), set \
-            sat_level <= blooming.full_well_fraction.",
+            sat_level <= blooming.full_well_fraction. well (extra): a photosite at its full well holds no more \
+            charge, so a sample at or above round(well * FS) keeps its value (the smear charge of its column \
+            overflows); 1 (the default) leaves only samples at FS unchanged, as the clip does.",
     params: &[
         ParamSpec::float("strength", "fraction of FS", 0.0, 0.05, 0.003, "added signal per saturated pixel / FS"),
         ParamSpec::choice(
@@ -38,6 +40,15 @@ pub static INFO: EffectInfo = EffectInfo {
             1.0,
             0.98,
             "a sample counts as saturated when v >= sat_level * FS",
+        )
+        .extra(),
+        ParamSpec::float(
+            "well",
+            "fraction of FS",
+            0.05,
+            1.0,
+            1.0,
+            "a sample at or above well * FS (a full photosite) gains no smear",
         )
         .extra(),
     ],
@@ -96,12 +107,15 @@ impl Effect for Smear {
         // Smallest integer DN that counts as saturated.
         let thr = (p.get("sat_level") * fs).ceil() as u32;
         let vertical = p.choice("direction") != "horizontal";
+        // Level (DN) of a full photosite, which takes no smear charge: FS unless a well below it is set.
+        let cap = ((p.get("well") * fs).round() as u32).min(fs as u32);
+        let cap = (cap < fs as u32).then_some(cap);
         let s = &mut *self;
         with_image_mut!(frame, img => {
             if vertical {
-                s.vertical(&mut img, thr, strength, fs)
+                s.vertical(&mut img, thr, strength, fs, cap)
             } else {
-                horizontal(&mut img, thr, strength, fs)
+                horizontal(&mut img, thr, strength, fs, cap)
             }
         });
         Ok(Outcome::Keep)
@@ -109,7 +123,7 @@ impl Effect for Smear {
 }
 
 impl Smear {
-    fn vertical<T: Sample>(&mut self, img: &mut ImageMut<'_, T>, thr: u32, strength: f64, fs: f64) {
+    fn vertical<T: Sample>(&mut self, img: &mut ImageMut<'_, T>, thr: u32, strength: f64, fs: f64, cap: Option<u32>) {
         let (stride, row_len, h) = (img.stride, img.row_len(), img.height);
         let used = stride * (h - 1) + row_len;
         let bands = h.div_ceil(ROWS_PER_TASK);
@@ -161,6 +175,12 @@ impl Smear {
         let offs8 = &self.offsets8;
         data.par_chunks_mut(stride * ROWS_PER_TASK).for_each(|chunk| {
             for row in chunk.chunks_mut(stride) {
+                if let Some(cap) = cap {
+                    for (v, &o) in row[first..=last].iter_mut().zip(offs) {
+                        *v = T::from_u32_sat(add_capped(v.to_u32(), o, cap));
+                    }
+                    continue;
+                }
                 match T::bytes_mut(&mut row[first..=last]) {
                     // 8-bit: saturating byte adds (an offset above 255 saturates either way).
                     Some(bytes) => add_sat_u8(bytes, offs8, 0u8),
@@ -175,7 +195,13 @@ impl Smear {
     }
 }
 
-fn horizontal<T: Sample>(img: &mut ImageMut<'_, T>, thr: u32, strength: f64, fs: f64) {
+/// `v + o`, except that a sample at or above `full` (a photosite at its full well) keeps its value.
+#[inline]
+fn add_capped(v: u32, o: u32, full: u32) -> u32 {
+    if v >= full { v } else { v + o }
+}
+
+fn horizontal<T: Sample>(img: &mut ImageMut<'_, T>, thr: u32, strength: f64, fs: f64, cap: Option<u32>) {
     let (stride, row_len, h, ch) = (img.stride, img.row_len(), img.height, img.channels);
     let used = stride * (h - 1) + row_len;
     let thr_t = T::from_u32_sat(thr);
@@ -186,7 +212,10 @@ fn horizontal<T: Sample>(img: &mut ImageMut<'_, T>, thr: u32, strength: f64, fs:
                 let n = row.iter().skip(c).step_by(ch).filter(|v| **v >= thr_t).count() as u32;
                 let o = offset_dn(n, strength, fs);
                 if o > 0 {
-                    row.iter_mut().skip(c).step_by(ch).for_each(|v| *v = T::from_u32_sat(v.to_u32() + o));
+                    row.iter_mut().skip(c).step_by(ch).for_each(|v| {
+                        let a = v.to_u32() + o;
+                        *v = T::from_u32_sat(cap.map_or(a, |cap| add_capped(v.to_u32(), o, cap)))
+                    });
                 }
             }
         }
@@ -269,6 +298,49 @@ mod tests {
                 for c in 0..3 {
                     let o = if y == 20 && c == 1 { 10.0 } else { 0.0 }; // floor(2 * 0.02 * 255 + 0.5) = 10
                     assert_eq!(f.get(x, y, c), (orig.get(x, y, c) + o).min(255.0));
+                }
+            }
+        }
+    }
+
+    /// (h31bloom) A photosite at its full well takes no smear charge: with `well` set, samples at
+    /// or above it keep their value and the others gain the column's (row's) smear as before.
+    #[test]
+    fn full_photosites_take_no_smear() {
+        for (fmt, dir) in
+            [(PixelFormat::Mono8, "vertical"), (PixelFormat::Mono16, "vertical"), (PixelFormat::Rgb8, "horizontal")]
+        {
+            let mut f = scene(fmt, 40, 30, 4);
+            let fs = fmt.full_scale();
+            let well = (0.96 * fs).round();
+            // Saturated photosites read the well (as after blooming); one bright sample under it.
+            for t in 10..16 {
+                for c in 0..fmt.channels() {
+                    if dir == "vertical" { f.set(7, t, c, well) } else { f.set(t, 7, c, well) }
+                }
+            }
+            let under = (0.9 * fs).round();
+            if dir == "vertical" {
+                f.set(7, 3, 0, under)
+            } else {
+                f.set(3, 7, 0, under)
+            }
+            let orig = f.clone();
+            let mut p = Params::defaults(&INFO);
+            p.set("strength", 0.01).unwrap();
+            p.set_choice("direction", dir).unwrap();
+            p.set("sat_level", 0.955).unwrap();
+            p.set("well", 0.96).unwrap();
+            Smear::default().apply(&mut f, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
+            let o = offset_dn(6, 0.01, fs as f64) as f32;
+            for y in 0..30 {
+                for x in 0..40 {
+                    for c in 0..fmt.channels() {
+                        let line = if dir == "vertical" { x == 7 } else { y == 7 };
+                        let v = orig.get(x, y, c);
+                        let want = if !line || v >= well { v } else { (v + o).min(fs) };
+                        assert_eq!(f.get(x, y, c), want, "{fmt} {dir} x {x} y {y} c {c}");
+                    }
                 }
             }
         }
