@@ -1306,12 +1306,10 @@ pub const SPATIAL_ALIASES: [&str; 3] = ["stray_light", "veiling_glare", "vignett
 /// (a smooth lamp-lit wall, a frame-filling planetary surface under a veiling glare's nearly
 /// uniform pedestal, fiducials of one level in the corners).
 /// They are then replaced (with the tone effects) by the best reading of the level response
-/// ([`super::tone::readings`]), whose shape [`tone_check`] judges next — outright when the level
-/// response is curved given the position terms (a tone curve's own signature); otherwise only
-/// when the reading explains the pixels better than the spatial effects by BIC on the forward
-/// model and its effects pass their drop-one tests (a weak vignetting on a scene whose level
-/// falls off towards the corners passes neither test of the regression, and a straight gain and
-/// offset must not take its place unless it fits better).
+/// ([`super::tone::readings`]), whose shape [`tone_check`] judges next — provided the reading's
+/// effects pass their drop-one tests on the forward model (a weak vignetting on a scene whose
+/// level falls off towards the corners passes neither test of the regression, and a straight
+/// gain and offset that explains nothing must not take its place).
 pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), DiagnoseError> {
     let spatial: Vec<&'static str> =
         sel.steps.iter().filter(|s| !s.fixed && SPATIAL_ALIASES.contains(&s.name)).map(|s| s.name).collect();
@@ -1355,20 +1353,15 @@ pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Re
         if let Some(b) = best_reading(&rs, &tone_reading_valid).cloned()
             && replace_by_reading(ctx, sel, &removed, &b, z_thr)?
         {
-            // A curved level response given the position terms is the tone curve's own
-            // signature: the reading replaces the spatial effects. Without it neither test
-            // decides (a straight or nearly straight level response, weak position terms), and
-            // the two models, which are not nested, are compared on the forward model's loss by
-            // BIC (the reading must explain the pixels better than the spatial effects did, for
-            // its parameter count); the reading's effects must also show their own drop-one
-            // evidence.
+            // The reading's effects must show their own evidence on the forward model (a drop-one
+            // test each, at least one accepted): a reading that explains nothing the spatial
+            // effects did not cannot replace them. (Comparing the two models' losses by BIC was
+            // tried and dropped: the library's tone effects are narrower than the free level
+            // response, so true tone curves lost to the spatial effects that imitated them.)
             let new_effects = b.shape.effects();
             let supported =
                 sel.steps.iter().zip(&sel.evidence).any(|(s, e)| new_effects.contains(&s.name) && e.accepted);
-            let (la, lb) = (kept.2, sel.loss_final);
-            let (ka, kb) = (coords_of(&kept.0, None).len() as f64, coords_of(&sel.steps, None).len() as f64);
-            let bic_gain = 2.0 * (la.total - lb.total) / lb.design.max(0.8) - (kb - ka) * (lb.n.max(2) as f64).ln();
-            if lp.z_curve < z_thr && (!supported || bic_gain <= 0.0) {
+            if !supported {
                 let zs: Vec<String> = sel
                     .steps
                     .iter()
@@ -1377,10 +1370,8 @@ pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Re
                     .map(|(s, e)| format!("{} z = {:.1}", s.name, e.z))
                     .collect();
                 let why = format!(
-                    "the level response read as {} explains the pixels {} (BIC gain {bic_gain:.1} over {}; drop-one {})",
+                    "the level response read as {} has no evidence of its own in the forward model (drop-one {})",
                     b.describe(),
-                    if bic_gain <= 0.0 { "no better" } else { "better, but without evidence of its own" },
-                    spatial.join(" + "),
                     zs.join(", ")
                 );
                 (sel.steps, sel.evidence, sel.loss_final) = kept;
