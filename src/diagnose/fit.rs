@@ -402,8 +402,6 @@ fn noise_through_model(
     Ok((a.sqrt(), if use_b { Some(1.0 / b) } else { None }))
 }
 
-/// Whether the selection holds a fitted `gamma` step away from identity (a tone curve the noise
-/// passed through).
 /// The selection again from `start` (a JPEG step's dither re-read from the current noise model),
 /// with the earlier pass `prev`'s best z per candidate as the prior; the earlier pass's trials
 /// stay in the report's table before the new ones.
@@ -431,6 +429,8 @@ fn reselect(
     Ok(sel)
 }
 
+/// Whether the selection holds a fitted `gamma` step away from identity (a tone curve the noise
+/// passed through).
 fn tone_selected(steps: &[select::Step]) -> bool {
     steps.iter().filter(|s| !s.fixed && s.name == "gamma").any(|s| {
         let g = s.params.get("gamma");

@@ -17,8 +17,8 @@ use super::types::{Profile, Signature};
 pub const MOVED_FRACTION: f64 = 0.1;
 
 /// PRNU by cross-frame covariance of the relative high-passed residual, on bright pixels that
-/// are flat in both frames or whose scene content differs between them. Returns the signature and the variance coefficient c =
-/// sigma² (0 when not detected) for the noise model.
+/// are flat in both frames or whose scene content differs between them. Returns the signature
+/// and the variance coefficient c = sigma² (0 when not detected) for the noise model.
 pub fn prnu(
     pairs: &[Pair],
     masks: &[Masks],

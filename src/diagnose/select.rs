@@ -1130,6 +1130,24 @@ pub struct Selection {
     pub level_position: Option<String>,
 }
 
+/// The parts of a [`Selection`] a tentative replacement changes ([`replace_by_reading`]), kept
+/// to go back to.
+struct Kept {
+    steps: Vec<Step>,
+    evidence: Vec<Evidence>,
+    loss_final: LossEval,
+}
+
+impl Selection {
+    fn keep(&self) -> Kept {
+        Kept { steps: clone_steps(&self.steps), evidence: self.evidence.clone(), loss_final: self.loss_final }
+    }
+
+    fn restore(&mut self, k: Kept) {
+        (self.steps, self.evidence, self.loss_final) = (k.steps, k.evidence, k.loss_final);
+    }
+}
+
 /// Effects that shape the level response (see [`super::tone`]).
 pub const TONE_EFFECTS: [&str; 3] = ["dark_current", "gain_offset", "gamma"];
 
@@ -1349,7 +1367,7 @@ pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Re
         // Kept to go back to: a reading whose effects have no evidence of their own on the
         // forward model (each one's drop-one test fails) explains nothing the spatial effects
         // did not, so it cannot replace them.
-        let kept = (clone_steps(&sel.steps), sel.evidence.clone(), sel.loss_final);
+        let kept = sel.keep();
         if let Some(b) = best_reading(&rs, &tone_reading_valid).cloned()
             && replace_by_reading(ctx, sel, &removed, &b, z_thr)?
         {
@@ -1358,23 +1376,21 @@ pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Re
             // effects did not cannot replace them. (Comparing the two models' losses by BIC was
             // tried and dropped: the library's tone effects are narrower than the free level
             // response, so true tone curves lost to the spatial effects that imitated them.)
-            let new_effects = b.shape.effects();
-            let supported =
-                sel.steps.iter().zip(&sel.evidence).any(|(s, e)| new_effects.contains(&s.name) && e.accepted);
-            if !supported {
-                let zs: Vec<String> = sel
-                    .steps
-                    .iter()
-                    .zip(&sel.evidence)
-                    .filter(|(s, _)| new_effects.contains(&s.name))
-                    .map(|(s, e)| format!("{} z = {:.1}", s.name, e.z))
-                    .collect();
+            let new_ev: Vec<(&str, &Evidence)> = sel
+                .steps
+                .iter()
+                .zip(&sel.evidence)
+                .filter(|(s, _)| b.shape.effects().contains(&s.name))
+                .map(|(s, e)| (s.name, e))
+                .collect();
+            if !new_ev.iter().any(|(_, e)| e.accepted) {
+                let zs: Vec<String> = new_ev.iter().map(|(n, e)| format!("{n} z = {:.1}", e.z)).collect();
                 let why = format!(
                     "the level response read as {} has no evidence of its own in the forward model (drop-one {})",
                     b.describe(),
                     zs.join(", ")
                 );
-                (sel.steps, sel.evidence, sel.loss_final) = kept;
+                sel.restore(kept);
                 sel.notes.push(format!(
                     "level or position: {} kept although its position terms are weak given a free level response ({line}): {why}",
                     spatial.join(" + ")
@@ -1513,7 +1529,7 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
         // test (removing it and refitting the rest raises the loss significantly and materially).
         // Also as a whole: the extended model against the chosen one as fitted, both evaluated
         // here (the selection's final loss may come from another likelihood form or subsample).
-        let (steps0, ev0, loss0) = (clone_steps(&sel.steps), sel.evidence.clone(), sel.loss_final);
+        let kept = sel.keep();
         let mut st0 = clone_steps(&sel.steps);
         let l0 = ctx.eval(&mut st0)?;
         let p0 = ctx.physical_planes(&st0)?;
@@ -1577,9 +1593,7 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
                     drops.join(", ")
                 ),
             ));
-            sel.steps = steps0;
-            sel.evidence = ev0;
-            sel.loss_final = loss0;
+            sel.restore(kept);
         }
     }
     let effects: Vec<&'static str> = final_reading.shape.effects().to_vec();

@@ -212,10 +212,11 @@ fn horizontal<T: Sample>(img: &mut ImageMut<'_, T>, thr: u32, strength: f64, fs:
                 let n = row.iter().skip(c).step_by(ch).filter(|v| **v >= thr_t).count() as u32;
                 let o = offset_dn(n, strength, fs);
                 if o > 0 {
-                    row.iter_mut().skip(c).step_by(ch).for_each(|v| {
-                        let a = v.to_u32() + o;
-                        *v = T::from_u32_sat(cap.map_or(a, |cap| add_capped(v.to_u32(), o, cap)))
-                    });
+                    let full = cap.unwrap_or(u32::MAX);
+                    row.iter_mut()
+                        .skip(c)
+                        .step_by(ch)
+                        .for_each(|v| *v = T::from_u32_sat(add_capped(v.to_u32(), o, full)));
                 }
             }
         }
