@@ -594,4 +594,79 @@ mod tests {
         assert!(top_c >= 0.5, "top share {top_c}");
         assert!(sd_c >= (2.25f64 + 1.0 / 12.0).sqrt());
     }
+    /// The halo's spread is read on its shape, whatever its size and beside smear: a saturated
+    /// disc whose excess spills with an exponential kernel (per-axis std 1.68 px; not the
+    /// library's Gaussian), once at a small excess and once at a ten times larger one, with a
+    /// strong vertical smear (its columns carry more than the halo at 1 px). The reading is the
+    /// same for both sizes and near the kernel's std.
+    #[test]
+    fn halo_shape_spread_reads_the_fall_off_not_the_size_beside_smear() {
+        let (w, h) = (200usize, 160usize);
+        let disc = |x: usize, y: usize| (x as f64 - 100.0).powi(2) + (y as f64 - 80.0).powi(2) < 64.0;
+        // Exponential spill kernel exp(-r / 1.0) (per-axis std about 1.68 px), radius 6.
+        let kern: Vec<(isize, isize, f64)> = {
+            let mut k = Vec::new();
+            for dy in -6isize..=6 {
+                for dx in -6isize..=6 {
+                    let r = ((dx * dx + dy * dy) as f64).sqrt();
+                    if r > 0.0 && r <= 6.0 {
+                        k.push((dx, dy, (-r).exp()));
+                    }
+                }
+            }
+            let s: f64 = k.iter().map(|t| t.2).sum();
+            k.into_iter().map(|(a, b, v)| (a, b, v / s)).collect()
+        };
+        let read = |excess: f64| {
+            let mut sim = Plane::filled(w, h, 40.0);
+            let mut real = Plane::filled(w, h, 40.0);
+            for y in 0..h {
+                for x in 0..w {
+                    if disc(x, y) {
+                        sim.data[y * w + x] = 255.0;
+                        real.data[y * w + x] = 240.0;
+                    }
+                }
+            }
+            let mut spill = vec![0.0f64; w * h];
+            for y in 0..h {
+                for x in 0..w {
+                    if disc(x, y) {
+                        for &(dx, dy, v) in &kern {
+                            let (xx, yy) = ((x as isize + dx) as usize, (y as isize + dy) as usize);
+                            if !disc(xx, yy) {
+                                spill[yy * w + xx] += excess * v;
+                            }
+                        }
+                    }
+                }
+            }
+            for x in 0..w {
+                let n = (0..h).filter(|&y| disc(x, y)).count() as f64;
+                for y in 0..h {
+                    let i = y * w + x;
+                    if !disc(x, y) {
+                        // Smear: 0.003 FS per saturated pixel of the column, along the whole column.
+                        real.data[i] += (spill[i] + 0.003 * 255.0 * n) as f32;
+                        // Deterministic texture-free "noise" (a small checkerboard).
+                        real.data[i] += if (x + y) % 2 == 0 { 0.5 } else { -0.5 };
+                    }
+                }
+            }
+            let f = super::super::img::frame_from_planes(
+                std::slice::from_ref(&sim),
+                &crate::frame::Frame::new(w as u32, h as u32, crate::frame::PixelFormat::Mono8).unwrap(),
+            );
+            let g = super::super::img::frame_from_planes(std::slice::from_ref(&real), &f);
+            let r1 = vec![vec![real.sub(&sim)]];
+            let masks = vec![Masks::compute(std::slice::from_ref(&sim))];
+            let pairs = vec![Pair { name: "0".into(), sim_frame: f, real_frame: g, sim: vec![sim], real: vec![real] }];
+            let mut nm = NoiseModel::prior(1.0);
+            nm.a = 0.25;
+            halo_shape_spread(&pairs, &masks, &r1, 240.0, 0.3, &nm).expect("halo measurable").0
+        };
+        let (small, large) = (read(20.0), read(200.0));
+        assert!((1.0..=2.4).contains(&small), "small excess: {small}");
+        assert!((small - large).abs() < 0.15 * small, "size-independent: {small} vs {large}");
+    }
 }
