@@ -276,7 +276,9 @@ fn dark_level_under_srgb_is_not_gain_offset() {
 /// full scale (`blooming_mono`, which is otherwise diagnosed cleanly). The fitted model's RMSE
 /// must not be worse than the sim's on either. The over-exposed halo, which no library effect
 /// applied to the clipped sim reproduces (it drew a false `gain_offset` before), is left out of
-/// the fit: nothing else may be reported, and its spread is reported as untestable (null).
+/// the fit: nothing else may be reported. Its spread is read on the halo's shape (its fall-off
+/// with distance, whatever its size; `saturation::halo_shape_spread`), null only where that shape
+/// is not measurable.
 #[test]
 fn blooming_well_is_read_on_the_saturated_plateau() {
     let cases: Vec<Case> = corpus()

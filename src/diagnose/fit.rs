@@ -167,8 +167,20 @@ pub fn candidates(pairs: &[Pair], loc: &Located) -> Vec<Candidate> {
             // only the spread is fitted, so that a halo the clipped sim cannot feed (over-exposed
             // sources spill more than the sim's excess over the well) is not bought by lowering
             // the well. From interiors the plateau only starts the fit (as before).
-            let fit: &[&'static str] =
-                if well_basis(loc) == WellBasis::Cores { &["spread_px"] } else { &["full_well_fraction", "spread_px"] };
+            // The spread read on the halo's shape (smear's column offsets removed first;
+            // saturation::halo_shape_spread) is held: fitted freely, the spread trades against
+            // smear and against the over-exposure (a wider kernel buys a larger saturated
+            // footprint, which takes smear's column signal and starves smear). Only the well is
+            // then fitted.
+            let shape = loc.signature("blooming").and_then(|g| g.param(super::saturation::SHAPE_SPREAD_PARAM));
+            if let Some(v) = shape {
+                set(&mut p, "spread_px", v);
+            }
+            let fit: &[&'static str] = match (well_basis(loc), shape) {
+                (WellBasis::Cores, _) => &["spread_px"],
+                (_, Some(_)) => &["full_well_fraction"],
+                _ => &["full_well_fraction", "spread_px"],
+            };
             let mut c = cand("blooming", "blooming", p, fit);
             c.well_ceiling = well_ceiling(loc);
             out.push(c);
@@ -737,8 +749,26 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         let mut report_as = |name: &str, value: serde_json::Value| {
             canonical.iter_mut().filter(|(n, _)| n == name).for_each(|(_, v)| *v = value.clone())
         };
+        if s.name == "blooming"
+            && halo_px.is_none()
+            && let Some(v) = sig.and_then(|g| g.param(super::saturation::SHAPE_SPREAD_PARAM))
+        {
+            report_as("spread_px", serde_json::json!(v));
+            sig_evidence = format!("{sig_evidence}; spread_px read on the halo's shape: {v:.3} px");
+        }
         if s.name == "blooming" && halo_px.is_some() {
-            report_as("spread_px", serde_json::Value::Null);
+            // Over-exposed sources: the forward fit cannot match the halo's size (the clipped sim
+            // lacks the charge), but the spread is a decay length, read on the halo's shape
+            // (saturation::halo_shape_spread); null only when that shape is not measurable.
+            match sig.and_then(|g| g.param(super::saturation::SHAPE_SPREAD_PARAM)) {
+                Some(v) => {
+                    report_as("spread_px", serde_json::json!(v));
+                    sig_evidence = format!(
+                        "{sig_evidence}; spread_px read on the halo's shape: {v:.3} px (the over-exposed halo's size is not fitted)"
+                    );
+                }
+                None => report_as("spread_px", serde_json::Value::Null),
+            }
         }
         if s.name == "blooming" && well_basis(loc) == WellBasis::Untestable {
             // No saturated plateau: the fitted well only shapes the halo (it trades against the

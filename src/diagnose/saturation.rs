@@ -51,6 +51,8 @@ pub const OVEREXPOSED_MARGIN_DN: f64 = 3.0;
 /// z (binomial, against 1/2) below which the share of the saturated plateau at the top code does
 /// not show a well below full scale (see [`blooming`]).
 pub const PLATEAU_BELOW_TOP_Z: f64 = 5.0;
+/// Smallest z of the smear-free halo at 1 px for its shape to be read (a 5-sigma excess).
+pub const SHAPE_MIN_Z: f64 = 5.0;
 
 /// Robust scatter (DN, 1.4826 MAD) of the saturated plateau's real values, floored at the read
 /// noise and ADC step a photosite at its full well still carries, and the share of the values at
@@ -192,6 +194,7 @@ pub fn blooming(
     // reproduce (blooming_overexposed_mono: 79 DN at 1 px for 20 DN). The halo's extent is then reported (`halo_px`: where it falls below 1 DN) so
     // that the fit leaves that ring out instead of explaining it by something else.
     let sim_excess = (FS as f64 - rm).max(0.0);
+    let mut shape_ev = None;
     // Only with charge overflow shown by the plateau itself (a well measurably below FS; not the
     // deficit against the model's prediction, which a gain fitted on the halo may pull down).
     if sim_excess >= 1.0
@@ -211,6 +214,12 @@ pub fn blooming(
     if flat_z >= PLATEAU_BELOW_TOP_Z && deficit > 0.0 {
         sig.choices.push(("plateau".into(), "below_top_code".into()));
     }
+    if let Some((s, z1, ev)) = halo_shape_spread(pairs, masks, r1, rm, sd_plateau, noise) {
+        if z1 >= SHAPE_MIN_Z {
+            sig.set_param(SHAPE_SPREAD_PARAM, s.clamp(0.3, 8.0));
+        }
+        shape_ev = Some(ev);
+    }
     let fwf = (rm / FS as f64).clamp(0.05, 1.0);
     sig.set_param("full_well_fraction", fwf);
     sig.set_param("spread_px", spread.clamp(0.3, 20.0));
@@ -229,6 +238,9 @@ pub fn blooming(
         "; plateau scatter {sd_plateau:.2} DN, {:.1} % of it at the top code (z = {flat_z:.1} against the 50 % of a clipped level at or above full scale)",
         100.0 * top_frac
     ));
+    if let Some(ev) = shape_ev {
+        sig.evidence.push_str(&format!("; {ev}"));
+    }
     if let Some(r) = sig.param("halo_px") {
         sig.evidence.push_str(&format!(
             "; the halo exceeds the {sim_excess:.1} DN the clipped sim holds above the well: over-exposed sources (ring to {r:.0} px left out of the fit, spread_px untestable)"
@@ -397,6 +409,168 @@ pub fn smear(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], q: &[Vec<Plane>
     sig
 }
 
+/// Name of the blooming signature's parameter holding the spread read on the halo's shape.
+pub const SHAPE_SPREAD_PARAM: &str = "spread_shape_px";
+/// Distance bins (px from the real saturated footprint) of the halo-shape reading.
+const SHAPE_D: usize = 12;
+/// Far field of the halo-shape reading: beyond any plausible spill (px from the footprint).
+const SHAPE_FAR_PX: f32 = 40.0;
+/// Frames used by the halo-shape reading (the first ones with saturation).
+const SHAPE_FRAMES: usize = 3;
+
+/// Spread of the spilled charge read on the SHAPE of the halo, not on its size.
+///
+/// Physics: blooming spills the charge above the full well into the pixels next to a saturated
+/// region, with a fall-off set by the spread (a decay length); how much charge spills is set by
+/// the over-exposure, which a clipped sim does not hold. Smear, the near alias, adds a constant
+/// to the whole column (or row) of a saturated pixel, above and below the source as far from it
+/// as next to it. So: (1) the column and row offsets are read far from every saturated region
+/// (beyond blooming's reach) and removed, which takes smear out whatever its strength and
+/// whatever footprint feeds it; (2) the distance is measured from the REAL saturated footprint
+/// (pixels at the measured plateau; blooming grows it beyond the sim's when over-exposed);
+/// (3) the remaining excess against distance is fitted by the footprint spread with a Gaussian
+/// of std s (the library model's kernel), with a free amplitude, so that only the fall-off's
+/// shape decides s. Returns (s, z of the halo at 1 px, evidence) or None when the halo is not
+/// measurable (no footprint, too few pixels, or no positive halo).
+pub fn halo_shape_spread(
+    pairs: &[Pair],
+    masks: &[Masks],
+    r1: &[Vec<Plane>],
+    plateau: f64,
+    plateau_sd: f64,
+    noise: &NoiseModel,
+) -> Option<(f64, f64, String)> {
+    // Per frame and channel: (bins of the near pixels, their corrected residuals, footprint).
+    struct Near {
+        mask: Plane,
+        idx: Vec<(u32, u8)>,
+    }
+    let mut nears: Vec<Near> = Vec::new();
+    let mut acc = vec![(0.0f64, 0usize); SHAPE_D + 1];
+    let thr = (plateau - (3.0 * plateau_sd).max(1.0)) as f32;
+    let mut used = 0usize;
+    for (k, p) in pairs.iter().enumerate() {
+        if used >= SHAPE_FRAMES {
+            break;
+        }
+        let m = &masks[k];
+        if !m.sat.any() {
+            continue;
+        }
+        used += 1;
+        let (w, h) = (p.w(), p.h());
+        for c in 0..p.channels() {
+            let real = &p.real[c].data;
+            let rr = &r1[k][c].data;
+            let foot: Vec<bool> =
+                (0..w * h).map(|i| m.sat.get(i) || (real[i] >= thr && m.dist_sat.get(i) <= SHAPE_D as f32)).collect();
+            let dist = super::img::distance_transform(&foot, w, h);
+            let far = |i: usize| dist[i] > SHAPE_FAR_PX && m.dist_sat.get(i) > SHAPE_FAR_PX;
+            // Column offsets (vertical smear, and any far-field level), then row offsets
+            // (horizontal smear) on what the columns leave.
+            let mut col = vec![f64::NAN; w];
+            let mut buf = Vec::with_capacity(h.max(w));
+            for (x, cv) in col.iter_mut().enumerate() {
+                buf.clear();
+                buf.extend((0..h).map(|y| y * w + x).filter(|&i| far(i)).map(|i| rr[i] as f64));
+                if buf.len() >= 16 {
+                    *cv = stats::median_mut(&mut buf);
+                }
+            }
+            let mut row = vec![f64::NAN; h];
+            for (y, rv) in row.iter_mut().enumerate() {
+                buf.clear();
+                buf.extend(
+                    (0..w)
+                        .map(|x| (x, y * w + x))
+                        .filter(|&(x, i)| far(i) && col[x].is_finite())
+                        .map(|(x, i)| rr[i] as f64 - col[x]),
+                );
+                if buf.len() >= 16 {
+                    *rv = stats::median_mut(&mut buf);
+                }
+            }
+            let mut idx = Vec::new();
+            for y in 0..h {
+                for x in 0..w {
+                    let i = y * w + x;
+                    let d = dist[i];
+                    if !(0.5..=SHAPE_D as f32 + 0.49).contains(&d)
+                        || m.dist_edge_unsat.get(i) < 1.5
+                        || !col[x].is_finite()
+                        || !row[y].is_finite()
+                    {
+                        continue;
+                    }
+                    let b = d.round() as usize;
+                    acc[b].0 += rr[i] as f64 - col[x] - row[y];
+                    acc[b].1 += 1;
+                    idx.push((i as u32, b as u8));
+                }
+            }
+            if !idx.is_empty() {
+                nears.push(Near { mask: Plane { w, h, data: foot.iter().map(|&f| f as u8 as f32).collect() }, idx });
+            }
+        }
+    }
+    if nears.is_empty() || (1..=3).any(|b| acc[b].1 < 30) {
+        return None;
+    }
+    let prof: Vec<f64> = (0..=SHAPE_D).map(|b| if acc[b].1 > 0 { acc[b].0 / acc[b].1 as f64 } else { 0.0 }).collect();
+    let sd1 = noise.sd(0.0).max(0.3);
+    let z1 = prof[1] / (sd1 / (acc[1].1 as f64).sqrt());
+    if prof[1] <= 0.0 {
+        return None;
+    }
+    // Template of the footprint spread by a Gaussian of std s, in the same bins; the amplitude
+    // is free (weighted least squares with the bins' pixel counts).
+    let template = |s: f64| -> Vec<f64> {
+        let mut t = vec![(0.0f64, 0usize); SHAPE_D + 1];
+        for nr in &nears {
+            let g = nr.mask.gaussian(s as f32);
+            for &(i, b) in &nr.idx {
+                t[b as usize].0 += g.data[i as usize] as f64;
+                t[b as usize].1 += 1;
+            }
+        }
+        t.iter().map(|&(v, n)| if n > 0 { v / n as f64 } else { 0.0 }).collect()
+    };
+    let cost = |s: f64| -> f64 {
+        let t = template(s);
+        let (mut stt, mut spt) = (0.0, 0.0);
+        for b in 1..=SHAPE_D {
+            let wgt = acc[b].1 as f64;
+            stt += wgt * t[b] * t[b];
+            spt += wgt * prof[b] * t[b];
+        }
+        if stt <= 0.0 {
+            return f64::INFINITY;
+        }
+        let a = (spt / stt).max(0.0);
+        (1..=SHAPE_D).map(|b| acc[b].1 as f64 * (prof[b] - a * t[b]).powi(2)).sum()
+    };
+    // Log grid over the library's range, then golden refinement around the best node.
+    let grid: Vec<f64> = (0..=20).map(|j| 0.3 * (8.0f64 / 0.3).powf(j as f64 / 20.0)).collect();
+    let costs: Vec<f64> = grid.iter().map(|&s| cost(s)).collect();
+    let jb = (0..grid.len()).min_by(|&a, &b| costs[a].total_cmp(&costs[b])).unwrap_or(0);
+    let (mut lo, mut hi) = (grid[jb.saturating_sub(1)], grid[(jb + 1).min(grid.len() - 1)]);
+    let r = (5f64.sqrt() - 1.0) / 2.0;
+    for _ in 0..12 {
+        let (m1, m2) = (hi - r * (hi - lo), lo + r * (hi - lo));
+        if cost(m1) < cost(m2) {
+            hi = m2;
+        } else {
+            lo = m1;
+        }
+    }
+    let s = 0.5 * (lo + hi);
+    let ev = format!(
+        "halo shape (smear's column/row offsets read beyond {SHAPE_FAR_PX:.0} px and removed; distance from the real saturated footprint): {:.2}, {:.2}, {:.2}, {:.2} DN at 1-4 px (z = {z1:.1} at 1 px), fall-off fitted by a Gaussian spread of {s:.2} px with a free amplitude",
+        prof[1], prof[2], prof[3], prof[4]
+    );
+    Some((s, z1, ev))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -419,5 +593,80 @@ mod tests {
         let (sd_c, top_c) = plateau_scatter(&clipped, &nm);
         assert!(top_c >= 0.5, "top share {top_c}");
         assert!(sd_c >= (2.25f64 + 1.0 / 12.0).sqrt());
+    }
+    /// The halo's spread is read on its shape, whatever its size and beside smear: a saturated
+    /// disc whose excess spills with an exponential kernel (per-axis std 1.68 px; not the
+    /// library's Gaussian), once at a small excess and once at a ten times larger one, with a
+    /// strong vertical smear (its columns carry more than the halo at 1 px). The reading is the
+    /// same for both sizes and near the kernel's std.
+    #[test]
+    fn halo_shape_spread_reads_the_fall_off_not_the_size_beside_smear() {
+        let (w, h) = (200usize, 160usize);
+        let disc = |x: usize, y: usize| (x as f64 - 100.0).powi(2) + (y as f64 - 80.0).powi(2) < 64.0;
+        // Exponential spill kernel exp(-r / 1.0) (per-axis std about 1.68 px), radius 6.
+        let kern: Vec<(isize, isize, f64)> = {
+            let mut k = Vec::new();
+            for dy in -6isize..=6 {
+                for dx in -6isize..=6 {
+                    let r = ((dx * dx + dy * dy) as f64).sqrt();
+                    if r > 0.0 && r <= 6.0 {
+                        k.push((dx, dy, (-r).exp()));
+                    }
+                }
+            }
+            let s: f64 = k.iter().map(|t| t.2).sum();
+            k.into_iter().map(|(a, b, v)| (a, b, v / s)).collect()
+        };
+        let read = |excess: f64| {
+            let mut sim = Plane::filled(w, h, 40.0);
+            let mut real = Plane::filled(w, h, 40.0);
+            for y in 0..h {
+                for x in 0..w {
+                    if disc(x, y) {
+                        sim.data[y * w + x] = 255.0;
+                        real.data[y * w + x] = 240.0;
+                    }
+                }
+            }
+            let mut spill = vec![0.0f64; w * h];
+            for y in 0..h {
+                for x in 0..w {
+                    if disc(x, y) {
+                        for &(dx, dy, v) in &kern {
+                            let (xx, yy) = ((x as isize + dx) as usize, (y as isize + dy) as usize);
+                            if !disc(xx, yy) {
+                                spill[yy * w + xx] += excess * v;
+                            }
+                        }
+                    }
+                }
+            }
+            for x in 0..w {
+                let n = (0..h).filter(|&y| disc(x, y)).count() as f64;
+                for y in 0..h {
+                    let i = y * w + x;
+                    if !disc(x, y) {
+                        // Smear: 0.003 FS per saturated pixel of the column, along the whole column.
+                        real.data[i] += (spill[i] + 0.003 * 255.0 * n) as f32;
+                        // Deterministic texture-free "noise" (a small checkerboard).
+                        real.data[i] += if (x + y) % 2 == 0 { 0.5 } else { -0.5 };
+                    }
+                }
+            }
+            let f = super::super::img::frame_from_planes(
+                std::slice::from_ref(&sim),
+                &crate::frame::Frame::new(w as u32, h as u32, crate::frame::PixelFormat::Mono8).unwrap(),
+            );
+            let g = super::super::img::frame_from_planes(std::slice::from_ref(&real), &f);
+            let r1 = vec![vec![real.sub(&sim)]];
+            let masks = vec![Masks::compute(std::slice::from_ref(&sim))];
+            let pairs = vec![Pair { name: "0".into(), sim_frame: f, real_frame: g, sim: vec![sim], real: vec![real] }];
+            let mut nm = NoiseModel::prior(1.0);
+            nm.a = 0.25;
+            halo_shape_spread(&pairs, &masks, &r1, 240.0, 0.3, &nm).expect("halo measurable").0
+        };
+        let (small, large) = (read(20.0), read(200.0));
+        assert!((1.0..=2.4).contains(&small), "small excess: {small}");
+        assert!((small - large).abs() < 0.15 * small, "size-independent: {small} vs {large}");
     }
 }
