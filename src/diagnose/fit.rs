@@ -749,25 +749,19 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         let mut report_as = |name: &str, value: serde_json::Value| {
             canonical.iter_mut().filter(|(n, _)| n == name).for_each(|(_, v)| *v = value.clone())
         };
-        if s.name == "blooming"
-            && halo_px.is_none()
-            && let Some(v) = sig.and_then(|g| g.param(super::saturation::SHAPE_SPREAD_PARAM))
-        {
-            report_as("spread_px", serde_json::json!(v));
-            sig_evidence = format!("{sig_evidence}; spread_px read on the halo's shape: {v:.3} px");
-        }
-        if s.name == "blooming" && halo_px.is_some() {
-            // Over-exposed sources: the forward fit cannot match the halo's size (the clipped sim
-            // lacks the charge), but the spread is a decay length, read on the halo's shape
-            // (saturation::halo_shape_spread); null only when that shape is not measurable.
+        if s.name == "blooming" {
+            // The spread is a decay length, read on the halo's shape (saturation::halo_shape_spread)
+            // and held in the forward fit. Over-exposed sources: the forward fit cannot match the
+            // halo's size (the clipped sim lacks the charge), so without a shape reading there is
+            // no number (null).
+            let over = if halo_px.is_some() { " (the over-exposed halo's size is not fitted)" } else { "" };
             match sig.and_then(|g| g.param(super::saturation::SHAPE_SPREAD_PARAM)) {
                 Some(v) => {
                     report_as("spread_px", serde_json::json!(v));
-                    sig_evidence = format!(
-                        "{sig_evidence}; spread_px read on the halo's shape: {v:.3} px (the over-exposed halo's size is not fitted)"
-                    );
+                    sig_evidence = format!("{sig_evidence}; spread_px read on the halo's shape: {v:.3} px{over}");
                 }
-                None => report_as("spread_px", serde_json::Value::Null),
+                None if halo_px.is_some() => report_as("spread_px", serde_json::Value::Null),
+                None => {}
             }
         }
         if s.name == "blooming" && well_basis(loc) == WellBasis::Untestable {
