@@ -330,10 +330,7 @@ pub fn tests(pairs: &[Pair], masks: &[Masks], q: &[Vec<Plane>], noise: &NoiseMod
     };
     let grid: Vec<f64> = (0..=16).map(|i| i as f64 * 0.25).collect();
     let gl: Vec<f64> = grid.iter().map(|&s| gauss_loss(s)).collect();
-    let ibest = (0..grid.len()).min_by(|&a, &b| gl[a].total_cmp(&gl[b])).unwrap_or(0);
-    let (lo, hi) = (grid[ibest.saturating_sub(1)], grid[(ibest + 1).min(grid.len() - 1)]);
-    let (sigma_best, _) =
-        if hi > lo { stats::golden(&mut |s| gauss_loss(s), lo, hi, 12) } else { (grid[ibest], gl[ibest]) };
+    let (sigma_best, _) = stats::golden_around_best(&mut |s| gauss_loss(s), &grid, &gl, 12);
     let n_g = gpts.len().max(1) as f64;
     defocus.profiles.push(Profile {
         title: "defocus: edge loss against Gaussian blur".into(),

@@ -552,18 +552,7 @@ pub fn halo_shape_spread(
     // Log grid over the library's range, then golden refinement around the best node.
     let grid: Vec<f64> = (0..=20).map(|j| 0.3 * (8.0f64 / 0.3).powf(j as f64 / 20.0)).collect();
     let costs: Vec<f64> = grid.iter().map(|&s| cost(s)).collect();
-    let jb = (0..grid.len()).min_by(|&a, &b| costs[a].total_cmp(&costs[b])).unwrap_or(0);
-    let (mut lo, mut hi) = (grid[jb.saturating_sub(1)], grid[(jb + 1).min(grid.len() - 1)]);
-    let r = (5f64.sqrt() - 1.0) / 2.0;
-    for _ in 0..12 {
-        let (m1, m2) = (hi - r * (hi - lo), lo + r * (hi - lo));
-        if cost(m1) < cost(m2) {
-            hi = m2;
-        } else {
-            lo = m1;
-        }
-    }
-    let s = 0.5 * (lo + hi);
+    let (s, _) = stats::golden_around_best(&mut |s| cost(s), &grid, &costs, 12);
     let ev = format!(
         "halo shape (smear's column/row offsets read beyond {SHAPE_FAR_PX:.0} px and removed; distance from the real saturated footprint): {:.2}, {:.2}, {:.2}, {:.2} DN at 1-4 px (z = {z1:.1} at 1 px), fall-off fitted by a Gaussian spread of {s:.2} px with a free amplitude",
         prof[1], prof[2], prof[3], prof[4]

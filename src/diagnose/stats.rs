@@ -553,6 +553,15 @@ pub fn golden(f: &mut dyn FnMut(f64) -> f64, mut a: f64, mut b: f64, iters: usiz
     if fc < fd { (c, fc) } else { (d, fd) }
 }
 
+/// Refines the minimum of `f` found on a grid (ascending `grid`, `vals` = f there) by
+/// [`golden`] between the best node's neighbours (`iters` steps); returns (x, f(x)). The grid
+/// guards against the local minima a golden search alone would settle in.
+pub fn golden_around_best(f: &mut dyn FnMut(f64) -> f64, grid: &[f64], vals: &[f64], iters: usize) -> (f64, f64) {
+    let ib = (0..grid.len()).min_by(|&a, &b| vals[a].total_cmp(&vals[b])).unwrap_or(0);
+    let (lo, hi) = (grid[ib.saturating_sub(1)], grid[(ib + 1).min(grid.len() - 1)]);
+    if hi > lo { golden(f, lo, hi, iters) } else { (grid[ib], vals[ib]) }
+}
+
 /// Pool-adjacent-violators: the non-increasing sequence closest (weighted least squares) to `y`.
 pub fn isotonic_decreasing(y: &[f64], w: &[f64]) -> Vec<f64> {
     let mut blocks: Vec<(f64, f64, usize)> = Vec::new(); // (mean, weight, count)
