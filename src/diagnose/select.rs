@@ -461,6 +461,10 @@ struct LossTables {
 /// plain gain and offset). Above this the skew (1/√λ ≤ 0.13) is left to the Gaussian form.
 const PG_MAX_ELECTRONS: f64 = 60.0;
 
+/// Read-noise sds beyond which a photo-electron count's share of P(x < t) is taken as all or
+/// nothing in [`pg_row`] (Phi(-9) = 1.1e-19).
+const PG_TAIL_Z: f64 = 9.0;
+
 /// Losses `-ln P(real = r) + ln(q/√(2π))` (r >= 1) and `-ln P(real <= 0)` (r = 0) of 8-bit real
 /// values `r_lo..=r_hi` for the noise-free level `m` (DN): photo-electrons k ~ Poisson(m / b),
 /// each worth `b` DN, plus Gaussian read noise of variance `a + c m²` (the noise model's),
@@ -480,8 +484,24 @@ fn pg_row(noise: &NoiseModel, m: f64, r_lo: usize, r_hi: usize) -> Vec<f64> {
             k as f64 * lam.ln() - lam - crate::rng::ln_gamma(k as f64 + 1.0)
         }
     };
-    let pk: Vec<(f64, f64)> = (k_lo..=k_hi).map(|k| (k as f64 * b, ln_pk(k).exp())).collect();
-    let cdf = |t: f64| pk.iter().map(|&(v, p)| p * stats::norm_cdf((t - v) / s)).sum::<f64>();
+    let pk: Vec<f64> = (k_lo..=k_hi).map(|k| ln_pk(k).exp()).collect();
+    // P(x < t) = sum_k p_k Phi((t - k b) / s). Only the electron counts within PG_TAIL_Z read-noise
+    // sds of t take a fraction of their probability; those below take all of it (Phi = 1 to
+    // within 1e-19), those above none. `below[i]` = p_0 + .. + p_(i-1) (counts from k_lo). The
+    // cost per boundary is then about 2 PG_TAIL_Z s / b terms instead of every count: with a
+    // read noise much smaller than one electron's step (or a first noise estimate near a = 0),
+    // a handful instead of hundreds.
+    let mut below_k = Vec::with_capacity(pk.len() + 1);
+    below_k.push(0.0f64);
+    for &p in &pk {
+        below_k.push(below_k.last().copied().unwrap_or(0.0) + p);
+    }
+    let cdf = |t: f64| {
+        let first = (((t - PG_TAIL_Z * s) / b).ceil().max(k_lo as f64) as usize).min(k_hi + 1) - k_lo;
+        let last = (((t + PG_TAIL_Z * s) / b).floor().min(k_hi as f64).max(k_lo as f64 - 1.0) + 1.0) as usize - k_lo;
+        below_k[first]
+            + (first..last.max(first)).map(|i| pk[i] * stats::norm_cdf((t - (k_lo + i) as f64 * b) / s)).sum::<f64>()
+    };
     let shift = (1.0 / (2.0 * std::f64::consts::PI).sqrt()).ln();
     let mut below = cdf(r_lo as f64 - 0.5);
     (r_lo..=r_hi)
@@ -498,6 +518,7 @@ const LEVELS: usize = 65536;
 
 impl LossTables {
     fn new(noise: &NoiseModel) -> LossTables {
+        let t0 = std::time::Instant::now();
         let q = noise.quant;
         let fs = FS as f64;
         let scale = 255.0f32 / 65535.0f32;
@@ -547,6 +568,10 @@ impl LossTables {
                 pg_first.push(f);
                 pg_rows.push(r);
             }
+        }
+        if std::env::var_os("FAULTCAM_DIAG_DEBUG").is_some() {
+            let cells: usize = pg_rows.iter().map(|r| r.len()).sum();
+            eprintln!("loss tables: a {:.4} b {:.4} c {:.6} quant {} pg levels {} cells {} in {:.2} s", noise.a, noise.b, noise.c, q, pg_rows.len(), cells, t0.elapsed().as_secs_f64());
         }
         LossTables { level, sd, low, high, interval_first, interval_rows, ln_sd, pg_first, pg_rows }
     }
