@@ -420,6 +420,8 @@ pub struct LossData<'a> {
     tables: LossTables,
     /// The proper likelihood (see [`Self::set_exact`]).
     exact: bool,
+    /// Finer-than-8-bit data: how many real values sit at each level (for the tables' rows).
+    real_counts: Vec<u32>,
 }
 
 const DBLOCK: usize = 16;
@@ -442,6 +444,14 @@ struct LossTables {
     /// `first[r] .. first[r] + rows[r].len()`; empty when the data are not 8-bit.
     interval_first: Vec<usize>,
     interval_rows: Vec<Vec<f64>>,
+    /// Finer-than-8-bit real data (10-, 12-, 16-bit): the same interval loss tabulated for the
+    /// real values the data hold (keyed by the value's level index, `u32::MAX`: not tabulated)
+    /// near a clipping bound, most frequent values first within [`QROW_BUDGET`] entries; the
+    /// rest are computed per pixel. The entries are [`interval`] at the very arguments the
+    /// per-pixel call would use, so a table hit changes no bit of the loss.
+    qrow_of: Vec<u32>,
+    qrow_first: Vec<usize>,
+    qrows: Vec<Vec<f64>>,
     /// ln sd of each level (the normalisation of the Gaussian density; see [`eval_plane`]).
     ln_sd: Vec<f64>,
     /// 8-bit real data with shot noise: for the levels of at most [`PG_MAX_ELECTRONS`]
@@ -464,6 +474,11 @@ const PG_MAX_ELECTRONS: f64 = 60.0;
 /// Read-noise sds beyond which a photo-electron count's share of P(x < t) is taken as all or
 /// nothing in [`pg_row`] (Phi(-9) = 1.1e-19).
 const PG_TAIL_Z: f64 = 9.0;
+
+/// Entries of the interval-loss table of finer-than-8-bit data (f64; 32 MB), and the number of
+/// distinct real values considered for it.
+const QROW_BUDGET: usize = 4 << 20;
+const QROW_MAX_VALUES: usize = 8192;
 
 /// Losses `-ln P(real = r) + ln(q/√(2π))` (r >= 1) and `-ln P(real <= 0)` (r = 0) of 8-bit real
 /// values `r_lo..=r_hi` for the noise-free level `m` (DN): photo-electrons k ~ Poisson(m / b),
@@ -515,14 +530,14 @@ fn pg_row(noise: &NoiseModel, m: f64, r_lo: usize, r_hi: usize) -> Vec<f64> {
 }
 
 const LEVELS: usize = 65536;
+const LEVEL_SCALE: f32 = 255.0f32 / 65535.0f32;
 
 impl LossTables {
     fn new(noise: &NoiseModel) -> LossTables {
         let t0 = std::time::Instant::now();
         let q = noise.quant;
         let fs = FS as f64;
-        let scale = 255.0f32 / 65535.0f32;
-        let level: Vec<f32> = (0..LEVELS).map(|v| v as f32 * scale).collect();
+        let level: Vec<f32> = (0..LEVELS).map(|v| v as f32 * LEVEL_SCALE).collect();
         let sd: Vec<f64> = level.iter().map(|&m| noise.sd(m as f64)).collect();
         let mut low = Vec::with_capacity(LEVELS);
         let mut high = Vec::with_capacity(LEVELS);
@@ -573,7 +588,83 @@ impl LossTables {
             let cells: usize = pg_rows.iter().map(|r| r.len()).sum();
             eprintln!("loss tables: a {:.4} b {:.4} c {:.6} quant {} pg levels {} cells {} in {:.2} s", noise.a, noise.b, noise.c, q, pg_rows.len(), cells, t0.elapsed().as_secs_f64());
         }
-        LossTables { level, sd, low, high, interval_first, interval_rows, ln_sd, pg_first, pg_rows }
+        LossTables {
+            level,
+            sd,
+            low,
+            high,
+            interval_first,
+            interval_rows,
+            qrow_of: Vec::new(),
+            qrow_first: Vec::new(),
+            qrows: Vec::new(),
+            ln_sd,
+            pg_first,
+            pg_rows,
+        }
+    }
+
+    /// Tabulate the interval loss for finer-than-8-bit real data (see `qrows`): `counts[v]` is
+    /// the number of real values at level `v` in the fitted planes.
+    fn add_real_rows(&mut self, noise: &NoiseModel, counts: &[u32]) {
+        let q = noise.quant;
+        if q >= 1.0 || counts.len() != LEVELS {
+            return;
+        }
+        let fs = FS as f64;
+        let sd_max = self.sd.iter().fold(0.0f64, |a, &b| a.max(b));
+        let (level, sd) = (&self.level, &self.sd);
+        // The condition under which `term` takes the interval form (same expressions).
+        let used = |rv: f64, v: usize| {
+            let (m, s) = (level[v] as f64, sd[v]);
+            (rv < 3.0 * s || rv > fs - 3.0 * s) && ((rv - m) / s).abs() <= 3.0
+        };
+        let mut cand: Vec<usize> = (0..LEVELS)
+            .filter(|&v| {
+                let rv = level[v] as f64;
+                counts[v] > 0 && (rv < 3.0 * sd_max || rv > fs - 3.0 * sd_max)
+            })
+            .collect();
+        cand.sort_by(|&a, &b| counts[b].cmp(&counts[a]).then(a.cmp(&b)));
+        cand.truncate(QROW_MAX_VALUES);
+        let spans: Vec<Option<(usize, usize)>> = cand
+            .par_iter()
+            .map(|&r| {
+                let rv = level[r] as f64;
+                let lo = ((rv - 3.0 * sd_max - 1.0) * 257.0).floor().clamp(0.0, (LEVELS - 1) as f64) as usize;
+                let hi = ((rv + 3.0 * sd_max + 1.0) * 257.0).ceil().clamp(0.0, (LEVELS - 1) as f64) as usize;
+                let first = (lo..=hi).find(|&v| used(rv, v))?;
+                let last = (first..=hi).rev().find(|&v| used(rv, v))?;
+                Some((first, last))
+            })
+            .collect();
+        let mut take = Vec::new();
+        let mut total = 0usize;
+        for (&r, span) in cand.iter().zip(&spans) {
+            if let Some((f, l)) = *span {
+                if total + (l - f + 1) > QROW_BUDGET {
+                    continue;
+                }
+                total += l - f + 1;
+                take.push((r, f, l));
+            }
+        }
+        let rows: Vec<Vec<f64>> = take
+            .par_iter()
+            .map(|&(r, f, l)| {
+                let rv = level[r] as f64;
+                (f..=l).map(|v| interval(rv, level[v] as f64, sd[v], q)).collect()
+            })
+            .collect();
+        self.qrow_of = vec![u32::MAX; LEVELS];
+        for (i, &(r, f, _)) in take.iter().enumerate() {
+            self.qrow_of[r] = i as u32;
+            self.qrow_first.push(f);
+        }
+        self.qrows = rows;
+        if std::env::var_os("FAULTCAM_DIAG_DEBUG").is_some() {
+            eprintln!("loss tables: {} real values near a bound tabulated ({} entries)", take.len(), total);
+        }
     }
 
     /// Loss of real value `rv` for model value `mf` (a negative log-probability up to a constant)
@@ -661,6 +752,14 @@ impl LossTables {
     /// Level index of a model value, if it is a tabulated level.
     #[inline]
     fn index(&self, m: f32) -> Option<usize> {
+        let v = Self::level_index(m)?;
+        debug_assert_eq!(self.level[v].to_bits(), m.to_bits());
+        Some(v)
+    }
+
+    /// Level index of a value that is exactly one of the levels (`v as f32 * (255/65535)`).
+    #[inline]
+    fn level_index(m: f32) -> Option<usize> {
         if m.is_nan() || m < 0.0 {
             return None;
         }
@@ -669,11 +768,16 @@ impl LossTables {
         if v >= LEVELS {
             return None;
         }
-        (self.level[v].to_bits() == m.to_bits()).then_some(v)
+        ((v as f32 * LEVEL_SCALE).to_bits() == m.to_bits()).then_some(v)
     }
 
     #[inline]
     fn interval_at(&self, r: f64, v: usize) -> Option<f64> {
+        if !self.qrow_of.is_empty() {
+            let row = *self.qrow_of.get(self.index(r as f32)?)?;
+            let (row, first) = (self.qrows.get(row as usize)?, self.qrow_first[row as usize]);
+            return if v < first { None } else { row.get(v - first).copied() };
+        }
         let ri = r as usize;
         if ri as f64 != r {
             return None;
@@ -709,8 +813,23 @@ impl<'a> LossData<'a> {
         noise: NoiseModel,
         row_step: usize,
     ) -> LossData<'a> {
-        let tables = LossTables::new(&noise);
-        LossData { pairs, skip, interior, noise, row_step, rows: None, tables, exact: true }
+        let mut real_counts = Vec::new();
+        if noise.quant < 1.0 {
+            let probe = LossTables::level_index;
+            real_counts = vec![0u32; LEVELS];
+            for p in &pairs {
+                for plane in &p.real {
+                    for &r in &plane.data {
+                        if let Some(v) = probe(r) {
+                            real_counts[v] = real_counts[v].saturating_add(1);
+                        }
+                    }
+                }
+            }
+        }
+        let mut tables = LossTables::new(&noise);
+        tables.add_real_rows(&noise, &real_counts);
+        LossData { pairs, skip, interior, noise, row_step, rows: None, tables, exact: true, real_counts }
     }
 
     pub fn noise(&self) -> &NoiseModel {
@@ -731,6 +850,7 @@ impl<'a> LossData<'a> {
     /// Replace the noise model (and its tables).
     pub fn set_noise(&mut self, noise: NoiseModel) {
         self.tables = LossTables::new(&noise);
+        self.tables.add_real_rows(&noise, &self.real_counts);
         self.noise = noise;
     }
 }
