@@ -713,18 +713,22 @@ impl<'a> LossData<'a> {
 impl LossData<'_> {
     /// Robust negative log-likelihood of the real planes given model planes.
     pub fn eval(&self, model: &[Vec<Plane>]) -> LossEval {
-        self.eval_on(model, false)
+        self.eval_on(model, false, None)
     }
 
-    /// [`Self::eval`], optionally on the interior pixels only. The planes are evaluated in
-    /// parallel (one task per pair and channel) and their sums combined in a fixed order, so the
-    /// result does not depend on the number of threads.
-    pub fn eval_on(&self, model: &[Vec<Plane>], interior_only: bool) -> LossEval {
+    /// [`Self::eval`], optionally on the interior pixels only; `well` is the work-frame level
+    /// (16-bit) of the model's full well when it holds clipped photosites below the top code
+    /// ([`well_level`]): a model value at that level is a full photosite, whose value is the clip
+    /// level and not a Poisson draw, so its loss takes the read noise and ADC step only (see
+    /// [`LossTables::term_at_well`]). The planes are evaluated in parallel (one task per pair and
+    /// channel) and their sums combined in a fixed order, so the result does not depend on the
+    /// number of threads.
+    pub fn eval_on(&self, model: &[Vec<Plane>], interior_only: bool, well: Option<usize>) -> LossEval {
         use rayon::prelude::*;
         let jobs: Vec<(usize, usize)> =
             model.iter().enumerate().flat_map(|(k, mp)| (0..mp.len()).map(move |c| (k, c))).collect();
         let parts: Vec<(f64, usize, f64, usize)> =
-            jobs.par_iter().map(|&(k, c)| self.eval_plane(k, c, &model[k][c], interior_only)).collect();
+            jobs.par_iter().map(|&(k, c)| self.eval_plane(k, c, &model[k][c], interior_only, well)).collect();
         let (mut total, mut n, mut dsum, mut dn) = (0.0, 0usize, 0.0, 0usize);
         for p in parts {
             total += p.0;
@@ -736,7 +740,16 @@ impl LossData<'_> {
     }
 
     /// Loss of one plane of pair `k`, channel `c`: (total, values, design sum, design blocks).
-    fn eval_plane(&self, k: usize, c: usize, plane: &Plane, interior_only: bool) -> (f64, usize, f64, usize) {
+    fn eval_plane(
+        &self,
+        k: usize,
+        c: usize,
+        plane: &Plane,
+        interior_only: bool,
+        well: Option<usize>,
+    ) -> (f64, usize, f64, usize) {
+        // Read noise and ADC step: the scatter of a full photosite's value.
+        let sd_well = self.noise.var(0.0).sqrt();
         let mut total = 0.0;
         let mut n = 0usize;
         let mut dsum = 0.0;
@@ -759,7 +772,13 @@ impl LossData<'_> {
                 if self.skip[k][i] || (interior_only && !self.interior[k][i]) {
                     continue;
                 }
-                let (l, g) = tab.term(&self.noise, r[i] as f64, plane.data[i], self.exact);
+                let mf = plane.data[i];
+                let at_well = well.is_some_and(|wl| tab.index(mf).is_some_and(|v| v.abs_diff(wl) <= 1));
+                let (l, g) = if at_well {
+                    term_at_well(&self.noise, r[i] as f64, mf as f64, sd_well, self.exact)
+                } else {
+                    tab.term(&self.noise, r[i] as f64, mf, self.exact)
+                };
                 let b = (y / DBLOCK) * bw + x / DBLOCK;
                 bs[b] += g;
                 bc[b] += 1;
@@ -775,6 +794,45 @@ impl LossData<'_> {
         }
         (total, n, dsum, dn)
     }
+}
+
+/// Loss and generalised residual of real value `rv` where the model holds a full photosite at
+/// level `m` (its full well, below the top code). Blooming clips the charge at the well and
+/// spills the rest: the value read is the clip level itself, not a Poisson draw around it, so it
+/// carries the read noise and the ADC step (`sd`) but no shot noise. With the shot noise of its
+/// level (≈ 5 DN at 250 DN and 10 e-/DN) a plateau 2.5 DN under the top code is hardly told from
+/// a clipped sim at the top code, and blooming's evidence at the well is lost. Same forms as
+/// [`LossTables::term`] (censored at the bounds, the rounding interval near full scale, Huber
+/// with the density's normalisation elsewhere).
+fn term_at_well(noise: &NoiseModel, rv: f64, m: f64, sd: f64, exact: bool) -> (f64, f64) {
+    let q = noise.quant;
+    let fs = FS as f64;
+    if rv <= 0.0 {
+        return low_term(m, sd, q);
+    }
+    if rv >= fs {
+        return high_term(m, sd, q, fs);
+    }
+    let z = (rv - m) / sd;
+    let l = if rv > fs - 3.0 * sd && z.abs() <= 3.0 {
+        let l = interval(rv, m, sd, q);
+        if exact { l } else { l - sd.ln() }
+    } else if exact {
+        huber(z) + sd.ln()
+    } else {
+        huber(z)
+    };
+    (l, z.clamp(-4.0, 4.0))
+}
+
+/// Work-frame level (16-bit) at which the model's blooming step leaves its full photosites,
+/// when that is below the top code (at the top code a model value means "at or above full
+/// scale", the clipped sim's meaning, whose likelihood is that of the level itself).
+pub fn well_level(steps: &[Step]) -> Option<usize> {
+    let s = steps.iter().find(|s| s.name == "blooming")?;
+    let f = s.params.get("full_well_fraction");
+    let v = (f * 65535.0).round();
+    (v < 65535.0 - 1.0 && v > 0.0).then_some(v as usize)
 }
 
 #[inline]
@@ -876,7 +934,8 @@ impl FitCtx<'_> {
     }
     pub fn eval(&self, steps: &mut [Step]) -> Result<LossEval, DiagnoseError> {
         self.count_eval();
-        Ok(self.loss.eval(&self.run_from(steps, 0, &self.inputs, self.bands.as_deref())?))
+        let planes = self.run_from(steps, 0, &self.inputs, self.bands.as_deref())?;
+        Ok(self.loss.eval_on(&planes, false, well_level(steps)))
     }
     /// Model planes of the fit frames (whole frames, also with JPEG bands).
     pub fn model_planes(&self, steps: &mut [Step]) -> Result<Vec<Vec<Plane>>, DiagnoseError> {
@@ -1008,7 +1067,7 @@ fn optimise(
                 ctx.count_eval();
                 match ctx.run_from(steps, c.step, &prefix, ctx.bands.as_deref()) {
                     Ok(o) => {
-                        last = ctx.loss.eval(&o);
+                        last = ctx.loss.eval_on(&o, false, well_level(steps));
                         last.total
                     }
                     Err(e) => {
@@ -1866,8 +1925,8 @@ fn drop_one(
         // A global tone or additive effect must be supported away from edges and saturated
         // pixels; evidence only there is the shape of a PSF or an interpolation that another
         // effect models imperfectly.
-        let li = ctx.loss.eval_on(&ctx.model_planes(&mut without)?, true);
-        let ci = ctx.loss.eval_on(&ctx.model_planes(steps)?, true);
+        let li = ctx.loss.eval_on(&ctx.model_planes(&mut without)?, true, well_level(&without));
+        let ci = ctx.loss.eval_on(&ctx.model_planes(steps)?, true, well_level(steps));
         let inner = evidence(steps[j].name, &steps[j].label, li, ci, k, f64::INFINITY, z_thr, 0);
         if !inner.accepted {
             ev.accepted = false;
