@@ -420,6 +420,9 @@ pub struct LossData<'a> {
     tables: LossTables,
     /// The proper likelihood (see [`Self::set_exact`]).
     exact: bool,
+    /// Scatter (DN) of a full photosite's value, measured on the saturated plateau (see
+    /// [`Self::set_well_sd`]); None: the read noise and ADC step.
+    well_sd: Option<f64>,
 }
 
 const DBLOCK: usize = 16;
@@ -685,7 +688,16 @@ impl<'a> LossData<'a> {
         row_step: usize,
     ) -> LossData<'a> {
         let tables = LossTables::new(&noise);
-        LossData { pairs, skip, interior, noise, row_step, rows: None, tables, exact: true }
+        LossData { pairs, skip, interior, noise, row_step, rows: None, tables, exact: true, well_sd: None }
+    }
+
+    /// The scatter (DN) of a full photosite's value as the real plateau shows it (robust, floored
+    /// at the read noise and ADC step; `saturation::plateau_scatter`): a camera whose full
+    /// photosites read the clip level plus read noise shows the read noise there, one that adds
+    /// more (a well that varies from pixel to pixel, compression) shows that, and the loss at the
+    /// well then trusts no more than the data show.
+    pub fn set_well_sd(&mut self, sd: Option<f64>) {
+        self.well_sd = sd.filter(|v| v.is_finite() && *v > 0.0);
     }
 
     pub fn noise(&self) -> &NoiseModel {
@@ -748,8 +760,10 @@ impl LossData<'_> {
         interior_only: bool,
         well: Option<usize>,
     ) -> (f64, usize, f64, usize) {
-        // Read noise and ADC step: the scatter of a full photosite's value.
-        let sd_well = self.noise.var(0.0).sqrt();
+        // Read noise and ADC step: the scatter of a full photosite's value (or more, when the
+        // plateau shows more).
+        let read = self.noise.var(0.0).sqrt();
+        let sd_well = self.well_sd.map_or(read, |s| s.max(read));
         let mut total = 0.0;
         let mut n = 0usize;
         let mut dsum = 0.0;
@@ -2370,6 +2384,33 @@ mod tests {
             assert!(exact.abs() <= 0.025, "{what}");
             assert!(plain > 0.03 && plain > 3.0 * exact.abs(), "{what}");
         }
+    }
+
+    /// (h33bloom) A full photosite reads its clip level with the read noise and ADC step only. On
+    /// a 10-bit camera (10 e-/DN, read noise 1.2 DN) whose well sits 2.5 DN under the top code,
+    /// the plateau's values are told from a clipped level at the top code by far more than the
+    /// shot noise of that level would allow (≈ 5 DN), and a plateau at the top code counts
+    /// against a model that puts the well below it.
+    #[test]
+    fn a_full_photosite_carries_the_read_noise_only() {
+        let mut noise = NoiseModel::prior(255.0 / 1023.0);
+        noise.a = 1.44;
+        noise.b = 0.1;
+        noise.c = 0.0;
+        let tab = LossTables::new(&noise);
+        let read = noise.var(0.0).sqrt();
+        let well = 0.99 * FS as f64;
+        let (w16, top16) = ((well * 257.0).round() as f32 / 257.0, FS);
+        let plateau = (well * 1023.0 / 255.0).round() * 255.0 / 1023.0;
+        // Per pixel: the clipped sim at the top code (shot noise of its level) against the well.
+        let at_top = tab.term(&noise, plateau, top16, true).0;
+        let at_well = term_at_well(&noise, plateau, w16 as f64, read, true).0;
+        let with_shot = tab.term(&noise, plateau, w16, true).0;
+        assert!(at_top - at_well > 1.0, "top {at_top:.3} well {at_well:.3}");
+        assert!(at_top - with_shot < 0.2, "with the shot noise: top {at_top:.3} well {with_shot:.3}");
+        // A plateau at the top code: the well below it is unlikely, and more so than with shot noise.
+        let clipped = term_at_well(&noise, FS as f64, w16 as f64, read, true).0;
+        assert!(clipped > tab.term(&noise, FS as f64, w16, true).0 + 1.0 && clipped > 3.0, "{clipped}");
     }
 
     #[test]
