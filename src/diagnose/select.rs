@@ -789,7 +789,13 @@ impl LossData<'_> {
                 let mf = plane.data[i];
                 let at_well = well.is_some_and(|wl| tab.index(mf).is_some_and(|v| v.abs_diff(wl) <= 1));
                 let (l, g) = if at_well {
-                    term_at_well(&self.noise, r[i] as f64, mf as f64, sd_well, self.exact)
+                    // A full photosite, or (where the sim's footprint is not the real one) a
+                    // pixel at that level with the noise of its level: the mixture of the two,
+                    // min of the losses + ln 2 for the second (as the exact Poisson–Gaussian form
+                    // is capped), so a footprint mismatch costs at most ln 2 more than before.
+                    let (lw, gw) = term_at_well(&self.noise, r[i] as f64, mf as f64, sd_well, self.exact);
+                    let (ls, gs) = tab.term(&self.noise, r[i] as f64, mf, self.exact);
+                    if lw <= ls + LN_2 { (lw, gw) } else { (ls + LN_2, gs) }
                 } else {
                     tab.term(&self.noise, r[i] as f64, mf, self.exact)
                 };
