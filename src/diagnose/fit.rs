@@ -571,6 +571,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         bands: bands.clone(),
         evals: std::sync::atomic::AtomicUsize::new(0),
     };
+    ctx.loss.set_well_sd(loc.signature("blooming").and_then(|s| s.param(super::saturation::PLATEAU_SD_PARAM)));
     if let Some(b) = &bands {
         let mut rows = vec![false; h];
         for &y0 in b {

@@ -220,6 +220,8 @@ pub fn blooming(
         }
         shape_ev = Some(ev);
     }
+    // The plateau's scatter: what the forward loss takes for a full photosite's value.
+    sig.set_param(PLATEAU_SD_PARAM, sd_plateau);
     let fwf = (rm / FS as f64).clamp(0.05, 1.0);
     sig.set_param("full_well_fraction", fwf);
     sig.set_param("spread_px", spread.clamp(0.3, 20.0));
@@ -411,6 +413,9 @@ pub fn smear(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], q: &[Vec<Plane>
 
 /// Name of the blooming signature's parameter holding the spread read on the halo's shape.
 pub const SHAPE_SPREAD_PARAM: &str = "spread_shape_px";
+/// Signature parameter: robust scatter (DN) of the real saturated plateau (see
+/// [`plateau_scatter`]), the noise of a full photosite in the forward loss.
+pub const PLATEAU_SD_PARAM: &str = "plateau_sd_dn";
 /// Distance bins (px from the real saturated footprint) of the halo-shape reading.
 const SHAPE_D: usize = 12;
 /// Far field of the halo-shape reading: beyond any plausible spill (px from the footprint).

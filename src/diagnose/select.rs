@@ -422,6 +422,9 @@ pub struct LossData<'a> {
     exact: bool,
     /// Finer-than-8-bit data: how many real values sit at each level (for the tables' rows).
     real_counts: Vec<u32>,
+    /// Scatter (DN) of a full photosite's value, measured on the saturated plateau (see
+    /// [`Self::set_well_sd`]); None: the read noise and ADC step.
+    well_sd: Option<f64>,
 }
 
 const DBLOCK: usize = 16;
@@ -838,7 +841,16 @@ impl<'a> LossData<'a> {
         }
         let mut tables = LossTables::new(&noise);
         tables.add_real_rows(&noise, &real_counts);
-        LossData { pairs, skip, interior, noise, row_step, rows: None, tables, exact: true, real_counts }
+        LossData { pairs, skip, interior, noise, row_step, rows: None, tables, exact: true, real_counts, well_sd: None }
+    }
+
+    /// The scatter (DN) of a full photosite's value as the real plateau shows it (robust, floored
+    /// at the read noise and ADC step; `saturation::plateau_scatter`): a camera whose full
+    /// photosites read the clip level plus read noise shows the read noise there, one that adds
+    /// more (a well that varies from pixel to pixel, compression) shows that, and the loss at the
+    /// well then trusts no more than the data show.
+    pub fn set_well_sd(&mut self, sd: Option<f64>) {
+        self.well_sd = sd.filter(|v| v.is_finite() && *v > 0.0);
     }
 
     pub fn noise(&self) -> &NoiseModel {
@@ -867,18 +879,22 @@ impl<'a> LossData<'a> {
 impl LossData<'_> {
     /// Robust negative log-likelihood of the real planes given model planes.
     pub fn eval(&self, model: &[Vec<Plane>]) -> LossEval {
-        self.eval_on(model, false)
+        self.eval_on(model, false, None)
     }
 
-    /// [`Self::eval`], optionally on the interior pixels only. The planes are evaluated in
-    /// parallel (one task per pair and channel) and their sums combined in a fixed order, so the
-    /// result does not depend on the number of threads.
-    pub fn eval_on(&self, model: &[Vec<Plane>], interior_only: bool) -> LossEval {
+    /// [`Self::eval`], optionally on the interior pixels only; `well` is the work-frame level
+    /// (16-bit) of the model's full well when it holds clipped photosites below the top code
+    /// ([`well_level`]): a model value at that level is a full photosite, whose value is the clip
+    /// level and not a Poisson draw, so its loss takes the read noise and ADC step only (see
+    /// [`LossTables::term_at_well`]). The planes are evaluated in parallel (one task per pair and
+    /// channel) and their sums combined in a fixed order, so the result does not depend on the
+    /// number of threads.
+    pub fn eval_on(&self, model: &[Vec<Plane>], interior_only: bool, well: Option<usize>) -> LossEval {
         use rayon::prelude::*;
         let jobs: Vec<(usize, usize)> =
             model.iter().enumerate().flat_map(|(k, mp)| (0..mp.len()).map(move |c| (k, c))).collect();
         let parts: Vec<(f64, usize, f64, usize)> =
-            jobs.par_iter().map(|&(k, c)| self.eval_plane(k, c, &model[k][c], interior_only)).collect();
+            jobs.par_iter().map(|&(k, c)| self.eval_plane(k, c, &model[k][c], interior_only, well)).collect();
         let (mut total, mut n, mut dsum, mut dn) = (0.0, 0usize, 0.0, 0usize);
         for p in parts {
             total += p.0;
@@ -890,7 +906,18 @@ impl LossData<'_> {
     }
 
     /// Loss of one plane of pair `k`, channel `c`: (total, values, design sum, design blocks).
-    fn eval_plane(&self, k: usize, c: usize, plane: &Plane, interior_only: bool) -> (f64, usize, f64, usize) {
+    fn eval_plane(
+        &self,
+        k: usize,
+        c: usize,
+        plane: &Plane,
+        interior_only: bool,
+        well: Option<usize>,
+    ) -> (f64, usize, f64, usize) {
+        // Read noise and ADC step: the scatter of a full photosite's value (or more, when the
+        // plateau shows more).
+        let read = self.noise.var(0.0).sqrt();
+        let sd_well = self.well_sd.map_or(read, |s| s.max(read));
         let mut total = 0.0;
         let mut n = 0usize;
         let mut dsum = 0.0;
@@ -913,7 +940,19 @@ impl LossData<'_> {
                 if self.skip[k][i] || (interior_only && !self.interior[k][i]) {
                     continue;
                 }
-                let (l, g) = tab.term(&self.noise, r[i] as f64, plane.data[i], self.exact);
+                let mf = plane.data[i];
+                let at_well = well.is_some_and(|wl| tab.index(mf).is_some_and(|v| v.abs_diff(wl) <= 1));
+                let (l, g) = if at_well {
+                    // A full photosite, or (where the sim's footprint is not the real one) a
+                    // pixel at that level with the noise of its level: the mixture of the two,
+                    // min of the losses + ln 2 for the second (as the exact Poisson–Gaussian form
+                    // is capped), so a footprint mismatch costs at most ln 2 more than before.
+                    let (lw, gw) = term_at_well(&self.noise, r[i] as f64, mf as f64, sd_well, self.exact);
+                    let (ls, gs) = tab.term(&self.noise, r[i] as f64, mf, self.exact);
+                    if lw <= ls + LN_2 { (lw, gw) } else { (ls + LN_2, gs) }
+                } else {
+                    tab.term(&self.noise, r[i] as f64, mf, self.exact)
+                };
                 let b = (y / DBLOCK) * bw + x / DBLOCK;
                 bs[b] += g;
                 bc[b] += 1;
@@ -929,6 +968,45 @@ impl LossData<'_> {
         }
         (total, n, dsum, dn)
     }
+}
+
+/// Loss and generalised residual of real value `rv` where the model holds a full photosite at
+/// level `m` (its full well, below the top code). Blooming clips the charge at the well and
+/// spills the rest: the value read is the clip level itself, not a Poisson draw around it, so it
+/// carries the read noise and the ADC step (`sd`) but no shot noise. With the shot noise of its
+/// level (≈ 5 DN at 250 DN and 10 e-/DN) a plateau 2.5 DN under the top code is hardly told from
+/// a clipped sim at the top code, and blooming's evidence at the well is lost. Same forms as
+/// [`LossTables::term`] (censored at the bounds, the rounding interval near full scale, Huber
+/// with the density's normalisation elsewhere).
+fn term_at_well(noise: &NoiseModel, rv: f64, m: f64, sd: f64, exact: bool) -> (f64, f64) {
+    let q = noise.quant;
+    let fs = FS as f64;
+    if rv <= 0.0 {
+        return low_term(m, sd, q);
+    }
+    if rv >= fs {
+        return high_term(m, sd, q, fs);
+    }
+    let z = (rv - m) / sd;
+    let l = if rv > fs - 3.0 * sd && z.abs() <= 3.0 {
+        let l = interval(rv, m, sd, q);
+        if exact { l } else { l - sd.ln() }
+    } else if exact {
+        huber(z) + sd.ln()
+    } else {
+        huber(z)
+    };
+    (l, z.clamp(-4.0, 4.0))
+}
+
+/// Work-frame level (16-bit) at which the model's blooming step leaves its full photosites,
+/// when that is below the top code (at the top code a model value means "at or above full
+/// scale", the clipped sim's meaning, whose likelihood is that of the level itself).
+pub fn well_level(steps: &[Step]) -> Option<usize> {
+    let s = steps.iter().find(|s| s.name == "blooming")?;
+    let f = s.params.get("full_well_fraction");
+    let v = (f * 65535.0).round();
+    (v < 65535.0 - 1.0 && v > 0.0).then_some(v as usize)
 }
 
 #[inline]
@@ -1030,7 +1108,8 @@ impl FitCtx<'_> {
     }
     pub fn eval(&self, steps: &mut [Step]) -> Result<LossEval, DiagnoseError> {
         self.count_eval();
-        Ok(self.loss.eval(&self.run_from(steps, 0, &self.inputs, self.bands.as_deref())?))
+        let planes = self.run_from(steps, 0, &self.inputs, self.bands.as_deref())?;
+        Ok(self.loss.eval_on(&planes, false, well_level(steps)))
     }
     /// Model planes of the fit frames (whole frames, also with JPEG bands).
     pub fn model_planes(&self, steps: &mut [Step]) -> Result<Vec<Vec<Plane>>, DiagnoseError> {
@@ -1162,7 +1241,7 @@ fn optimise(
                 ctx.count_eval();
                 match ctx.run_from(steps, c.step, &prefix, ctx.bands.as_deref()) {
                     Ok(o) => {
-                        last = ctx.loss.eval(&o);
+                        last = ctx.loss.eval_on(&o, false, well_level(steps));
                         last.total
                     }
                     Err(e) => {
@@ -2020,8 +2099,8 @@ fn drop_one(
         // A global tone or additive effect must be supported away from edges and saturated
         // pixels; evidence only there is the shape of a PSF or an interpolation that another
         // effect models imperfectly.
-        let li = ctx.loss.eval_on(&ctx.model_planes(&mut without)?, true);
-        let ci = ctx.loss.eval_on(&ctx.model_planes(steps)?, true);
+        let li = ctx.loss.eval_on(&ctx.model_planes(&mut without)?, true, well_level(&without));
+        let ci = ctx.loss.eval_on(&ctx.model_planes(steps)?, true, well_level(steps));
         let inner = evidence(steps[j].name, &steps[j].label, li, ci, k, f64::INFINITY, z_thr, 0);
         if !inner.accepted {
             ev.accepted = false;
@@ -2543,6 +2622,33 @@ mod tests {
         assert!(hits > 100, "{hits} table hits");
         // A value the data do not hold (code 5 * 16 + 8) is not in the table.
         assert!(tab.interval_at(tab.level[5 * 16 + 8] as f64, 5 * 16).is_none());
+    }
+
+    /// A full photosite reads its clip level with the read noise and ADC step only. On
+    /// a 10-bit camera (10 e-/DN, read noise 1.2 DN) whose well sits 2.5 DN under the top code,
+    /// the plateau's values are told from a clipped level at the top code by far more than the
+    /// shot noise of that level would allow (≈ 5 DN), and a plateau at the top code counts
+    /// against a model that puts the well below it.
+    #[test]
+    fn a_full_photosite_carries_the_read_noise_only() {
+        let mut noise = NoiseModel::prior(255.0 / 1023.0);
+        noise.a = 1.44;
+        noise.b = 0.1;
+        noise.c = 0.0;
+        let tab = LossTables::new(&noise);
+        let read = noise.var(0.0).sqrt();
+        let well = 0.99 * FS as f64;
+        let (w16, top16) = ((well * 257.0).round() as f32 / 257.0, FS);
+        let plateau = (well * 1023.0 / 255.0).round() * 255.0 / 1023.0;
+        // Per pixel: the clipped sim at the top code (shot noise of its level) against the well.
+        let at_top = tab.term(&noise, plateau, top16, true).0;
+        let at_well = term_at_well(&noise, plateau, w16 as f64, read, true).0;
+        let with_shot = tab.term(&noise, plateau, w16, true).0;
+        assert!(at_top - at_well > 1.0, "top {at_top:.3} well {at_well:.3}");
+        assert!(at_top - with_shot < 0.2, "with the shot noise: top {at_top:.3} well {with_shot:.3}");
+        // A plateau at the top code: the well below it is unlikely, and more so than with shot noise.
+        let clipped = term_at_well(&noise, FS as f64, w16 as f64, read, true).0;
+        assert!(clipped > tab.term(&noise, FS as f64, w16, true).0 + 1.0 && clipped > 2.5, "{clipped}");
     }
 
     #[test]
