@@ -306,6 +306,14 @@ mod tests {
             s + 5.0 * (1.0 + d2).powf(-1.5)
         });
         assert!(stray.z_position > 6.0, "stray: {}", stray.describe());
+        // Each signature alone: a radial fall-off is the radial gain's (real/sim falls with the
+        // radius at every level), not the level response's; a tone curve the reverse.
+        let vig = run(&|s, x, y| {
+            let (_, _, rho2) = super::super::photometric::coords(x, y, 256, 192);
+            s / (1.0 + 0.04 * rho2).powi(2)
+        });
+        assert!(vig.z_radial_level > 6.0 && vig.z_level_radial < 3.0, "vignetting: {}", vig.describe());
+        assert!(tone.z_level_radial > 6.0 && tone.z_radial_level < 3.0, "tone: {}", tone.describe());
         let lin = run(&|s, _, _| 1.02 * s + 1.0);
         assert!(lin.z_curve < 3.0 && lin.z_position < 3.0, "gain/offset: {}", lin.describe());
     }

@@ -1236,14 +1236,22 @@ pub fn tone_replacement(rs: &[tone::Reading], chosen: &[&str], pts: &[tone::Leve
         if t.bic - cur.bic < TONE_GAIN_FS_BIC {
             return Some(t.clone());
         }
-        // Nor is it there when the two readings predict the same response, within the
-        // materiality of a global tone effect, at every level the data have: a tone curve with
-        // a linear toe is a gain through the origin up to where it bends, so on a scene whose
-        // levels end inside the toe the full scale a gain and offset moves lies beyond the data,
-        // and its BIC advantage comes from a misfit below what counts as a change of the image
-        // (e.g. a tenth of a DN at the censored dark end). The tone curve — what every camera's
-        // response has — is then reported, the gain and offset listed as an alternative.
-        if tone::max_difference(t, cur, pts) < material_threshold("gain_offset") {
+        // Nor is it there when a tone-curve reading with no more parameters predicts the same
+        // response, within the materiality of a global tone effect, at every level the data
+        // have: a tone curve with a linear toe is a gain through the origin up to where it
+        // bends, so on a scene whose levels end inside the toe the full scale a gain and offset
+        // moves lies beyond the data, and its BIC advantage comes from a misfit below what
+        // counts as a change of the image (e.g. a tenth of a DN at the censored dark end). The
+        // tone curve — what every camera's response has — is then reported, the gain and offset
+        // listed as an alternative. A reading that needs an extra parameter to follow the
+        // straight line (a dark level under a tone curve standing in for an offset at zero
+        // signal) is not simpler than it, and the BIC stays the judge.
+        if let Some(t) = rs.iter().find(|r| {
+            matches!(r.shape, tone::Shape::Tone | tone::Shape::DarkTone)
+                && tone_reading_valid(r)
+                && r.k <= cur.k
+                && tone::max_difference(r, cur, pts) < material_threshold("gain_offset")
+        }) {
             return Some(t.clone());
         }
     }
