@@ -833,7 +833,13 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
                 "joint forward-model fit on the library effect (Huber loss on noise-standardised residuals)".into()
             },
             importance: ev.delta / ev.design,
-            alternatives: tone.map(|t| t.alternatives.clone()).unwrap_or_default(),
+            alternatives: {
+                let mut a = tone.map(|t| t.alternatives.clone()).unwrap_or_default();
+                if select::SPATIAL_ALIASES.contains(&s.name) {
+                    a.extend(sel.spatial_alternatives.iter().cloned());
+                }
+                a
+            },
         });
     }
     // Lens flare found by its plateau signature while the library's ghost layout (its places and

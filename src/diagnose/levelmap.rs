@@ -50,6 +50,25 @@ pub struct LevelPosition {
     pub chi_curve: f64,
     pub df_curve: usize,
     pub z_curve: f64,
+    /// Each spatial effect's own terms given the free level response and the other position
+    /// terms (a matched test of one physical signature instead of the 11 terms together):
+    /// the radial gain `s (v2 ρ² + v4 ρ⁴)` (vignetting: the ratio real/sim falls with the radius
+    /// whatever the level, 2 df) and the additive field (stray light, veiling glare: the same
+    /// amount on dark and bright pixels at one place, 9 df). χ² and normal z.
+    pub chi_radial: f64,
+    pub z_radial: f64,
+    pub chi_additive: f64,
+    pub z_additive: f64,
+    /// Wald χ² of the whole level response (offset, gain and hinges) given the position terms:
+    /// whether anything depends on the pixel's own level once the place is accounted for (the
+    /// symmetric test of a level effect), its df and z.
+    pub chi_level: f64,
+    pub df_level: usize,
+    pub z_level: f64,
+    /// Radial gain given the level response only, and the level response given the radial gain
+    /// only (the additive field left out): z.
+    pub z_radial_level: f64,
+    pub z_level_radial: f64,
     /// Pixels and clusters in the regression.
     pub n: usize,
     pub clusters: usize,
@@ -58,7 +77,7 @@ pub struct LevelPosition {
 impl LevelPosition {
     pub fn describe(&self) -> String {
         format!(
-            "level or position (real − model without the spatial and tone effects on {} interior pixels, {} clusters of 32x32): position terms given a free level response χ² {:.1} on {} df (z = {:.1}); curvature of the level response given the position terms χ² {:.1} on {} df (z = {:.1})",
+            "level or position (real − model without the spatial and tone effects on {} interior pixels, {} clusters of 32x32): position terms given a free level response χ² {:.1} on {} df (z = {:.1}); curvature of the level response given the position terms χ² {:.1} on {} df (z = {:.1}); each signature given all other terms: radial gain (vignetting) χ² {:.1} on 2 df (z = {:.1}), additive field (stray light, glare) χ² {:.1} on {} df (z = {:.1}), level response (offset, gain, curvature) χ² {:.1} on {} df (z = {:.1}); without the additive field: radial gain given the level response z = {:.1}, level response given the radial gain z = {:.1}",
             self.n,
             self.clusters,
             self.chi_position,
@@ -66,7 +85,17 @@ impl LevelPosition {
             self.z_position,
             self.chi_curve,
             self.df_curve,
-            self.z_curve
+            self.z_curve,
+            self.chi_radial,
+            self.z_radial,
+            self.chi_additive,
+            STRAY_TERMS.len(),
+            self.z_additive,
+            self.chi_level,
+            self.df_level,
+            self.z_level,
+            self.z_radial_level,
+            self.z_level_radial
         )
     }
 }
@@ -160,6 +189,7 @@ pub fn test(real: &[&[Plane]], base: &[Vec<Plane>], keep: &[Vec<bool>], noise: &
     };
     let mut beta: Option<Vec<f64>> = None;
     let mut fit = None;
+    let mut last: Option<Wls> = None;
     let mut row = Vec::with_capacity(kk);
     let bw = w0.div_ceil(32);
     for _pass in 0..2 {
@@ -179,13 +209,33 @@ pub fn test(real: &[&[Plane]], base: &[Vec<Plane>], keep: &[Vec<bool>], noise: &
         let f = wls.fit()?;
         beta = Some(f.beta.clone());
         fit = Some(f);
+        last = Some(wls);
     }
     let f = fit?;
+    let wls = last?;
     let pos: Vec<usize> = (nl..kk).collect();
     let curve: Vec<usize> = (2..nl).collect();
     let chi_position = f.wald(&pos);
     let chi_curve = f.wald(&curve);
+    let radial: Vec<usize> = (nl + STRAY_TERMS.len()..kk).collect();
+    let additive: Vec<usize> = (nl..nl + STRAY_TERMS.len()).collect();
+    let level: Vec<usize> = (0..nl).collect();
+    let (chi_radial, chi_additive, chi_level) = (f.wald(&radial), f.wald(&additive), f.wald(&level));
+    // The radial gain against the level response alone (no additive field: the selection did
+    // not choose one), and the level response against the radial gain alone.
+    let cols: Vec<usize> = level.iter().chain(&radial).copied().collect();
+    let (chi_radial_level, chi_level_radial) =
+        wls.fit_cols(&cols).map(|g| (g.wald(&radial), g.wald(&level))).unwrap_or((0.0, 0.0));
     Some(LevelPosition {
+        chi_radial,
+        z_radial: stats::chi2_to_z(chi_radial, radial.len() as f64),
+        chi_additive,
+        z_additive: stats::chi2_to_z(chi_additive, additive.len() as f64),
+        chi_level,
+        df_level: level.len(),
+        z_level: stats::chi2_to_z(chi_level, level.len() as f64),
+        z_radial_level: stats::chi2_to_z(chi_radial_level, radial.len() as f64),
+        z_level_radial: stats::chi2_to_z(chi_level_radial, level.len() as f64),
         chi_position,
         df_position: pos.len(),
         z_position: stats::chi2_to_z(chi_position, pos.len() as f64),
@@ -256,6 +306,15 @@ mod tests {
             s + 5.0 * (1.0 + d2).powf(-1.5)
         });
         assert!(stray.z_position > 6.0, "stray: {}", stray.describe());
+        // Each signature alone: a radial fall-off is the radial gain's (real/sim falls with the
+        // radius at every level), not the level response's; a tone curve the reverse.
+        let vig = run(&|s, x, y| {
+            let (dx, dy) = (x as f64 - 127.5, y as f64 - 95.5);
+            let rho2 = (dx * dx + dy * dy) / (127.5f64 * 127.5 + 95.5 * 95.5);
+            s / (1.0 + 0.04 * rho2).powi(2)
+        });
+        assert!(vig.z_radial_level > 6.0 && vig.z_level_radial < 3.0, "vignetting: {}", vig.describe());
+        assert!(tone.z_level_radial > 6.0 && tone.z_radial_level < 3.0, "tone: {}", tone.describe());
         let lin = run(&|s, _, _| 1.02 * s + 1.0);
         assert!(lin.z_curve < 3.0 && lin.z_position < 3.0, "gain/offset: {}", lin.describe());
     }

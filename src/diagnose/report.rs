@@ -155,9 +155,13 @@ pub fn build(pairs: &[Pair], loc: &Located, fitted: &Fitted, mut notes: Vec<Stri
                     a.push(Alternative {
                         effect: effects.join(" + "),
                         label: format!("level response read as {}", effects.join(" + ")),
-                        bic_gap: round_sig(gap.max(0.0), 3),
+                        // NaN: readings of the level-or-position check, not on a common BIC scale
+                        // (reported as null; the evidence gives both tests).
+                        bic_gap: if gap.is_nan() { f64::NAN } else { round_sig(gap.max(0.0), 3) },
                         z: f64::NAN,
-                        evidence: if *gap < 0.0 {
+                        evidence: if gap.is_nan() {
+                            describe.clone()
+                        } else if *gap < 0.0 {
                             format!(
                                 "the level response reads it better ({describe}; BIC better by {:.2}) than the effects reported with {}, which the forward model kept on every pixel or which the level-response rules prefer (a gain and offset must show full scale moved): the data do not settle it",
                                 -gap, e.name

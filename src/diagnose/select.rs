@@ -1361,6 +1361,10 @@ pub struct Selection {
     /// The level-or-position check of the spatial effects ([`level_position_check`]), when it
     /// ran: its evidence line.
     pub level_position: Option<String>,
+    /// Level-response readings the level-or-position check could not tell from the spatial
+    /// effects it kept (effects, evidence, NaN: no BIC on a common scale), for their findings'
+    /// alternatives.
+    pub spatial_alternatives: Vec<(Vec<&'static str>, String, f64)>,
 }
 
 /// The parts of a [`Selection`] a tentative replacement changes ([`replace_by_reading`]), kept
@@ -1444,7 +1448,7 @@ fn tone_reading_valid(r: &tone::Reading) -> bool {
 /// may replace: between the others (an offset, a straight gain and offset, a power law of one)
 /// the forward-model selection has already judged on every pixel with its materiality rule, and
 /// the bins' small standard errors would let a slight nonlinearity of the camera decide instead.
-pub fn tone_replacement(rs: &[tone::Reading], chosen: &[&str]) -> Option<tone::Reading> {
+pub fn tone_replacement(rs: &[tone::Reading], chosen: &[&str], pts: &[tone::LevelPoint]) -> Option<tone::Reading> {
     let same = |a: &[&str], b: &[&str]| a.len() == b.len() && a.iter().all(|x| b.contains(x));
     let cur = tone::reading_of(rs, chosen)?;
     let b = best_reading(rs, &|r| tone_reading_valid(r) || same(r.shape.effects(), chosen))?;
@@ -1463,6 +1467,24 @@ pub fn tone_replacement(rs: &[tone::Reading], chosen: &[&str]) -> Option<tone::R
             .iter()
             .find(|r| matches!(r.shape, tone::Shape::Tone | tone::Shape::DarkTone) && tone_reading_valid(r))?;
         if t.bic - cur.bic < TONE_GAIN_FS_BIC {
+            return Some(t.clone());
+        }
+        // Nor is it there when a tone-curve reading with no more parameters predicts the same
+        // response, within the materiality of a global tone effect, at every level the data
+        // have: a tone curve with a linear toe is a gain through the origin up to where it
+        // bends, so on a scene whose levels end inside the toe the full scale a gain and offset
+        // moves lies beyond the data, and its BIC advantage comes from a misfit below what
+        // counts as a change of the image (e.g. a tenth of a DN at the censored dark end). The
+        // tone curve — what every camera's response has — is then reported, the gain and offset
+        // listed as an alternative. A reading that needs an extra parameter to follow the
+        // straight line (a dark level under a tone curve standing in for an offset at zero
+        // signal) is not simpler than it, and the BIC stays the judge.
+        if let Some(t) = rs.iter().find(|r| {
+            matches!(r.shape, tone::Shape::Tone | tone::Shape::DarkTone)
+                && tone_reading_valid(r)
+                && r.k <= cur.k
+                && tone::max_difference(r, cur, pts) < material_threshold("gain_offset")
+        }) {
             return Some(t.clone());
         }
     }
@@ -1581,7 +1603,33 @@ pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Re
     if std::env::var_os("FAULTCAM_DIAG_DEBUG").is_some() {
         eprintln!("{line}");
     }
-    if lp.z_position < z_thr {
+    // Each chosen spatial effect's own signature, tested alone given the free level response (a
+    // matched test: the 11 position terms together dilute one effect's signature among terms
+    // the selection did not choose). Vignetting is a gain that depends on the radius whatever the
+    // level (real/sim falls with r within every level), against the level response and — when
+    // the selection also chose an additive field — that field; stray light and veiling glare
+    // add the same amount to dark and bright pixels at one place.
+    let additive_chosen = spatial.iter().any(|&e| e != "vignetting");
+    let own_z = |e: &str| match e {
+        "vignetting" if additive_chosen => lp.z_radial,
+        "vignetting" => lp.z_radial_level,
+        _ => lp.z_additive,
+    };
+    let shown: Vec<String> =
+        spatial.iter().filter(|&&e| own_z(e) >= z_thr).map(|&e| format!("{e} z = {:.1}", own_z(e))).collect();
+    if lp.z_position < z_thr && !shown.is_empty() {
+        sel.notes.push(format!(
+            "level or position: the position terms together are weak given a free level response, but {} shows its own signature ({}): kept ({line})",
+            spatial.join(" + "),
+            shown.join(", ")
+        ));
+        line = format!(
+            "{line}: {} kept, its own signature given the level response is significant ({})",
+            spatial.join(" + "),
+            shown.join(", ")
+        );
+    }
+    if lp.z_position < z_thr && shown.is_empty() {
         let mut acc = tone::LevelAcc::default();
         let mut n_values = 0usize;
         for (k, mp) in planes.iter().enumerate() {
@@ -1597,6 +1645,33 @@ pub fn level_position_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Re
         }
         let pts = tone::level_response(&acc, ctx.loss.noise());
         let rs = tone::readings(&pts, n_values);
+        // The symmetric test: a level effect's own signature is a change that depends on the
+        // pixel's level at a given place (the level response given the position terms — the
+        // radial gain alone when only vignetting was chosen). When that is not significant
+        // either, the decorrelated test tells neither reading from the other (on a scene whose
+        // level and radius go together, e.g. a bright Earth in the centre and dark sky towards
+        // the corners, a weak radial fall-off and a slight tone curve are the same function of
+        // the pixel): the forward model's choice, made on every pixel, stays and the level
+        // reading is listed as an alternative with both tests.
+        let z_level = if additive_chosen { lp.z_level } else { lp.z_level_radial };
+        if z_level < z_thr {
+            if let Some(b) = best_reading(&rs, &tone_reading_valid) {
+                let why = format!(
+                    "the level response reads as {}; but given the place, the level response is not significant either (z = {z_level:.1} < {z_thr}), while given the level the position terms reach z = {:.1}: the test that decorrelates level and place does not tell them apart, and the forward model, which compared them on every pixel, chose {}",
+                    b.describe(),
+                    lp.z_position.max(spatial.iter().map(|&e| own_z(e)).fold(f64::NEG_INFINITY, f64::max)),
+                    spatial.join(" + ")
+                );
+                sel.spatial_alternatives.push((b.shape.effects().to_vec(), why.clone(), f64::NAN));
+                sel.notes.push(format!(
+                    "level or position: {} kept, the level response listed as an alternative ({why}; {line})",
+                    spatial.join(" + ")
+                ));
+                line = format!("{line}: {} kept; {why}", spatial.join(" + "));
+            }
+            sel.level_position = Some(line);
+            return Ok(());
+        }
         // Kept to go back to: a reading whose effects have no evidence of their own on the
         // forward model (each one's drop-one test fails) explains nothing the spatial effects
         // did not, so it cannot replace them.
@@ -1721,7 +1796,7 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
         return Ok(());
     };
     let same = |a: &[&str], b: &[&str]| a.len() == b.len() && a.iter().all(|x| b.contains(x));
-    let replacement = tone_replacement(&rs, &chosen);
+    let replacement = tone_replacement(&rs, &chosen, &pts);
     let mut final_reading = cur.clone();
     let mut evidence = format!(
         "level response (real against the model without {}, {} bins of {} values): the chosen effects read it as {}",
@@ -2206,6 +2281,7 @@ pub fn select(
                     best_z,
                     tone: None,
                     level_position: None,
+                    spatial_alternatives: Vec::new(),
                 });
             }
             if steps.len() >= 8 {
@@ -2332,6 +2408,7 @@ pub fn select(
         best_z,
         tone: None,
         level_position: None,
+        spatial_alternatives: Vec::new(),
     })
 }
 
@@ -2362,18 +2439,21 @@ mod tests {
         // A dark level seen through a camera with a slight gain error: the straight line reads it
         // far better than the offset, but both are library shapes the forward selection compared
         // on every pixel, so its `dark_current` stays.
-        let rs = readings(&pts(&|s| 1.01 * s + 3.0), 100_000);
+        let p = pts(&|s| 1.01 * s + 3.0);
+        let rs = readings(&p, 100_000);
         assert_eq!(rs[0].shape, super::super::tone::Shape::Affine);
-        assert!(tone_replacement(&rs, &["dark_current"]).is_none());
+        assert!(tone_replacement(&rs, &["dark_current"], &p).is_none());
         // An sRGB-like tone curve taken for a gain and offset is replaced by `gamma` with the
         // least-squares power law of the curve.
-        let rs = readings(&pts(&|s| fs * tone_curve(s / fs, 1.1, 0.02, false)), 100_000);
-        let r = tone_replacement(&rs, &["gain_offset"]).expect("tone curve replaces gain_offset");
+        let p = pts(&|s| fs * tone_curve(s / fs, 1.1, 0.02, false));
+        let rs = readings(&p, 100_000);
+        let r = tone_replacement(&rs, &["gain_offset"], &p).expect("tone curve replaces gain_offset");
         assert_eq!(r.shape.effects(), ["gamma"]);
         assert!((r.gamma - 1.063).abs() < 0.005, "gamma {}", r.gamma);
         // A dark level under a tone curve taken for one gain and offset: dark_current + gamma.
-        let rs = readings(&pts(&|s| fs * tone_curve((s + 2.5) / fs, 0.92, 0.015, true)), 100_000);
-        let r = tone_replacement(&rs, &["gain_offset"]).expect("dark under tone replaces gain_offset");
+        let p = pts(&|s| fs * tone_curve((s + 2.5) / fs, 0.92, 0.015, true));
+        let rs = readings(&p, 100_000);
+        let r = tone_replacement(&rs, &["gain_offset"], &p).expect("dark under tone replaces gain_offset");
         assert_eq!(r.shape.effects(), ["dark_current", "gamma"]);
         assert!((r.d - 2.5).abs() < 0.2, "dark {}", r.d);
     }
@@ -2413,13 +2493,31 @@ mod tests {
         // bend (on the toe alone both read χ² 0 and the tone curve's extra parameter costs
         // ln n in BIC: there gain_offset stays, a limit).
         let dark_tone = |s: f64| fs * tone_curve((s + 2.5) / fs, 0.88, 0.05, true);
-        let rs = readings(&pts(&dark_tone, 200), 100_000);
-        let r = tone_replacement(&rs, &["gain_offset"]).unwrap_or_else(|| {
+        let p = pts(&dark_tone, 200);
+        let rs = readings(&p, 100_000);
+        let r = tone_replacement(&rs, &["gain_offset"], &p).unwrap_or_else(|| {
             panic!("no moved full scale: {:?}", rs.iter().map(|r| r.describe()).collect::<Vec<_>>())
         });
         assert!(r.shape.effects().contains(&"gamma"), "{}", r.describe());
-        let rs = readings(&pts(&|s| 1.03 * s + 1.5, 240), 100_000);
-        assert!(tone_replacement(&rs, &["gain_offset"]).is_none(), "a gain of 1.03 up to 240 DN moves full scale");
+        let p = pts(&|s| 1.03 * s + 1.5, 240);
+        let rs = readings(&p, 100_000);
+        assert!(tone_replacement(&rs, &["gain_offset"], &p).is_none(), "a gain of 1.03 up to 240 DN moves full scale");
+        // h33photo: a near-linear decoding curve (q 1.3, a 0.22: a linear toe of slope 0.99 up to
+        // 0.733 FS) seen on levels inside its toe, the darkest bins (many values, small standard
+        // errors) a tenth of a DN low: the straight line reads the response better by far more
+        // than 6 in BIC, but the two readings never differ by a material amount where there are
+        // data (full scale is beyond them), so the tone curve is reported.
+        let toe = |s: f64| fs * tone_curve(s / fs, 1.3, 0.22, false);
+        let mut p = pts(&toe, 188);
+        for q in p.iter_mut().filter(|q| q.s < 5.0) {
+            q.m -= 0.1;
+            q.se = 0.03;
+        }
+        let rs = readings(&p, 100_000);
+        let (t, a) = (tone::reading_of(&rs, &["gamma"]).unwrap(), tone::reading_of(&rs, &["gain_offset"]).unwrap());
+        assert!(t.bic - a.bic > TONE_GAIN_FS_BIC, "{} / {}", t.describe(), a.describe());
+        let r = tone_replacement(&rs, &["gain_offset"], &p).expect("the toe does not show a moved full scale");
+        assert_eq!(r.shape.effects(), ["gamma"], "{}", r.describe());
     }
 
     #[test]

@@ -229,6 +229,13 @@ fn predict(r: &Reading, s: f64) -> f64 {
     }
 }
 
+/// Largest difference (DN) between the responses two readings predict over the levels the
+/// data have (the bins' sim levels): where it is small, the readings make the same claim about
+/// every pixel there is, and what distinguishes them lies outside the data.
+pub fn max_difference(a: &Reading, b: &Reading, pts: &[LevelPoint]) -> f64 {
+    pts.iter().map(|p| (predict(a, p.s) - predict(b, p.s)).abs()).fold(0.0, f64::max)
+}
+
 fn chi2(r: &Reading, pts: &[LevelPoint]) -> f64 {
     pts.iter().map(|p| ((p.m - predict(r, p.s)) / p.se).powi(2)).sum()
 }
