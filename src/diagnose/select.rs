@@ -827,12 +827,11 @@ impl<'a> LossData<'a> {
     ) -> LossData<'a> {
         let mut real_counts = Vec::new();
         if noise.quant < 1.0 {
-            let probe = LossTables::level_index;
             real_counts = vec![0u32; LEVELS];
             for p in &pairs {
                 for plane in &p.real {
                     for &r in &plane.data {
-                        if let Some(v) = probe(r) {
+                        if let Some(v) = LossTables::level_index(r) {
                             real_counts[v] = real_counts[v].saturating_add(1);
                         }
                     }
@@ -877,16 +876,12 @@ impl<'a> LossData<'a> {
 }
 
 impl LossData<'_> {
-    /// Robust negative log-likelihood of the real planes given model planes.
-    pub fn eval(&self, model: &[Vec<Plane>]) -> LossEval {
-        self.eval_on(model, false, None)
-    }
-
-    /// [`Self::eval`], optionally on the interior pixels only; `well` is the work-frame level
+    /// Robust negative log-likelihood of the real planes given model planes, optionally on the
+    /// interior pixels only; `well` is the work-frame level
     /// (16-bit) of the model's full well when it holds clipped photosites below the top code
     /// ([`well_level`]): a model value at that level is a full photosite, whose value is the clip
     /// level and not a Poisson draw, so its loss takes the read noise and ADC step only (see
-    /// [`LossTables::term_at_well`]). The planes are evaluated in parallel (one task per pair and
+    /// `term_at_well`). The planes are evaluated in parallel (one task per pair and
     /// channel) and their sums combined in a fixed order, so the result does not depend on the
     /// number of threads.
     pub fn eval_on(&self, model: &[Vec<Plane>], interior_only: bool, well: Option<usize>) -> LossEval {
