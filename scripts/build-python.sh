@@ -3,7 +3,7 @@
 # environment and prints its path. The venv (default target/py-venv, or $FAULTCAM_VENV) gets
 # maturin, numpy and pytest, and albumentations when pip can install it (its tests and the
 # benchmark are skipped otherwise). `--release` builds optimised (for benchmarks); the default
-# debug build is enough for the tests. Then:
+# debug build is enough for the tests; `--deps-only` prepares the venv and stops. Then:
 #   target/py-venv/bin/python -m pytest crates/pyfaultcam/python/tests
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -12,6 +12,10 @@ VENV="${FAULTCAM_VENV:-target/py-venv}"
 PYTHON="${PYTHON:-python3}"
 profile=()
 [ "${1:-}" = "--release" ] && profile=(--release)
+# `--deps-only`: the venv and its pip packages only (no Rust build); CI runs it in the background
+# while the Rust code builds, since it waits mostly on the network.
+deps_only=0
+[ "${1:-}" = "--deps-only" ] && deps_only=1
 if [ ! -x "$VENV/bin/python" ]; then
   "$PYTHON" -m venv "$VENV" || {
     echo "faultcam: cannot create a venv with $PYTHON (Debian: apt-get install python3-venv)" >&2
@@ -26,6 +30,7 @@ if ! "$VENV/bin/python" -c 'import albumentations' 2>/dev/null; then
   "$VENV/bin/pip" install -q albumentations ||
     echo "faultcam: albumentations could not be installed; its tests and the benchmark are skipped" >&2
 fi
+[ "$deps_only" = 1 ] && exit 0
 # maturin installs the extension (crates/pyfaultcam, feature extension-module) into the venv.
 VIRTUAL_ENV="$PWD/$VENV" PATH="$PWD/$VENV/bin:$PATH" \
   "$VENV/bin/maturin" develop -q -m crates/pyfaultcam/Cargo.toml "${profile[@]}"
