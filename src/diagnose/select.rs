@@ -693,43 +693,21 @@ impl LossTables {
         let q = noise.quant;
         let fs = FS as f64;
         let m = mf as f64;
-        let lv = tab.index(mf);
-        let sd = match lv {
-            Some(v) => tab.sd[v],
-            None => noise.sd(m),
+        // A level outside the tables: the same forms computed directly.
+        let Some(v) = tab.index(mf) else {
+            return direct_term(rv, m, noise.sd(m), q, exact);
         };
+        let sd = tab.sd[v];
         if rv <= 0.0 {
-            match lv {
-                Some(v) if exact => {
-                    let (l, g) = tab.low[v];
-                    (tab.pg_at(0.0, v).map_or(l, |p| p.min(l + LN_2)), g)
-                }
-                Some(v) => tab.low[v],
-                None => low_term(m, sd, q),
-            }
+            let (l, g) = tab.low[v];
+            if exact { (tab.pg_at(0.0, v).map_or(l, |p| p.min(l + LN_2)), g) } else { (l, g) }
         } else if rv >= fs {
-            match lv {
-                Some(v) => tab.high[v],
-                None => high_term(m, sd, q, fs),
-            }
+            tab.high[v]
         } else {
             let z = (rv - m) / sd;
-            // Every term is a negative log-probability of the observed value (up to a
-            // constant): the Gaussian density's normalisation ln sd is part of it, or a
-            // model would gain by raising the noise it predicts (a bias of about
-            // b/2 DN towards brighter levels under shot noise).
-            let ln_sd = match lv {
-                Some(v) => tab.ln_sd[v],
-                None => sd.ln(),
-            };
+            let ln_sd = tab.ln_sd[v];
             let gauss = if (rv < 3.0 * sd || rv > fs - 3.0 * sd) && z.abs() <= 3.0 {
-                // Near a clipping bound the rounding interval matters: the exact
-                // probability of the rounded value (consistent with the censored
-                // likelihood of the clipped ones).
-                let l = match lv.and_then(|v| tab.interval_at(rv, v)) {
-                    Some(l) => l,
-                    None => interval(rv, m, sd, q),
-                };
+                let l = tab.interval_at(rv, v).unwrap_or_else(|| interval(rv, m, sd, q));
                 if exact { l } else { l - ln_sd }
             } else if exact {
                 huber(z) + ln_sd
@@ -741,7 +719,7 @@ impl LossTables {
             }
             // At a few photo-electrons: the exact Poisson–Gaussian probability (robust
             // like the Huber form beyond it).
-            let l = match lv.and_then(|v| tab.pg_at(rv, v)) {
+            let l = match tab.pg_at(rv, v) {
                 Some(p) => p.min(huber(z) + ln_sd + LN_2),
                 None => gauss,
             };
@@ -965,16 +943,15 @@ impl LossData<'_> {
     }
 }
 
-/// Loss and generalised residual of real value `rv` where the model holds a full photosite at
-/// level `m` (its full well, below the top code). Blooming clips the charge at the well and
-/// spills the rest: the value read is the clip level itself, not a Poisson draw around it, so it
-/// carries the read noise and the ADC step (`sd`) but no shot noise. With the shot noise of its
-/// level (≈ 5 DN at 250 DN and 10 e-/DN) a plateau 2.5 DN under the top code is hardly told from
-/// a clipped sim at the top code, and blooming's evidence at the well is lost. Same forms as
-/// [`LossTables::term`] (censored at the bounds, the rounding interval near full scale, Huber
-/// with the density's normalisation elsewhere).
-fn term_at_well(noise: &NoiseModel, rv: f64, m: f64, sd: f64, exact: bool) -> (f64, f64) {
-    let q = noise.quant;
+/// Loss and generalised residual of real value `rv` at model level `m` with noise sd `sd`
+/// (continuous noise, without the quantisation `q` of the data), computed without tables: the
+/// forms of [`LossTables::term`] for a level outside the tables, and the loss at a full
+/// photosite (`term_at_well`). Censored at the bounds (clipped values), the exact probability of
+/// the rounded value within 3 sd of a bound, elsewhere Huber; every term is a negative
+/// log-probability of the observed value up to a constant, so with `exact` the Gaussian
+/// density's normalisation ln sd is part of it (or a model would gain by raising the noise it
+/// predicts: a bias of about b/2 DN towards brighter levels under shot noise).
+fn direct_term(rv: f64, m: f64, sd: f64, q: f64, exact: bool) -> (f64, f64) {
     let fs = FS as f64;
     if rv <= 0.0 {
         return low_term(m, sd, q);
@@ -983,7 +960,7 @@ fn term_at_well(noise: &NoiseModel, rv: f64, m: f64, sd: f64, exact: bool) -> (f
         return high_term(m, sd, q, fs);
     }
     let z = (rv - m) / sd;
-    let l = if rv > fs - 3.0 * sd && z.abs() <= 3.0 {
+    let l = if (rv < 3.0 * sd || rv > fs - 3.0 * sd) && z.abs() <= 3.0 {
         let l = interval(rv, m, sd, q);
         if exact { l } else { l - sd.ln() }
     } else if exact {
@@ -992,6 +969,16 @@ fn term_at_well(noise: &NoiseModel, rv: f64, m: f64, sd: f64, exact: bool) -> (f
         huber(z)
     };
     (l, z.clamp(-4.0, 4.0))
+}
+
+/// Loss and generalised residual of real value `rv` where the model holds a full photosite at
+/// level `m` (its full well, below the top code). Blooming clips the charge at the well and
+/// spills the rest: the value read is the clip level itself, not a Poisson draw around it, so it
+/// carries the read noise and the ADC step (`sd`) but no shot noise. With the shot noise of its
+/// level (≈ 5 DN at 250 DN and 10 e-/DN) a plateau 2.5 DN under the top code is hardly told from
+/// a clipped sim at the top code, and blooming's evidence at the well is lost.
+fn term_at_well(noise: &NoiseModel, rv: f64, m: f64, sd: f64, exact: bool) -> (f64, f64) {
+    direct_term(rv, m, sd, noise.quant, exact)
 }
 
 /// Work-frame level (16-bit) at which the model's blooming step leaves its full photosites,
