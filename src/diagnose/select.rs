@@ -557,14 +557,11 @@ impl LossTables {
             let sd_max = sd.iter().fold(0.0f64, |a, &b| a.max(b));
             for r in 0..=255usize {
                 let rv = r as f64;
-                let near = rv > 0.0 && rv < fs && (rv < 3.0 * sd_max || rv > fs - 3.0 * sd_max);
-                if !near {
+                let Some((lo, hi)) = interval_window(rv, sd_max) else {
                     interval_first.push(0);
                     interval_rows.push(Vec::new());
                     continue;
-                }
-                let lo = ((rv - 3.0 * sd_max - 1.0) * 257.0).floor().clamp(0.0, (LEVELS - 1) as f64) as usize;
-                let hi = ((rv + 3.0 * sd_max + 1.0) * 257.0).ceil().clamp(0.0, (LEVELS - 1) as f64) as usize;
+                };
                 interval_first.push(lo);
                 interval_rows.push((lo..=hi).map(|v| interval(rv, level[v] as f64, sd[v], q)).collect());
             }
@@ -623,28 +620,22 @@ impl LossTables {
         if q >= 1.0 || counts.len() != LEVELS {
             return;
         }
-        let fs = FS as f64;
         let sd_max = self.sd.iter().fold(0.0f64, |a, &b| a.max(b));
         let (level, sd) = (&self.level, &self.sd);
-        // The condition under which `term` takes the interval form (same expressions).
+        // The condition under which `term` takes the interval form.
         let used = |rv: f64, v: usize| {
             let (m, s) = (level[v] as f64, sd[v]);
-            (rv < 3.0 * s || rv > fs - 3.0 * s) && ((rv - m) / s).abs() <= 3.0
+            interval_form(rv, (rv - m) / s, s)
         };
-        let mut cand: Vec<usize> = (0..LEVELS)
-            .filter(|&v| {
-                let rv = level[v] as f64;
-                counts[v] > 0 && (rv < 3.0 * sd_max || rv > fs - 3.0 * sd_max)
-            })
-            .collect();
+        let mut cand: Vec<usize> =
+            (0..LEVELS).filter(|&v| counts[v] > 0 && interval_window(level[v] as f64, sd_max).is_some()).collect();
         cand.sort_by(|&a, &b| counts[b].cmp(&counts[a]).then(a.cmp(&b)));
         cand.truncate(QROW_MAX_VALUES);
         let spans: Vec<Option<(usize, usize)>> = cand
             .par_iter()
             .map(|&r| {
                 let rv = level[r] as f64;
-                let lo = ((rv - 3.0 * sd_max - 1.0) * 257.0).floor().clamp(0.0, (LEVELS - 1) as f64) as usize;
-                let hi = ((rv + 3.0 * sd_max + 1.0) * 257.0).ceil().clamp(0.0, (LEVELS - 1) as f64) as usize;
+                let (lo, hi) = interval_window(rv, sd_max)?;
                 let first = (lo..=hi).find(|&v| used(rv, v))?;
                 let last = (first..=hi).rev().find(|&v| used(rv, v))?;
                 Some((first, last))
@@ -706,7 +697,7 @@ impl LossTables {
         } else {
             let z = (rv - m) / sd;
             let ln_sd = tab.ln_sd[v];
-            let gauss = if (rv < 3.0 * sd || rv > fs - 3.0 * sd) && z.abs() <= 3.0 {
+            let gauss = if interval_form(rv, z, sd) {
                 let l = tab.interval_at(rv, v).unwrap_or_else(|| interval(rv, m, sd, q));
                 if exact { l } else { l - ln_sd }
             } else if exact {
@@ -943,6 +934,31 @@ impl LossData<'_> {
     }
 }
 
+/// The model levels (work-frame indices `lo..=hi`) whose loss for the unclipped real value `rv`
+/// may take the interval form ([`interval_form`]) when no level's sd exceeds `sd_max`: those
+/// within 3 sd_max (+ 1 DN) of `rv`; None when `rv` is clipped or not within 3 sd_max of a
+/// bound. The rows of both interval tables (8-bit and finer) span this window.
+fn interval_window(rv: f64, sd_max: f64) -> Option<(usize, usize)> {
+    let fs = FS as f64;
+    if !(rv > 0.0 && rv < fs && (rv < 3.0 * sd_max || rv > fs - 3.0 * sd_max)) {
+        return None;
+    }
+    let lo = ((rv - 3.0 * sd_max - 1.0) * 257.0).floor().clamp(0.0, (LEVELS - 1) as f64) as usize;
+    let hi = ((rv + 3.0 * sd_max + 1.0) * 257.0).ceil().clamp(0.0, (LEVELS - 1) as f64) as usize;
+    Some((lo, hi))
+}
+
+/// Whether the loss of real value `rv` (generalised residual `z`, noise sd `sd`) takes the
+/// interval form: within 3 sd of a clipping bound the rounding interval matters, and the exact
+/// probability of the rounded value (consistent with the censored likelihood of the clipped
+/// ones) replaces the density. One condition for [`LossTables::term`], [`direct_term`] and the
+/// finer-than-8-bit table (`LossTables::add_real_rows`), so a table hit is the per-pixel value.
+#[inline]
+fn interval_form(rv: f64, z: f64, sd: f64) -> bool {
+    let fs = FS as f64;
+    (rv < 3.0 * sd || rv > fs - 3.0 * sd) && z.abs() <= 3.0
+}
+
 /// Loss and generalised residual of real value `rv` at model level `m` with noise sd `sd`
 /// (continuous noise, without the quantisation `q` of the data), computed without tables: the
 /// forms of [`LossTables::term`] for a level outside the tables, and the loss at a full
@@ -960,7 +976,7 @@ fn direct_term(rv: f64, m: f64, sd: f64, q: f64, exact: bool) -> (f64, f64) {
         return high_term(m, sd, q, fs);
     }
     let z = (rv - m) / sd;
-    let l = if (rv < 3.0 * sd || rv > fs - 3.0 * sd) && z.abs() <= 3.0 {
+    let l = if interval_form(rv, z, sd) {
         let l = interval(rv, m, sd, q);
         if exact { l } else { l - sd.ln() }
     } else if exact {
