@@ -481,8 +481,16 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     // beyond the blur: blooming the plateau deficit of saturated interiors deeper than the blur
     // (or the over-exposure halo), smear the column/row profile of saturated counts, gain_offset
     // a gain on flat pixels (an offset alone is the dark level's candidate).
+    // The blur must be one the data establish: an isotropic spread of the edges (defocus), or a
+    // directional one whose measured PSF shows the direction (motion_blur still a candidate
+    // after the test above). A directional edge spread without a direction in the PSF is the
+    // statistic that test has just ruled out as a motion streak (fiducials spilling over a full
+    // well, a colour channel misregistered, move edges one way without any blur): it must not
+    // stand in for a blur here either, or a smear column or a blooming halo it cannot explain is
+    // never tried and a wide effect (a veiling glare) takes its signal.
     let sig_z = |name: &str| loc.signature(name).map(|g| g.z).unwrap_or(0.0);
-    if sig_z("defocus") >= z || sig_z("motion_blur") >= z {
+    let directional = sig_z("motion_blur") >= z && cands.iter().any(|c| c.name == "motion_blur");
+    if sig_z("defocus") >= z || directional {
         for (name, own) in
             [("blooming", sig_z("blooming")), ("smear", sig_z("smear")), ("gain_offset", sig_z("gain_offset"))]
         {

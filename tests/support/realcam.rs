@@ -1993,6 +1993,7 @@ pub fn corpus() -> Vec<Case> {
     v.extend(h27smear_cases());
     v.extend(h27tone_cases());
     v.extend(h28diag_cases());
+    v.extend(h35smear_cases());
     v
 }
 
@@ -2727,6 +2728,42 @@ pub fn h28diag_cases() -> Vec<Case> {
 }
 
 // ---- end h28diag ------------------------------------------------------------------------------
+
+// =============================================================================================
+// h35smear: a weak smear beside blooming, 8-bit docking target
+// =============================================================================================
+
+/// h35smear probes (stop 35): blooming (well 0.94 FS) hidden with a weak frame-transfer smear
+/// (0.03–0.08 % of FS per saturated pixel, at the per-pixel noise) on the 8-bit docking target,
+/// sources over full scale (1.5–3 FS), 4 e-/DN or 6 e-/DN. The held-out failure class "smear
+/// hidden beside blooming missed" (with a wide effect reported in its place) as first-corpus
+/// cases: on `h35_bloom_smear_fid_mono8` (bright fiducials spilling over the well, which move
+/// edges one way) the blur gate kept smear from the selection and a veiling glare took its
+/// column signal, until the gate required a blur the data establish.
+pub fn h35smear_cases() -> Vec<Case> {
+    use Hidden::*;
+    let lit = |white, retro, glint_fs| AltScene::DockingLit { white, retro, glint_fs };
+    let bs =
+        |w: f64, d: f64, s: f64| vec![Blooming { full_well: w, decay_px: d }, Smear { strength: s, vertical: true }];
+    vec![
+        h26_case("h35_bloom_smear_weak_docking_mono8", 821, 4.0, 1.5, bs(0.94, 1.0, 0.0005))
+            .on(lit(225.0, true, 2.0))
+            .sized(640, 400, 4),
+        h26_case("h35_bloom_smear_weaker_docking_mono8", 822, 4.0, 1.5, bs(0.94, 1.2, 0.0003))
+            .on(lit(225.0, true, 3.0))
+            .sized(640, 400, 4),
+        // Fiducials at 240 DN, above the 0.94 FS well (they spill in the real camera, not in the
+        // sim), no retro-reflector, the glint at 2 FS.
+        h26_case("h35_bloom_smear_fid_mono8", 823, 4.0, 1.5, bs(0.94, 1.0, 0.0005))
+            .on(lit(240.0, false, 2.0))
+            .sized(640, 400, 4),
+        h26_case("h35_bloom_smear_bright_docking_mono8", 824, 6.0, 1.5, bs(0.94, 1.2, 0.0008))
+            .on(lit(235.0, true, 1.5))
+            .sized(640, 400, 4),
+    ]
+}
+
+// ---- end h35smear ------------------------------------------------------------------------------
 
 // ---------------------------------------------------------------------------------------------
 // Unit tests of the generator itself
