@@ -207,11 +207,7 @@ fn vignetting_is_found_on_large_frames_of_dark_sky() {
 #[ignore = "two cases of the full corpus: run in a release build with --ignored"]
 fn weak_vignetting_on_a_lab_wall_and_mono_prnu_are_found() {
     let names = ["vignetting_weak_lab_mono", "prnu_mono"];
-    let cases: Vec<Case> = corpus().into_iter().filter(|c| names.contains(&c.name.as_str())).collect();
-    assert_eq!(cases.len(), names.len());
-    let scores = run_all(&cases);
-    let problems = subset_problems(&scores);
-    assert!(problems.is_empty(), "weak vignetting / mono PRNU:\n{}", problems.join("\n"));
+    assert_named_cases_pass(&names, "weak vignetting / mono PRNU");
 }
 
 /// h35smear: a weak smear (0.03–0.08 % of FS per saturated pixel) hidden beside blooming on the
@@ -231,11 +227,7 @@ fn smear_beside_blooming_is_tried_without_an_established_blur() {
         "h35_bloom_smear_fid_mono8",
         "h35_bloom_smear_bright_docking_mono8",
     ];
-    let cases: Vec<Case> = corpus().into_iter().filter(|c| names.contains(&c.name.as_str())).collect();
-    assert_eq!(cases.len(), names.len());
-    let scores = run_all(&cases);
-    let problems = subset_problems(&scores);
-    assert!(problems.is_empty(), "smear beside blooming:\n{}", problems.join("\n"));
+    assert_named_cases_pass(&names, "smear beside blooming");
 }
 
 /// h26tone: tone curve against stray light and veiling glare (issue 13: "a generalised sRGB
@@ -285,11 +277,7 @@ fn dark_level_under_srgb_is_not_gain_offset() {
         "h27_nearlin_srgb_planet_mono12",
         "h27_dark_decode_planet_mono10",
     ];
-    let cases: Vec<Case> = corpus().into_iter().filter(|c| names.contains(&c.name.as_str())).collect();
-    assert_eq!(cases.len(), names.len());
-    let scores = run_all(&cases);
-    let problems = subset_problems(&scores);
-    assert!(problems.is_empty(), "dark level under sRGB:\n{}", problems.join("\n"));
+    assert_named_cases_pass(&names, "dark level under sRGB");
 }
 
 /// Blooming's full well (issue 13). Over-exposed glints (cores at 2x full scale in the real
@@ -413,6 +401,15 @@ fn unpaired_glare_is_told_apart_from_a_uniform_offset() {
         }
     }
     assert!(problems.is_empty(), "glare vs offset:\n{}", problems.join("\n"));
+}
+
+/// Run the corpus cases `names` (each must exist) and assert that every one passes the subset's
+/// checks ([`subset_problems`]); `what` names the group in the failure message.
+fn assert_named_cases_pass(names: &[&str], what: &str) {
+    let cases: Vec<Case> = corpus().into_iter().filter(|c| names.contains(&c.name.as_str())).collect();
+    assert_eq!(cases.len(), names.len(), "{what}: cases missing from the corpus");
+    let problems = subset_problems(&run_all(&cases));
+    assert!(problems.is_empty(), "{what}:\n{}", problems.join("\n"));
 }
 
 fn subset_problems(scores: &[CaseScore]) -> Vec<String> {
