@@ -45,6 +45,7 @@
 //!    (`diagnose_dirs`).
 
 pub mod common;
+pub mod dither;
 pub mod edges;
 pub mod fit;
 pub mod fixed;

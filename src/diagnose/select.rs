@@ -28,7 +28,7 @@
 
 use super::common::NoiseModel;
 use super::img::{FS, Pair, Plane, planes_of};
-use super::{DiagnoseError, levelmap, stats, tone};
+use super::{DiagnoseError, dither, levelmap, stats, tone};
 use crate::faults::{self, Effect, EffectCtx, ParamKind, Params, Scale, Stage, registry};
 use crate::frame::{Frame, FrameData, PixelFormat};
 use rayon::prelude::*;
@@ -266,7 +266,10 @@ impl Step {
         let n_values: usize = img.iter().map(|f| f.as_u16().map(|d| d.len()).unwrap_or(0)).sum();
         // The dither sigma of each 16-bit level (cached per noise model), and the normal draws
         // (the same for every evaluation of this frame: cached).
-        let sd_of = self.dither_draws.sd_table(nm);
+        let sd_table = self.dither_draws.sd_table(nm);
+        let sd_of: &[f64; 65536] = sd_table.as_slice().try_into().map_err(|_| {
+            DiagnoseError::Fault(faults::FaultError::Failed { effect: "jpeg", reason: "dither table size".into() })
+        })?;
         // Keyed by the frame, not by the step's place in the chain: a candidate inserted before
         // the JPEG must not change its noise draws (a different draw changes the loss by
         // chance, by as much as a weak effect, for every candidate alike).
@@ -279,10 +282,7 @@ impl Step {
             let mut at = 0;
             for (f, o) in noisy.iter_mut().zip(img.iter()) {
                 if let (Some(d), Some(src)) = (f.as_u16_mut(), o.as_u16()) {
-                    for ((v, &s), &g) in d.iter_mut().zip(src).zip(&dk[at..]) {
-                        let m = s as f64 / 257.0;
-                        *v = round_clamp_u16((m + sd_of[s as usize] * g) * 257.0);
-                    }
+                    dither::add_noise(d, src, &dk[at..], sd_of);
                     at += d.len();
                 }
             }
@@ -335,30 +335,15 @@ fn unstack_bands(sub: &Frame, f: &mut Frame, bands: &[usize]) {
     }
 }
 
-/// `x.round().clamp(0, 65535) as u16`, exactly (round half away from zero), without the libm
-/// call `f64::round` costs on the baseline x86-64 target.
-#[inline]
-fn round_clamp_u16(x: f64) -> u16 {
-    // Branch-free: the fraction's test is a coin flip for noisy values, so a branch on it is
-    // mispredicted half of the time. NaN converts to 0, as `NaN as u16` does.
-    let y = x.clamp(0.0, 65535.0);
-    let i = y as u32;
-    // y - i is exact for 0 <= y <= 65535.
-    (i + (y - i as f64 >= 0.5) as u32).min(65535) as u16
-}
-
 /// Rgb8 frame from three Mono16 planes (rounded to 8 bits).
 fn assemble_rgb8(planes: &[Frame]) -> Result<Frame, DiagnoseError> {
     let (w, h) = (planes[0].width, planes[0].height);
     let n = w as usize * h as usize;
     let mut data = vec![0u8; n * 3];
-    for (c, p) in planes.iter().enumerate().take(3) {
-        if let Some(d) = p.as_u16() {
-            for i in 0..n {
-                // round(d / 257) of an integer d, exactly (no ties: the remainder is an integer).
-                data[i * 3 + c] = ((d[i] as u32 + 128) / 257) as u8;
-            }
-        }
+    if let [r, g, b, ..] = planes
+        && let (Some(r), Some(g), Some(b)) = (r.as_u16(), g.as_u16(), b.as_u16())
+    {
+        dither::interleave_rgb8(&mut data, &r[..n], &g[..n], &b[..n]);
     }
     Frame::from_data(w, h, 3 * w as usize, PixelFormat::Rgb8, FrameData::U8(data)).map_err(|e| {
         DiagnoseError::Fault(faults::FaultError::Failed { effect: "channel_shift", reason: e.to_string() })
@@ -367,12 +352,10 @@ fn assemble_rgb8(planes: &[Frame]) -> Result<Frame, DiagnoseError> {
 
 fn split_rgb8(rgb: &Frame, planes: &mut [Frame]) {
     let Some(src) = rgb.as_u8() else { return };
-    for (c, p) in planes.iter_mut().enumerate().take(3) {
-        if let Some(d) = p.as_u16_mut() {
-            for (i, v) in d.iter_mut().enumerate() {
-                *v = src[i * 3 + c] as u16 * 257;
-            }
-        }
+    if let [r, g, b, ..] = planes
+        && let (Some(r), Some(g), Some(b)) = (r.as_u16_mut(), g.as_u16_mut(), b.as_u16_mut())
+    {
+        dither::split_rgb8(src, r, g, b);
     }
 }
 
