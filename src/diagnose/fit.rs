@@ -702,7 +702,7 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
                 b.len(),
                 select::BAND
             ),
-            None if row_step > 1 => format!(" (every {row_step}th row)"),
+            None if row_step > 1 => format!(" (one row in {row_step})"),
             None => String::new(),
         }
     ));

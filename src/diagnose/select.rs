@@ -1216,14 +1216,17 @@ fn optimise(
             let u0 = c.to_u(cur);
             let (a, b) = ((u0 - width).max(0.0), (u0 + width).min(1.0));
             let mut err = None;
-            let mut last = LossEval::default();
+            // Every point the search evaluates, so the point it returns needs no second
+            // evaluation (the prefix's outputs are those of a whole-chain run: the same loss).
+            let mut seen: Vec<(u64, LossEval)> = Vec::with_capacity(iters + 2);
             let mut eval = |u: f64| -> f64 {
                 set_coord(steps, c, c.value_at(u));
                 ctx.count_eval();
                 match ctx.run_from(steps, c.step, &prefix, ctx.bands.as_deref()) {
                     Ok(o) => {
-                        last = ctx.loss.eval_on(&o, false, well_level(steps));
-                        last.total
+                        let ev = ctx.loss.eval_on(&o, false, well_level(steps));
+                        seen.push((u.to_bits(), ev));
+                        ev.total
                     }
                     Err(e) => {
                         err = Some(e);
@@ -1250,11 +1253,13 @@ fn optimise(
             }
             if v < best.total {
                 set_coord(steps, c, c.value_at(u));
-                best = ctx.eval(steps)?;
+                best = match seen.iter().find(|(b, _)| *b == u.to_bits()) {
+                    Some(&(_, ev)) => ev,
+                    None => ctx.eval(steps)?,
+                };
             } else {
                 set_coord(steps, c, cur);
             }
-            let _ = last;
         }
     }
     Ok(best)
@@ -2083,6 +2088,53 @@ fn profile_start(
     Ok(())
 }
 
+/// One swap trial of the selection's swap pass: selected effect `j` of `steps` (whose model
+/// has loss `full`, `k_full` parameters and penalised loss `p_full`) replaced by `cand`, refitted.
+/// The new model if the replacement passes: its extra parameters (if any) change the expected
+/// image by a material amount, and its penalised loss is below `p_full` by the margin (2, or with
+/// as many parameters a tenth of what the replaced effect explains).
+#[allow(clippy::too_many_arguments)]
+fn swap_trial(
+    ctx: &FitCtx,
+    steps: &[Step],
+    j: usize,
+    cand: &Candidate,
+    full: LossEval,
+    k_full: usize,
+    p_full: f64,
+    full_planes: &[Vec<Plane>],
+    z_thr: f64,
+    round: usize,
+) -> Result<Option<Vec<Step>>, DiagnoseError> {
+    let design = full.design.max(0.8);
+    let k_j = coords_of(steps, Some(j)).len();
+    let rest: Vec<Step> = clone_steps(steps).into_iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s).collect();
+    let mut rest_c = clone_steps(&rest);
+    let rest_eval = ctx.eval(&mut rest_c)?;
+    let rest_planes = ctx.physical_planes(&rest_c)?;
+    let (_, mut trial, _) =
+        try_candidate(ctx, clone_steps(&rest), cand, rest_eval, &rest_planes, z_thr, round, &[(0.5, 10), (0.12, 6)])?;
+    // More parameters must buy a material change of the expected image (judged with the other
+    // effects as they were).
+    let k_c = coords_of(&trial, None).len() + k_j - k_full;
+    let material_ok =
+        k_c <= k_j || material(&ctx.physical_planes(&trial)?, full_planes) >= material_threshold(cand.name);
+    if !material_ok {
+        return Ok(None);
+    }
+    let ev = refine_quick(ctx, &mut trial)?;
+    // Same number of parameters: the replacement must be clearly better (a tenth of what the
+    // replaced effect explains), not one of two near-equivalent readings.
+    let margin = if k_c < k_j {
+        2.0
+    } else {
+        let mut without = clone_steps(&rest);
+        let lw = ctx.eval(&mut without)?;
+        (0.1 * (lw.total - full.total) / design).max(2.0)
+    };
+    Ok((penalised(ev, coords_of(&trial, None).len(), design) < p_full - margin).then_some(trial))
+}
+
 /// Penalised loss of a model (for swaps): L/D + ½ k ln n.
 fn penalised(ev: LossEval, k: usize, design: f64) -> f64 {
     ev.total / design + 0.5 * k as f64 * (ev.n.max(2) as f64).ln()
@@ -2281,17 +2333,21 @@ pub fn select(
         let design = full.design.max(0.8);
         let p_full = penalised(full, k_full, design);
         let full_planes = ctx.physical_planes(&steps)?;
+        // The swap trials (a selected effect j replaced by a candidate of its family), in the
+        // order the pass takes them; the first one that passes is applied and the pass starts
+        // over. Every trial starts from the same model and reads nothing another one writes, so
+        // they run in parallel and the first passing one in this order is the one a trial-by-trial
+        // pass would take (the trials after it are discarded; only the count of loss evaluations
+        // in the notes can differ).
+        let mut pairs: Vec<(usize, usize)> = Vec::new();
         for j in 0..steps.len() {
             if steps[j].fixed || swapped.len() >= 4 || family(steps[j].name) == 0 {
                 continue;
             }
-            let k_j = coords_of(&steps, Some(j)).len();
-            let rest: Vec<Step> =
-                clone_steps(&steps).into_iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s).collect();
             for (ci, cand) in candidates.iter().enumerate() {
                 if family(cand.name) != family(steps[j].name)
                     || cand.name == steps[j].name
-                    || rest.iter().any(|s| s.name == cand.name)
+                    || steps.iter().enumerate().any(|(i, s)| i != j && s.name == cand.name)
                     || best_z[ci] < 3.0
                 {
                     continue;
@@ -2300,46 +2356,26 @@ pub fn select(
                 if swapped.contains(&key) || swapped.iter().any(|s| s.1 == key.0 && s.0 == key.1) {
                     continue;
                 }
-                let mut rest_c = clone_steps(&rest);
-                let rest_eval = ctx.eval(&mut rest_c)?;
-                let rest_planes = ctx.physical_planes(&rest_c)?;
-                let (_, mut trial, _) = try_candidate(
-                    ctx,
-                    clone_steps(&rest),
-                    cand,
-                    rest_eval,
-                    &rest_planes,
-                    z_thr,
-                    round,
-                    &[(0.5, 10), (0.12, 6)],
-                )?;
-                // More parameters must buy a material change of the expected image (judged with
-                // the other effects as they were).
-                let k_c = coords_of(&trial, None).len() + k_j - k_full;
-                let material_ok = k_c <= k_j
-                    || material(&ctx.physical_planes(&trial)?, &full_planes) >= material_threshold(cand.name);
-                if !material_ok {
-                    continue;
-                }
-                let ev = refine_quick(ctx, &mut trial)?;
-                // Same number of parameters: the replacement must be clearly better (a tenth of
-                // what the replaced effect explains), not one of two near-equivalent readings.
-                let margin = if k_c < k_j {
-                    2.0
-                } else {
-                    let mut without = clone_steps(&rest);
-                    let lw = ctx.eval(&mut without)?;
-                    (0.1 * (lw.total - full.total) / design).max(2.0)
-                };
-                if penalised(ev, coords_of(&trial, None).len(), design) < p_full - margin {
-                    notes.push(format!(
-                        "{} replaced by {} (as good a fit with fewer or better-placed parameters)",
-                        key.0, key.1
-                    ));
-                    swapped.push(key);
-                    steps = trial;
-                    continue 'outer;
-                }
+                pairs.push((j, ci));
+            }
+        }
+        let jobs: Vec<(usize, usize, Vec<Step>)> = pairs.iter().map(|&(j, ci)| (j, ci, clone_steps(&steps))).collect();
+        let trials: Vec<Result<Option<Vec<Step>>, DiagnoseError>> = jobs
+            .into_par_iter()
+            .map(|(j, ci, own)| {
+                swap_trial(ctx, &own, j, &candidates[ci], full, k_full, p_full, &full_planes, z_thr, round)
+            })
+            .collect();
+        for (&(j, ci), trial) in pairs.iter().zip(trials) {
+            if let Some(trial) = trial? {
+                let key = (steps[j].label.clone(), candidates[ci].label.clone());
+                notes.push(format!(
+                    "{} replaced by {} (as good a fit with fewer or better-placed parameters)",
+                    key.0, key.1
+                ));
+                swapped.push(key);
+                steps = trial;
+                continue 'outer;
             }
         }
         break;
