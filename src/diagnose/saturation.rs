@@ -54,6 +54,105 @@ pub const PLATEAU_BELOW_TOP_Z: f64 = 5.0;
 /// Smallest z of the smear-free halo at 1 px for its shape to be read (a 5-sigma excess).
 pub const SHAPE_MIN_Z: f64 = 5.0;
 
+/// Parameter of the blooming signature (set with `halo_px`, over-exposed sources only): how far
+/// (px) the halo reaches beyond the real spill footprint ([`spill_footprint`]), where the mean
+/// residual falls below 1 DN.
+pub const SPILL_REACH_PARAM: &str = "spill_reach_px";
+/// Farthest reach (px) of the halo beyond the real spill footprint that is measured.
+const SPILL_REACH_MAX: usize = 30;
+/// Frames read for the reach (the first ones with saturated sim pixels).
+const SPILL_FRAMES: usize = 3;
+
+/// Lowest real value (DN) counted as a photosite at the well: the plateau less three times its
+/// scatter (at least 1 DN).
+fn spill_threshold(plateau: f64, plateau_sd: f64) -> f32 {
+    (plateau - (3.0 * plateau_sd).max(1.0)) as f32
+}
+
+/// The real spill footprint of over-exposed sources in one frame: the sim's saturated pixels and
+/// every pixel connected to them (8-neighbourhood) whose real value, in any channel, is at the
+/// well (`>= thr`). Physics: a source far over full scale holds far more charge than its
+/// photosites can; the excess overflows into the neighbours, fills each to the well and moves
+/// on, so the real frame shows a plateau region grown from the source, contiguous with it, whose
+/// size is set by the source's total over-exposure, which the clipped sim no longer holds (a
+/// star at 20 FS grows a blob several px wide around a core of a few saturated sim pixels).
+pub fn spill_footprint(p: &Pair, m: &Masks, thr: f32) -> Vec<bool> {
+    let (w, h) = (p.w(), p.h());
+    let at_well = |i: usize| p.real.iter().any(|c| c.data[i] >= thr);
+    let mut foot = vec![false; w * h];
+    let mut stack: Vec<usize> = Vec::new();
+    for (i, f) in foot.iter_mut().enumerate() {
+        if m.sat.get(i) {
+            *f = true;
+            stack.push(i);
+        }
+    }
+    while let Some(i) = stack.pop() {
+        let (x, y) = ((i % w) as isize, (i / w) as isize);
+        for dy in -1isize..=1 {
+            for dx in -1isize..=1 {
+                let (xx, yy) = (x + dx, y + dy);
+                if xx < 0 || yy < 0 || xx >= w as isize || yy >= h as isize {
+                    continue;
+                }
+                let j = yy as usize * w + xx as usize;
+                if !foot[j] && at_well(j) {
+                    foot[j] = true;
+                    stack.push(j);
+                }
+            }
+        }
+    }
+    foot
+}
+
+/// Reach (px) of the over-exposed halo beyond the real spill footprint: the first distance from
+/// it at which the mean residual (far level removed) falls below 1 DN, at most
+/// [`SPILL_REACH_MAX`]. The spilled charge decays away from the plateau region it filled, not
+/// from the sim's few saturated pixels, so the halo is measured from there.
+fn spill_reach(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], thr: f32, far_level: f64) -> usize {
+    let mut acc = vec![(0.0f64, 0usize); SPILL_REACH_MAX + 1];
+    for (k, p) in pairs.iter().enumerate().filter(|(k, _)| masks[*k].sat.any()).take(SPILL_FRAMES) {
+        let m = &masks[k];
+        let foot = spill_footprint(p, m, thr);
+        let dist = super::img::distance_transform(&foot, p.w(), p.h());
+        for rr in &r1[k] {
+            for (i, &d) in dist.iter().enumerate() {
+                if !(0.5..=SPILL_REACH_MAX as f32 + 0.49).contains(&d) || m.dist_edge_unsat.get(i) < 1.5 {
+                    continue;
+                }
+                let b = d.round() as usize;
+                acc[b].0 += rr.data[i] as f64;
+                acc[b].1 += 1;
+            }
+        }
+    }
+    (1..=SPILL_REACH_MAX)
+        .find(|&b| acc[b].1 > 10 && acc[b].0 / acc[b].1 as f64 - far_level < 1.0)
+        .unwrap_or(SPILL_REACH_MAX)
+}
+
+/// Pixels of pair `p` that over-exposed sources' spilled charge reaches (None when the blooming
+/// signature `bloom` did not find over-exposed sources, i.e. set no `halo_px`): within `halo_px`
+/// of the sim's saturated regions, or within the reach ([`SPILL_REACH_PARAM`]) of the real spill
+/// footprint ([`spill_footprint`]), the sim's saturated pixels themselves excepted (their
+/// plateau is blooming's evidence). No effect applied to the clipped sim can put that charge
+/// there, so these pixels are no evidence for any forward-model effect (a wider PSF, a gain, a
+/// ghost would each absorb part of the blob), and the signatures read away from them.
+pub fn spill_skip(p: &Pair, m: &Masks, bloom: &Signature) -> Option<Vec<bool>> {
+    let halo = bloom.param("halo_px")? as f32;
+    let plateau = bloom.param("full_well_fraction")? * FS as f64;
+    let sd = bloom.param(PLATEAU_SD_PARAM).unwrap_or(1.0);
+    let reach = bloom.param(SPILL_REACH_PARAM).map_or(halo, |r| r as f32);
+    let foot = spill_footprint(p, m, spill_threshold(plateau, sd));
+    let dist = super::img::distance_transform(&foot, p.w(), p.h());
+    Some(
+        (0..dist.len())
+            .map(|i| !m.sat.get(i) && (m.dist_sat.get(i) <= halo || dist[i] <= reach))
+            .collect(),
+    )
+}
+
 /// Robust scatter (DN, 1.4826 MAD) of the saturated plateau's real values, floored at the read
 /// noise and ADC step a photosite at its full well still carries, and the share of the values at
 /// the top code.
@@ -204,6 +303,8 @@ pub fn blooming(
     {
         let r = prof.iter().position(|v| v.is_finite() && *v < 1.0).map(|i| i + 1).unwrap_or(D);
         sig.set_param("halo_px", r as f64);
+        let thr = spill_threshold(rm, sd_plateau);
+        sig.set_param(SPILL_REACH_PARAM, spill_reach(pairs, masks, r1, thr, far_level) as f64);
     }
     // A well below the top code: no saturated photosite reaches the top code. Without one
     // (the well at or above full scale, the plateau only lowered by PRNU, noise or JPEG
