@@ -330,7 +330,7 @@ fn stochastic_tests(
     };
     under_jpeg(&mut hot_sig);
     // The pixels over-exposed sources' spill reaches are no noise samples (`Located::spill`).
-    let hot: Vec<Vec<bool>> = match &loc.spill {
+    let hot: Vec<Vec<bool>> = match loc.spill.as_ref() {
         Some(sp) => hot.iter().zip(sp).map(|(h, s)| h.iter().zip(s).map(|(&a, &b)| a || b).collect()).collect(),
         None => hot,
     };

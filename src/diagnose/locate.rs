@@ -186,7 +186,9 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     super::progress("locate: saturation");
     // Over-exposed sources: the plateau their spilled charge grew in the real frames (and its
     // halo) is no sample of the camera noise at the sim's level there (a star's wing at 5 DN in
-    // the sim reads the well in the real frame): the noise model is measured again without it.
+    // the sim reads the well in the real frame): the fit's noise estimates leave it out with the
+    // hot pixels (the forward-model selection starts from the noise model above and measures it
+    // again on the fitted model's residual).
     let spill: Option<Vec<Vec<bool>>> = bloom.param("halo_px").map(|_| {
         pairs
             .par_iter()
@@ -198,13 +200,6 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
             })
             .collect()
     });
-    let noise = match &spill {
-        Some(skip) => {
-            let sims: Vec<Vec<Plane>> = pairs.iter().map(|p| p.sim.clone()).collect();
-            noise::estimate(pairs, &masks, &sims, quant, 0.0, Some(skip))
-        }
-        None => noise,
-    };
     let flare = flare::lens_flare(pairs, &masks, &pred, &resid, &noise, z, &bloom);
     sigs.extend([gain_sig, gamma_sig, vig, stray, dark, defocus, motion, cs, bloom, smear, flare]);
     // The prediction and residual planes are not used after this stage (the fit works on the

@@ -106,30 +106,68 @@ pub fn spill_footprint(p: &Pair, m: &Masks, thr: f32) -> Vec<bool> {
     foot
 }
 
+/// Column offsets (vertical smear, and any far-field level), then row offsets (horizontal
+/// smear) on what the columns leave, of the residual `rr`, read on pixels far (more than
+/// [`SHAPE_FAR_PX`]) from the footprint whose distance map is `dist` and from the sim's
+/// saturated regions (NaN where a line has fewer than 16 such pixels).
+fn line_offsets(rr: &[f32], dist: &[f32], m: &Masks, w: usize, h: usize) -> (Vec<f64>, Vec<f64>) {
+    let far = |i: usize| dist[i] > SHAPE_FAR_PX && m.dist_sat.get(i) > SHAPE_FAR_PX;
+    let mut col = vec![f64::NAN; w];
+    let mut buf = Vec::with_capacity(h.max(w));
+    for (x, cv) in col.iter_mut().enumerate() {
+        buf.clear();
+        buf.extend((0..h).map(|y| y * w + x).filter(|&i| far(i)).map(|i| rr[i] as f64));
+        if buf.len() >= 16 {
+            *cv = stats::median_mut(&mut buf);
+        }
+    }
+    let mut row = vec![f64::NAN; h];
+    for (y, rv) in row.iter_mut().enumerate() {
+        buf.clear();
+        buf.extend(
+            (0..w)
+                .map(|x| (x, y * w + x))
+                .filter(|&(x, i)| far(i) && col[x].is_finite())
+                .map(|(x, i)| rr[i] as f64 - col[x]),
+        );
+        if buf.len() >= 16 {
+            *rv = stats::median_mut(&mut buf);
+        }
+    }
+    (col, row)
+}
+
 /// Reach (px) of the over-exposed halo beyond the real spill footprint: the first distance from
 /// it at which the mean residual (far level removed) falls below 1 DN, at most
 /// [`SPILL_REACH_MAX`]. The spilled charge decays away from the plateau region it filled, not
 /// from the sim's few saturated pixels, so the halo is measured from there.
-fn spill_reach(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], thr: f32, far_level: f64) -> usize {
+fn spill_reach(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], thr: f32) -> usize {
     let mut acc = vec![(0.0f64, 0usize); SPILL_REACH_MAX + 1];
     for (k, p) in pairs.iter().enumerate().filter(|(k, _)| masks[*k].sat.any()).take(SPILL_FRAMES) {
         let m = &masks[k];
+        let (w, h) = (p.w(), p.h());
         let foot = spill_footprint(p, m, thr);
-        let dist = super::img::distance_transform(&foot, p.w(), p.h());
+        let dist = super::img::distance_transform(&foot, w, h);
         for rr in &r1[k] {
+            // Smear's column and row offsets (and the far level) come out first: a smear column
+            // through the source is no halo, and would carry the reach along it.
+            let (col, row) = line_offsets(&rr.data, &dist, m, w, h);
             for (i, &d) in dist.iter().enumerate() {
-                if !(0.5..=SPILL_REACH_MAX as f32 + 0.49).contains(&d) || m.dist_edge_unsat.get(i) < 1.5 {
+                let (x, y) = (i % w, i / w);
+                if !(0.5..=SPILL_REACH_MAX as f32 + 0.49).contains(&d)
+                    || m.dist_edge_unsat.get(i) < 1.5
+                    || !col[x].is_finite()
+                    || !row[y].is_finite()
+                {
                     continue;
                 }
                 let b = d.round() as usize;
-                acc[b].0 += rr.data[i] as f64;
+                acc[b].0 += rr.data[i] as f64 - col[x] - row[y];
                 acc[b].1 += 1;
             }
         }
     }
-    (1..=SPILL_REACH_MAX)
-        .find(|&b| acc[b].1 > 10 && acc[b].0 / acc[b].1 as f64 - far_level < 1.0)
-        .unwrap_or(SPILL_REACH_MAX)
+    (1..=SPILL_REACH_MAX).find(|&b| acc[b].1 > 10 && acc[b].0 < acc[b].1 as f64).unwrap_or(SPILL_REACH_MAX)
 }
 
 /// Pixels of pair `p` that over-exposed sources' spilled charge reaches (None when the blooming
@@ -304,7 +342,7 @@ pub fn blooming(
         let r = prof.iter().position(|v| v.is_finite() && *v < 1.0).map(|i| i + 1).unwrap_or(D);
         sig.set_param("halo_px", r as f64);
         let thr = spill_threshold(rm, sd_plateau);
-        sig.set_param(SPILL_REACH_PARAM, spill_reach(pairs, masks, r1, thr, far_level) as f64);
+        sig.set_param(SPILL_REACH_PARAM, spill_reach(pairs, masks, r1, thr) as f64);
     }
     // A well below the top code: no saturated photosite reaches the top code. Without one
     // (the well at or above full scale, the plateau only lowered by PRNU, noise or JPEG
@@ -571,31 +609,7 @@ pub fn halo_shape_spread(
             let foot: Vec<bool> =
                 (0..w * h).map(|i| m.sat.get(i) || (real[i] >= thr && m.dist_sat.get(i) <= SHAPE_D as f32)).collect();
             let dist = super::img::distance_transform(&foot, w, h);
-            let far = |i: usize| dist[i] > SHAPE_FAR_PX && m.dist_sat.get(i) > SHAPE_FAR_PX;
-            // Column offsets (vertical smear, and any far-field level), then row offsets
-            // (horizontal smear) on what the columns leave.
-            let mut col = vec![f64::NAN; w];
-            let mut buf = Vec::with_capacity(h.max(w));
-            for (x, cv) in col.iter_mut().enumerate() {
-                buf.clear();
-                buf.extend((0..h).map(|y| y * w + x).filter(|&i| far(i)).map(|i| rr[i] as f64));
-                if buf.len() >= 16 {
-                    *cv = stats::median_mut(&mut buf);
-                }
-            }
-            let mut row = vec![f64::NAN; h];
-            for (y, rv) in row.iter_mut().enumerate() {
-                buf.clear();
-                buf.extend(
-                    (0..w)
-                        .map(|x| (x, y * w + x))
-                        .filter(|&(x, i)| far(i) && col[x].is_finite())
-                        .map(|(x, i)| rr[i] as f64 - col[x]),
-                );
-                if buf.len() >= 16 {
-                    *rv = stats::median_mut(&mut buf);
-                }
-            }
+            let (col, row) = line_offsets(rr, &dist, m, w, h);
             let mut idx = Vec::new();
             for y in 0..h {
                 for x in 0..w {
