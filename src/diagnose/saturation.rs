@@ -77,8 +77,11 @@ fn spill_threshold(plateau: f64, plateau_sd: f64) -> f32 {
 /// size is set by the source's total over-exposure, which the clipped sim no longer holds (a
 /// star at 20 FS grows a blob several px wide around a core of a few saturated sim pixels).
 pub fn spill_footprint(p: &Pair, m: &Masks, thr: f32) -> Vec<bool> {
-    let (w, h) = (p.w(), p.h());
-    let at_well = |i: usize| p.real.iter().any(|c| c.data[i] >= thr);
+    grow_footprint(m, p.w(), p.h(), |i| p.real.iter().any(|c| c.data[i] >= thr))
+}
+
+/// The sim's saturated pixels grown (8-neighbourhood) through the pixels where `at_well` holds.
+fn grow_footprint(m: &Masks, w: usize, h: usize, at_well: impl Fn(usize) -> bool) -> Vec<bool> {
     let mut foot = vec![false; w * h];
     let mut stack: Vec<usize> = Vec::new();
     for (i, f) in foot.iter_mut().enumerate() {
@@ -184,11 +187,7 @@ pub fn spill_skip(p: &Pair, m: &Masks, bloom: &Signature) -> Option<Vec<bool>> {
     let reach = bloom.param(SPILL_REACH_PARAM).map_or(halo, |r| r as f32);
     let foot = spill_footprint(p, m, spill_threshold(plateau, sd));
     let dist = super::img::distance_transform(&foot, p.w(), p.h());
-    Some(
-        (0..dist.len())
-            .map(|i| !m.sat.get(i) && (m.dist_sat.get(i) <= halo || dist[i] <= reach))
-            .collect(),
-    )
+    Some((0..dist.len()).map(|i| !m.sat.get(i) && (m.dist_sat.get(i) <= halo || dist[i] <= reach)).collect())
 }
 
 /// Robust scatter (DN, 1.4826 MAD) of the saturated plateau's real values, floored at the read
@@ -353,7 +352,9 @@ pub fn blooming(
     if flat_z >= PLATEAU_BELOW_TOP_Z && deficit > 0.0 {
         sig.choices.push(("plateau".into(), "below_top_code".into()));
     }
-    if let Some((s, z1, ev)) = halo_shape_spread(pairs, masks, r1, rm, sd_plateau, noise) {
+    if let Some((s, z1, ev)) =
+        halo_shape_spread(pairs, masks, r1, rm, sd_plateau, noise, sig.param("halo_px").is_some())
+    {
         if z1 >= SHAPE_MIN_Z {
             sig.set_param(SHAPE_SPREAD_PARAM, s.clamp(0.3, 8.0));
         }
@@ -574,8 +575,10 @@ const SHAPE_FRAMES: usize = 3;
 /// (pixels at the measured plateau; blooming grows it beyond the sim's when over-exposed);
 /// (3) the remaining excess against distance is fitted by the footprint spread with a Gaussian
 /// of std s (the library model's kernel), with a free amplitude, so that only the fall-off's
-/// shape decides s. Returns (s, z of the halo at 1 px, evidence) or None when the halo is not
-/// measurable (no footprint, too few pixels, or no positive halo).
+/// shape decides s. `over_exposed` (blooming found `halo_px`): the footprint is the plateau grown
+/// from the sim's saturated regions however far it reaches ([`grow_footprint`]). Returns (s, z of
+/// the halo at 1 px, evidence) or None when the halo is not measurable (no footprint, too few
+/// pixels, or no positive halo).
 pub fn halo_shape_spread(
     pairs: &[Pair],
     masks: &[Masks],
@@ -583,6 +586,7 @@ pub fn halo_shape_spread(
     plateau: f64,
     plateau_sd: f64,
     noise: &NoiseModel,
+    over_exposed: bool,
 ) -> Option<(f64, f64, String)> {
     // Per frame and channel: (bins of the near pixels, their corrected residuals, footprint).
     struct Near {
@@ -606,8 +610,18 @@ pub fn halo_shape_spread(
         for c in 0..p.channels() {
             let real = &p.real[c].data;
             let rr = &r1[k][c].data;
-            let foot: Vec<bool> =
-                (0..w * h).map(|i| m.sat.get(i) || (real[i] >= thr && m.dist_sat.get(i) <= SHAPE_D as f32)).collect();
+            // The real footprint: pixels at the well near the sim's saturated regions and, with
+            // over-exposed sources (`halo_px`), the plateau grown from them however far it
+            // reaches (their spill fills a region wider than SHAPE_D; the halo falls off from
+            // that region's rim, not from inside it).
+            let grown = if over_exposed { grow_footprint(m, w, h, |i| real[i] >= thr) } else { Vec::new() };
+            let foot: Vec<bool> = (0..w * h)
+                .map(|i| {
+                    grown.get(i).copied().unwrap_or(false)
+                        || m.sat.get(i)
+                        || (real[i] >= thr && m.dist_sat.get(i) <= SHAPE_D as f32)
+                })
+                .collect();
             let dist = super::img::distance_transform(&foot, w, h);
             let (col, row) = line_offsets(rr, &dist, m, w, h);
             let mut idx = Vec::new();
@@ -772,7 +786,7 @@ mod tests {
             let pairs = vec![Pair { name: "0".into(), sim_frame: f, real_frame: g, sim: vec![sim], real: vec![real] }];
             let mut nm = NoiseModel::prior(1.0);
             nm.a = 0.25;
-            halo_shape_spread(&pairs, &masks, &r1, 240.0, 0.3, &nm).expect("halo measurable").0
+            halo_shape_spread(&pairs, &masks, &r1, 240.0, 0.3, &nm, false).expect("halo measurable").0
         };
         let (small, large) = (read(20.0), read(200.0));
         assert!((1.0..=2.4).contains(&small), "small excess: {small}");
