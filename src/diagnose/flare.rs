@@ -365,7 +365,7 @@ pub fn lens_flare(
     resid: &[Vec<Plane>],
     noise: &NoiseModel,
     z_thr: f64,
-    bloom: &Signature,
+    spill: &(dyn Fn(usize) -> Option<Vec<bool>> + Sync),
 ) -> Signature {
     let mut sig = Signature::new("lens_flare");
     // The forward fit starts from the library's default layout with 3 ghosts; the count found is
@@ -391,7 +391,7 @@ pub fn lens_flare(
     // Over-exposed sources: the region their spilled charge fills (a plateau grown around the
     // source, often as wide as a ghost) is no evidence of a ghost; the scan reads away from it.
     let prep = |k: usize, src: (f64, f64)| {
-        let spill = super::saturation::spill_skip(&pairs[k], &masks[k], bloom);
+        let spill = spill(k);
         prepare(&pairs[k], &masks[k], &pred[k], &resid[k], noise, src, spill.as_deref())
     };
     let (w, h) = (pairs[frames[0].0].w(), pairs[frames[0].0].h());

@@ -200,7 +200,9 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
             })
             .collect()
     });
-    let flare = flare::lens_flare(pairs, &masks, &pred, &resid, &noise, z, &bloom);
+    // The ghost scan leaves out, per frame, the pixels over-exposed sources' spill reaches.
+    let spill_of = |k: usize| saturation::spill_skip(&pairs[k], &masks[k], &bloom);
+    let flare = flare::lens_flare(pairs, &masks, &pred, &resid, &noise, z, &spill_of);
     sigs.extend([gain_sig, gamma_sig, vig, stray, dark, defocus, motion, cs, bloom, smear, flare]);
     // The prediction and residual planes are not used after this stage (the fit works on the
     // forward models' own planes): released here, a frame per pair and channel each.
