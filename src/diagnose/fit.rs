@@ -329,6 +329,11 @@ fn stochastic_tests(
         }
     };
     under_jpeg(&mut hot_sig);
+    // The pixels over-exposed sources' spill reaches are no noise samples (`Located::spill`).
+    let hot: Vec<Vec<bool>> = match loc.spill.as_ref() {
+        Some(sp) => hot.iter().zip(sp).map(|(h, s)| h.iter().zip(s).map(|(&a, &b)| a || b).collect()).collect(),
+        None => hot,
+    };
     let noise1 = noise::estimate(pairs, &loc.masks, model, loc.quant, 0.0, Some(&hot));
     let (mut prnu, prnu_c) = fixed::prnu(pairs, &loc.masks, &quiet, model, &noise1, &hot);
     prnu.detected = prnu.z > z;
@@ -529,24 +534,25 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         step.dither = Some(loc.noise.clone());
         start.push(step);
     }
-    // Over-exposed sources (blooming signature): the ring their spilled charge lights is left out
-    // of the loss, with the hot pixels.
-    let halo_px = loc.signature("blooming").and_then(|s| s.param("halo_px"));
+    // Over-exposed sources (blooming signature): the region their spilled charge fills and lights
+    // (`saturation::spill_skip`: the ring around the sim's saturated regions and the real plateau
+    // grown from them with its halo) is left out of the loss, with the hot pixels.
+    let bloom_sig = loc.signature("blooming");
+    let halo_px = bloom_sig.and_then(|s| s.param("halo_px"));
     let skip: Vec<Vec<bool>> = fidx
         .iter()
         .map(|&k| {
-            let (hot, m) = (&loc.hot[k], &loc.masks[k]);
-            match halo_px {
-                Some(r) => (0..hot.len())
-                    .map(|i| hot[i] || (m.dist_sat.get(i) > 0.5 && m.dist_sat.get(i) <= r as f32))
-                    .collect(),
+            let hot = &loc.hot[k];
+            match bloom_sig.and_then(|b| super::saturation::spill_skip(&pairs[k], &loc.masks[k], b)) {
+                Some(spill) => hot.iter().zip(&spill).map(|(&h, &s)| h || s).collect(),
                 None => hot.clone(),
             }
         })
         .collect();
     if let Some(r) = halo_px {
+        let reach = bloom_sig.and_then(|s| s.param(super::saturation::SPILL_REACH_PARAM)).unwrap_or(r);
         notes.push(format!(
-            "over-exposed sources: pixels within {r:.0} px of saturated regions are left out of the forward-model fit (their halo is fed by charge the clipped sim does not hold)"
+            "over-exposed sources: pixels within {r:.0} px of saturated regions, and the real plateau grown from them with {reach:.0} px around it, are left out of the forward-model fit (their charge spilled from sources the clipped sim does not hold)"
         ));
     }
     // With a dithered JPEG step (three JPEG round trips per frame and evaluation, most of the cost
@@ -617,7 +623,8 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
         model_planes.push(select::apply_steps(&mut sel.steps, &p.sim_frame, k as u64, seed)?);
     }
     super::progress("fit: model planes");
-    let renoise = noise::estimate(pairs, &loc.masks, &model_planes, loc.quant, 0.0, Some(&loc.hot));
+    let renoise =
+        noise::estimate(pairs, &loc.masks, &model_planes, loc.quant, 0.0, Some(loc.spill.as_ref().unwrap_or(&loc.hot)));
     let change = [2.0, 30.0, 100.0, 200.0]
         .iter()
         .map(|&l| (renoise.var(l) / ctx.loss.noise().var(l) - 1.0).abs())

@@ -183,14 +183,22 @@ struct FrameScan {
 
 /// Residual (channel mean) with columns and rows of significant median offset removed,
 /// weights and the prefix sums.
-fn prepare(p: &Pair, m: &Masks, pred: &[Plane], resid: &[Plane], noise: &NoiseModel, src: (f64, f64)) -> FrameScan {
+fn prepare(
+    p: &Pair,
+    m: &Masks,
+    pred: &[Plane],
+    resid: &[Plane],
+    noise: &NoiseModel,
+    src: (f64, f64),
+    spill: Option<&[bool]>,
+) -> FrameScan {
     let (w, h) = (p.w(), p.h());
     let nc = resid.len() as f32;
     let mut r = vec![f32::NAN; w * h];
     let mut sd = vec![0f32; w * h];
     let mut lvl = vec![0f32; w * h];
     for i in 0..w * h {
-        if m.dist_sat.get(i) <= SAT_MARGIN || m.dist_edge.get(i) <= EDGE_MARGIN {
+        if m.dist_sat.get(i) <= SAT_MARGIN || m.dist_edge.get(i) <= EDGE_MARGIN || spill.is_some_and(|s| s[i]) {
             continue;
         }
         let mut v = 0.0;
@@ -357,6 +365,7 @@ pub fn lens_flare(
     resid: &[Vec<Plane>],
     noise: &NoiseModel,
     z_thr: f64,
+    spill: &(dyn Fn(usize) -> Option<Vec<bool>> + Sync),
 ) -> Signature {
     let mut sig = Signature::new("lens_flare");
     // The forward fit starts from the library's default layout with 3 ghosts; the count found is
@@ -379,7 +388,12 @@ pub fn lens_flare(
         sig.evidence = "no off-centre bright source (no blob at 95 % of full scale away from the centre): lens flare cannot be tested".into();
         return sig;
     }
-    let prep = |k: usize, src: (f64, f64)| prepare(&pairs[k], &masks[k], &pred[k], &resid[k], noise, src);
+    // Over-exposed sources: the region their spilled charge fills (a plateau grown around the
+    // source, often as wide as a ghost) is no evidence of a ghost; the scan reads away from it.
+    let prep = |k: usize, src: (f64, f64)| {
+        let spill = spill(k);
+        prepare(&pairs[k], &masks[k], &pred[k], &resid[k], noise, src, spill.as_deref())
+    };
     let (w, h) = (pairs[frames[0].0].w(), pairs[frames[0].0].h());
     let diag = ((w * w + h * h) as f64).sqrt();
     let len = frames

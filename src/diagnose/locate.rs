@@ -32,6 +32,10 @@ pub struct Located {
     pub quant: f64,
     /// The blur kernel measured tap by tap ([`psf`]), when there are enough usable edges.
     pub psf: Option<psf::Psf>,
+    /// Per frame, the pixels over-exposed sources' spilled charge reaches
+    /// ([`saturation::spill_skip`]; None without over-exposed sources): left out of the noise
+    /// estimates as the hot pixels are.
+    pub spill: Option<Vec<Vec<bool>>>,
 }
 
 impl Located {
@@ -180,12 +184,30 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     let bloom = saturation::blooming(pairs, &masks, &pred, &resid, &noise, blur_sigma);
     let smear = saturation::smear(pairs, &masks, &resid, &pred, &noise);
     super::progress("locate: saturation");
-    let flare = flare::lens_flare(pairs, &masks, &pred, &resid, &noise, z);
+    // Over-exposed sources: the plateau their spilled charge grew in the real frames (and its
+    // halo) is no sample of the camera noise at the sim's level there (a star's wing at 5 DN in
+    // the sim reads the well in the real frame): the fit's noise estimates leave it out with the
+    // hot pixels (the forward-model selection starts from the noise model above and measures it
+    // again on the fitted model's residual).
+    let spill: Option<Vec<Vec<bool>>> = bloom.param("halo_px").map(|_| {
+        pairs
+            .par_iter()
+            .zip(&masks)
+            .zip(&hot)
+            .map(|((p, m), h)| {
+                let s = saturation::spill_skip(p, m, &bloom).unwrap_or_default();
+                h.iter().enumerate().map(|(i, &hv)| hv || s.get(i).copied().unwrap_or(false)).collect()
+            })
+            .collect()
+    });
+    // The ghost scan leaves out, per frame, the pixels over-exposed sources' spill reaches.
+    let spill_of = |k: usize| saturation::spill_skip(&pairs[k], &masks[k], &bloom);
+    let flare = flare::lens_flare(pairs, &masks, &pred, &resid, &noise, z, &spill_of);
     sigs.extend([gain_sig, gamma_sig, vig, stray, dark, defocus, motion, cs, bloom, smear, flare]);
     // The prediction and residual planes are not used after this stage (the fit works on the
     // forward models' own planes): released here, a frame per pair and channel each.
     drop((pred, resid));
-    Located { masks, noise, photo, hot, signatures: sigs, notes, quant, psf }
+    Located { masks, noise, photo, hot, signatures: sigs, notes, quant, psf, spill }
 }
 
 /// Dark-block additive levels against their base level.

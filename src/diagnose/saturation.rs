@@ -54,6 +54,142 @@ pub const PLATEAU_BELOW_TOP_Z: f64 = 5.0;
 /// Smallest z of the smear-free halo at 1 px for its shape to be read (a 5-sigma excess).
 pub const SHAPE_MIN_Z: f64 = 5.0;
 
+/// Parameter of the blooming signature (set with `halo_px`, over-exposed sources only): how far
+/// (px) the halo reaches beyond the real spill footprint ([`spill_footprint`]), where the mean
+/// residual falls below 1 DN.
+pub const SPILL_REACH_PARAM: &str = "spill_reach_px";
+/// Farthest reach (px) of the halo beyond the real spill footprint that is measured.
+const SPILL_REACH_MAX: usize = 30;
+/// Frames read for the reach (the first ones with saturated sim pixels).
+const SPILL_FRAMES: usize = 3;
+
+/// Lowest real value (DN) counted as a photosite at the well: the plateau less three times its
+/// scatter (at least 1 DN).
+fn spill_threshold(plateau: f64, plateau_sd: f64) -> f32 {
+    (plateau - (3.0 * plateau_sd).max(1.0)) as f32
+}
+
+/// The real spill footprint of over-exposed sources in one frame: the sim's saturated pixels and
+/// every pixel connected to them (8-neighbourhood) whose real value, in any channel, is at the
+/// well (`>= thr`). Physics: a source far over full scale holds far more charge than its
+/// photosites can; the excess overflows into the neighbours, fills each to the well and moves
+/// on, so the real frame shows a plateau region grown from the source, contiguous with it, whose
+/// size is set by the source's total over-exposure, which the clipped sim no longer holds (a
+/// star at 20 FS grows a blob several px wide around a core of a few saturated sim pixels).
+pub fn spill_footprint(p: &Pair, m: &Masks, thr: f32) -> Vec<bool> {
+    grow_footprint(m, p.w(), p.h(), |i| p.real.iter().any(|c| c.data[i] >= thr))
+}
+
+/// The sim's saturated pixels grown (8-neighbourhood) through the pixels where `at_well` holds.
+fn grow_footprint(m: &Masks, w: usize, h: usize, at_well: impl Fn(usize) -> bool) -> Vec<bool> {
+    let mut foot = vec![false; w * h];
+    let mut stack: Vec<usize> = Vec::new();
+    for (i, f) in foot.iter_mut().enumerate() {
+        if m.sat.get(i) {
+            *f = true;
+            stack.push(i);
+        }
+    }
+    while let Some(i) = stack.pop() {
+        let (x, y) = ((i % w) as isize, (i / w) as isize);
+        for dy in -1isize..=1 {
+            for dx in -1isize..=1 {
+                let (xx, yy) = (x + dx, y + dy);
+                if xx < 0 || yy < 0 || xx >= w as isize || yy >= h as isize {
+                    continue;
+                }
+                let j = yy as usize * w + xx as usize;
+                if !foot[j] && at_well(j) {
+                    foot[j] = true;
+                    stack.push(j);
+                }
+            }
+        }
+    }
+    foot
+}
+
+/// Column offsets (vertical smear, and any far-field level), then row offsets (horizontal
+/// smear) on what the columns leave, of the residual `rr`, read on pixels far (more than
+/// [`SHAPE_FAR_PX`]) from the footprint whose distance map is `dist` and from the sim's
+/// saturated regions (NaN where a line has fewer than 16 such pixels).
+fn line_offsets(rr: &[f32], dist: &[f32], m: &Masks, w: usize, h: usize) -> (Vec<f64>, Vec<f64>) {
+    let far = |i: usize| dist[i] > SHAPE_FAR_PX && m.dist_sat.get(i) > SHAPE_FAR_PX;
+    let mut col = vec![f64::NAN; w];
+    let mut buf = Vec::with_capacity(h.max(w));
+    for (x, cv) in col.iter_mut().enumerate() {
+        buf.clear();
+        buf.extend((0..h).map(|y| y * w + x).filter(|&i| far(i)).map(|i| rr[i] as f64));
+        if buf.len() >= 16 {
+            *cv = stats::median_mut(&mut buf);
+        }
+    }
+    let mut row = vec![f64::NAN; h];
+    for (y, rv) in row.iter_mut().enumerate() {
+        buf.clear();
+        buf.extend(
+            (0..w)
+                .map(|x| (x, y * w + x))
+                .filter(|&(x, i)| far(i) && col[x].is_finite())
+                .map(|(x, i)| rr[i] as f64 - col[x]),
+        );
+        if buf.len() >= 16 {
+            *rv = stats::median_mut(&mut buf);
+        }
+    }
+    (col, row)
+}
+
+/// Reach (px) of the over-exposed halo beyond the real spill footprint: the first distance from
+/// it at which the mean residual (far level removed) falls below 1 DN, at most
+/// [`SPILL_REACH_MAX`]. The spilled charge decays away from the plateau region it filled, not
+/// from the sim's few saturated pixels, so the halo is measured from there.
+fn spill_reach(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], thr: f32) -> usize {
+    let mut acc = vec![(0.0f64, 0usize); SPILL_REACH_MAX + 1];
+    for (k, p) in pairs.iter().enumerate().filter(|(k, _)| masks[*k].sat.any()).take(SPILL_FRAMES) {
+        let m = &masks[k];
+        let (w, h) = (p.w(), p.h());
+        let foot = spill_footprint(p, m, thr);
+        let dist = super::img::distance_transform(&foot, w, h);
+        for rr in &r1[k] {
+            // Smear's column and row offsets (and the far level) come out first: a smear column
+            // through the source is no halo, and would carry the reach along it.
+            let (col, row) = line_offsets(&rr.data, &dist, m, w, h);
+            for (i, &d) in dist.iter().enumerate() {
+                let (x, y) = (i % w, i / w);
+                if !(0.5..=SPILL_REACH_MAX as f32 + 0.49).contains(&d)
+                    || m.dist_edge_unsat.get(i) < 1.5
+                    || !col[x].is_finite()
+                    || !row[y].is_finite()
+                {
+                    continue;
+                }
+                let b = d.round() as usize;
+                acc[b].0 += rr.data[i] as f64 - col[x] - row[y];
+                acc[b].1 += 1;
+            }
+        }
+    }
+    (1..=SPILL_REACH_MAX).find(|&b| acc[b].1 > 10 && acc[b].0 < acc[b].1 as f64).unwrap_or(SPILL_REACH_MAX)
+}
+
+/// Pixels of pair `p` that over-exposed sources' spilled charge reaches (None when the blooming
+/// signature `bloom` did not find over-exposed sources, i.e. set no `halo_px`): within `halo_px`
+/// of the sim's saturated regions, or within the reach ([`SPILL_REACH_PARAM`]) of the real spill
+/// footprint ([`spill_footprint`]), the sim's saturated pixels themselves excepted (their
+/// plateau is blooming's evidence). No effect applied to the clipped sim can put that charge
+/// there, so these pixels are no evidence for any forward-model effect (a wider PSF, a gain, a
+/// ghost would each absorb part of the blob), and the signatures read away from them.
+pub fn spill_skip(p: &Pair, m: &Masks, bloom: &Signature) -> Option<Vec<bool>> {
+    let halo = bloom.param("halo_px")? as f32;
+    let plateau = bloom.param("full_well_fraction")? * FS as f64;
+    let sd = bloom.param(PLATEAU_SD_PARAM).unwrap_or(1.0);
+    let reach = bloom.param(SPILL_REACH_PARAM).map_or(halo, |r| r as f32);
+    let foot = spill_footprint(p, m, spill_threshold(plateau, sd));
+    let dist = super::img::distance_transform(&foot, p.w(), p.h());
+    Some((0..dist.len()).map(|i| !m.sat.get(i) && (m.dist_sat.get(i) <= halo || dist[i] <= reach)).collect())
+}
+
 /// Robust scatter (DN, 1.4826 MAD) of the saturated plateau's real values, floored at the read
 /// noise and ADC step a photosite at its full well still carries, and the share of the values at
 /// the top code.
@@ -204,6 +340,8 @@ pub fn blooming(
     {
         let r = prof.iter().position(|v| v.is_finite() && *v < 1.0).map(|i| i + 1).unwrap_or(D);
         sig.set_param("halo_px", r as f64);
+        let thr = spill_threshold(rm, sd_plateau);
+        sig.set_param(SPILL_REACH_PARAM, spill_reach(pairs, masks, r1, thr) as f64);
     }
     // A well below the top code: no saturated photosite reaches the top code. Without one
     // (the well at or above full scale, the plateau only lowered by PRNU, noise or JPEG
@@ -214,7 +352,9 @@ pub fn blooming(
     if flat_z >= PLATEAU_BELOW_TOP_Z && deficit > 0.0 {
         sig.choices.push(("plateau".into(), "below_top_code".into()));
     }
-    if let Some((s, z1, ev)) = halo_shape_spread(pairs, masks, r1, rm, sd_plateau, noise) {
+    if let Some((s, z1, ev)) =
+        halo_shape_spread(pairs, masks, r1, rm, sd_plateau, noise, sig.param("halo_px").is_some())
+    {
         if z1 >= SHAPE_MIN_Z {
             sig.set_param(SHAPE_SPREAD_PARAM, s.clamp(0.3, 8.0));
         }
@@ -435,8 +575,10 @@ const SHAPE_FRAMES: usize = 3;
 /// (pixels at the measured plateau; blooming grows it beyond the sim's when over-exposed);
 /// (3) the remaining excess against distance is fitted by the footprint spread with a Gaussian
 /// of std s (the library model's kernel), with a free amplitude, so that only the fall-off's
-/// shape decides s. Returns (s, z of the halo at 1 px, evidence) or None when the halo is not
-/// measurable (no footprint, too few pixels, or no positive halo).
+/// shape decides s. `over_exposed` (blooming found `halo_px`): the footprint is the plateau grown
+/// from the sim's saturated regions however far it reaches ([`grow_footprint`]). Returns (s, z of
+/// the halo at 1 px, evidence) or None when the halo is not measurable (no footprint, too few
+/// pixels, or no positive halo).
 pub fn halo_shape_spread(
     pairs: &[Pair],
     masks: &[Masks],
@@ -444,6 +586,7 @@ pub fn halo_shape_spread(
     plateau: f64,
     plateau_sd: f64,
     noise: &NoiseModel,
+    over_exposed: bool,
 ) -> Option<(f64, f64, String)> {
     // Per frame and channel: (bins of the near pixels, their corrected residuals, footprint).
     struct Near {
@@ -467,34 +610,20 @@ pub fn halo_shape_spread(
         for c in 0..p.channels() {
             let real = &p.real[c].data;
             let rr = &r1[k][c].data;
-            let foot: Vec<bool> =
-                (0..w * h).map(|i| m.sat.get(i) || (real[i] >= thr && m.dist_sat.get(i) <= SHAPE_D as f32)).collect();
+            // The real footprint: pixels at the well near the sim's saturated regions and, with
+            // over-exposed sources (`halo_px`), the plateau grown from them however far it
+            // reaches (their spill fills a region wider than SHAPE_D; the halo falls off from
+            // that region's rim, not from inside it).
+            let grown = if over_exposed { grow_footprint(m, w, h, |i| real[i] >= thr) } else { Vec::new() };
+            let foot: Vec<bool> = (0..w * h)
+                .map(|i| {
+                    grown.get(i).copied().unwrap_or(false)
+                        || m.sat.get(i)
+                        || (real[i] >= thr && m.dist_sat.get(i) <= SHAPE_D as f32)
+                })
+                .collect();
             let dist = super::img::distance_transform(&foot, w, h);
-            let far = |i: usize| dist[i] > SHAPE_FAR_PX && m.dist_sat.get(i) > SHAPE_FAR_PX;
-            // Column offsets (vertical smear, and any far-field level), then row offsets
-            // (horizontal smear) on what the columns leave.
-            let mut col = vec![f64::NAN; w];
-            let mut buf = Vec::with_capacity(h.max(w));
-            for (x, cv) in col.iter_mut().enumerate() {
-                buf.clear();
-                buf.extend((0..h).map(|y| y * w + x).filter(|&i| far(i)).map(|i| rr[i] as f64));
-                if buf.len() >= 16 {
-                    *cv = stats::median_mut(&mut buf);
-                }
-            }
-            let mut row = vec![f64::NAN; h];
-            for (y, rv) in row.iter_mut().enumerate() {
-                buf.clear();
-                buf.extend(
-                    (0..w)
-                        .map(|x| (x, y * w + x))
-                        .filter(|&(x, i)| far(i) && col[x].is_finite())
-                        .map(|(x, i)| rr[i] as f64 - col[x]),
-                );
-                if buf.len() >= 16 {
-                    *rv = stats::median_mut(&mut buf);
-                }
-            }
+            let (col, row) = line_offsets(rr, &dist, m, w, h);
             let mut idx = Vec::new();
             for y in 0..h {
                 for x in 0..w {
@@ -657,7 +786,7 @@ mod tests {
             let pairs = vec![Pair { name: "0".into(), sim_frame: f, real_frame: g, sim: vec![sim], real: vec![real] }];
             let mut nm = NoiseModel::prior(1.0);
             nm.a = 0.25;
-            halo_shape_spread(&pairs, &masks, &r1, 240.0, 0.3, &nm).expect("halo measurable").0
+            halo_shape_spread(&pairs, &masks, &r1, 240.0, 0.3, &nm, false).expect("halo measurable").0
         };
         let (small, large) = (read(20.0), read(200.0));
         assert!((1.0..=2.4).contains(&small), "small excess: {small}");

@@ -1994,6 +1994,7 @@ pub fn corpus() -> Vec<Case> {
     v.extend(h27tone_cases());
     v.extend(h28diag_cases());
     v.extend(h35smear_cases());
+    v.extend(h35bloom_cases());
     v
 }
 
@@ -2764,6 +2765,73 @@ pub fn h35smear_cases() -> Vec<Case> {
 }
 
 // ---- end h35smear ------------------------------------------------------------------------------
+
+// =============================================================================================
+// h35bloom: blooming ALONE (no smear) beside just-saturated and over-exposed sources
+// =============================================================================================
+
+/// h35bloom probes: blooming hidden alone (no smear, no flare) on the docking target (8-bit and
+/// 10-bit, its glint and retro-reflector just over full scale or far over it, i.e. over-exposed
+/// cores the clipped sim hides) and on a star field whose brightest star is far over full
+/// scale. Stop 34's branch lost a held-out 8-bit docking case with blooming alone while its
+/// first-corpus blooming cases all carried smear too; these vary exactly that (the scenes,
+/// the blooming model and the noise are realcam's own building blocks).
+pub fn h35bloom_cases() -> Vec<Case> {
+    use Hidden::*;
+    let lit = |white, retro, glint_fs| AltScene::DockingLit { white, retro, glint_fs };
+    vec![
+        // Glint and retro-reflector just over full scale (1.15 FS), the well 3 DN under the top code.
+        h26_case("h35_bloom_docking_mono8", 811, 6.0, 1.5, vec![Blooming { full_well: 0.985, decay_px: 1.0 }])
+            .on(lit(225.0, true, 1.15))
+            .sized(640, 400, 4),
+        // The same target with the specular sources far over full scale (3 FS): over-exposed cores.
+        h26_case("h35_bloom_docking_over_mono8", 812, 6.0, 1.5, vec![Blooming { full_well: 0.96, decay_px: 1.0 }])
+            .on(lit(225.0, true, 3.0))
+            .sized(640, 400, 4),
+        // 10-bit data, sources far over full scale (2.5 FS), the well 2.5 DN under the top code.
+        h26_case("h35_bloom_docking_over_mono10", 813, 10.0, 1.2, vec![Blooming { full_well: 0.99, decay_px: 1.0 }])
+            .on(lit(240.0, true, 2.5))
+            .adc(10)
+            .sized(640, 400, 4),
+        // Bright fiducials just under the top code (240 DN: above a well of 0.93 FS, so they
+        // spill in the real camera while the sim shows them unsaturated) beside a far
+        // over-exposed glint (2 FS), 8-bit.
+        h26_case("h35_bloom_fiducials_over_mono8", 814, 6.0, 1.5, vec![Blooming { full_well: 0.93, decay_px: 1.2 }])
+            .on(lit(240.0, false, 2.0))
+            .sized(640, 400, 4),
+        // Star field (12-bit data) with over-exposed stars: its bright star at ~1e6 DN·px and
+        // the Pareto tail's few saturated stars capped at 5000 DN peaks (about 20 FS); 80 stars
+        // (with 400, every saturated star's spill grows into a blob the clipped sim has no trace
+        // of, and main and stop 34 both fail the case in 8 minutes: a known limit, not this probe's
+        // question).
+        h26_case("h35_bloom_stars_over_mono12", 815, 6.0, 1.4, vec![Blooming { full_well: 0.95, decay_px: 1.0 }])
+            .on(AltScene::StarField { stars: 80, src_x: 0.3, src_y: 0.6, sun: false })
+            .adc(12)
+            .sized(640, 400, 4),
+        // Harder: the docking target's glint just at full scale (no over-exposure), blooming alone
+        // (stop 26's blooming_smear_docking_mono without the smear).
+        h26_case("h35_bloom_docking_fs_mono8", 816, 6.0, 1.5, vec![Blooming { full_well: 0.95, decay_px: 1.0 }])
+            .on(AltScene::Docking { white: 228.0, retro: true }),
+        // Harder: blooming small against noise (read noise 2.5 DN, 4 e-/DN, short decay 0.6 px, the
+        // well 6 DN under the top code) beside bright fiducials (250 DN, above the well: they
+        // spill in the real camera while the sim shows them unsaturated) and a glint at 1.3 FS.
+        h26_case("h35_bloom_noisy_docking_mono8", 817, 4.0, 2.5, vec![Blooming { full_well: 0.975, decay_px: 0.6 }])
+            .on(lit(250.0, true, 1.3))
+            .sized(640, 400, 4),
+        // Harder: one small glint far over full scale (3 FS, no retro-reflector: few saturated
+        // cores to read the plateau on) and a well 3 DN under the top code (a small plateau
+        // deficit): blooming's evidence is mostly its halo beyond the ring left out of the fit.
+        h26_case("h35_bloom_glint_over_mono8", 819, 6.0, 1.5, vec![Blooming { full_well: 0.988, decay_px: 1.0 }])
+            .on(lit(225.0, false, 3.0))
+            .sized(640, 400, 4),
+        // Harder: stop 26's bright-fiducial docking case (fiducials 242 DN above a 0.92 well, one
+        // small glint at FS) with blooming alone.
+        h26_case("h35_bloom_bright_docking_mono8", 818, 6.0, 1.5, vec![Blooming { full_well: 0.92, decay_px: 1.0 }])
+            .on(AltScene::Docking { white: 242.0, retro: false }),
+    ]
+}
+
+// ---- end h35bloom ------------------------------------------------------------------------------
 
 // ---------------------------------------------------------------------------------------------
 // Unit tests of the generator itself
