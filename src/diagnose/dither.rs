@@ -22,6 +22,7 @@ pub fn round_clamp_u16(x: f64) -> u16 {
 /// One dithered copy of a work plane: `out[i] = round_clamp_u16((m + sd[src[i]] * g[i]) * 257)`
 /// with `m = src[i] / 257` (the value in 8-bit DN), for the common length of the slices.
 /// `sd` is the dither sigma (DN) of each 16-bit level, `g` standard normal draws.
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
 pub fn add_noise(out: &mut [u16], src: &[u16], g: &[f64], sd: &[f64; 65536]) {
     let n = out.len().min(src.len()).min(g.len());
     let (out, src, g) = (&mut out[..n], &src[..n], &g[..n]);
