@@ -539,16 +539,8 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     // grown from them with its halo) is left out of the loss, with the hot pixels.
     let bloom_sig = loc.signature("blooming");
     let halo_px = bloom_sig.and_then(|s| s.param("halo_px"));
-    let skip: Vec<Vec<bool>> = fidx
-        .iter()
-        .map(|&k| {
-            let hot = &loc.hot[k];
-            match bloom_sig.and_then(|b| super::saturation::spill_skip(&pairs[k], &loc.masks[k], b)) {
-                Some(spill) => hot.iter().zip(&spill).map(|(&h, &s)| h || s).collect(),
-                None => hot.clone(),
-            }
-        })
-        .collect();
+    // (`Located::spill`: the hot pixels with the spill, computed once in `locate`.)
+    let skip: Vec<Vec<bool>> = fidx.iter().map(|&k| loc.spill.as_ref().unwrap_or(&loc.hot)[k].clone()).collect();
     if let Some(r) = halo_px {
         let reach = bloom_sig.and_then(|s| s.param(super::saturation::SPILL_REACH_PARAM)).unwrap_or(r);
         notes.push(format!(

@@ -365,7 +365,7 @@ pub fn lens_flare(
     resid: &[Vec<Plane>],
     noise: &NoiseModel,
     z_thr: f64,
-    spill: &(dyn Fn(usize) -> Option<Vec<bool>> + Sync),
+    spill: Option<&[Vec<bool>]>,
 ) -> Signature {
     let mut sig = Signature::new("lens_flare");
     // The forward fit starts from the library's default layout with 3 ghosts; the count found is
@@ -391,8 +391,8 @@ pub fn lens_flare(
     // Over-exposed sources: the region their spilled charge fills (a plateau grown around the
     // source, often as wide as a ghost) is no evidence of a ghost; the scan reads away from it.
     let prep = |k: usize, src: (f64, f64)| {
-        let spill = spill(k);
-        prepare(&pairs[k], &masks[k], &pred[k], &resid[k], noise, src, spill.as_deref())
+        let spill = spill.and_then(|s| s.get(k)).filter(|s| !s.is_empty()).map(Vec::as_slice);
+        prepare(&pairs[k], &masks[k], &pred[k], &resid[k], noise, src, spill)
     };
     let (w, h) = (pairs[frames[0].0].w(), pairs[frames[0].0].h());
     let diag = ((w * w + h * h) as f64).sqrt();

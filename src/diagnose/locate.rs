@@ -189,20 +189,19 @@ pub fn locate(pairs: &[Pair], opts: &Options) -> Located {
     // the sim reads the well in the real frame): the fit's noise estimates leave it out with the
     // hot pixels (the forward-model selection starts from the noise model above and measures it
     // again on the fitted model's residual).
-    let spill: Option<Vec<Vec<bool>>> = bloom.param("halo_px").map(|_| {
-        pairs
-            .par_iter()
-            .zip(&masks)
-            .zip(&hot)
-            .map(|((p, m), h)| {
-                let s = saturation::spill_skip(p, m, &bloom).unwrap_or_default();
-                h.iter().enumerate().map(|(i, &hv)| hv || s.get(i).copied().unwrap_or(false)).collect()
-            })
+    // Per frame, the pixels over-exposed sources' spill reaches (computed once; None without
+    // over-exposed sources).
+    let spill_masks: Option<Vec<Vec<bool>>> = bloom.param("halo_px").map(|_| {
+        pairs.par_iter().zip(&masks).map(|(p, m)| saturation::spill_skip(p, m, &bloom).unwrap_or_default()).collect()
+    });
+    let spill: Option<Vec<Vec<bool>>> = spill_masks.as_ref().map(|sm| {
+        hot.iter()
+            .zip(sm)
+            .map(|(h, s)| h.iter().enumerate().map(|(i, &hv)| hv || s.get(i).copied().unwrap_or(false)).collect())
             .collect()
     });
     // The ghost scan leaves out, per frame, the pixels over-exposed sources' spill reaches.
-    let spill_of = |k: usize| saturation::spill_skip(&pairs[k], &masks[k], &bloom);
-    let flare = flare::lens_flare(pairs, &masks, &pred, &resid, &noise, z, &spill_of);
+    let flare = flare::lens_flare(pairs, &masks, &pred, &resid, &noise, z, spill_masks.as_deref());
     sigs.extend([gain_sig, gamma_sig, vig, stray, dark, defocus, motion, cs, bloom, smear, flare]);
     // The prediction and residual planes are not used after this stage (the fit works on the
     // forward models' own planes): released here, a frame per pair and channel each.

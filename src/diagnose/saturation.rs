@@ -140,6 +140,31 @@ fn line_offsets(rr: &[f32], dist: &[f32], m: &Masks, w: usize, h: usize) -> (Vec
     (col, row)
 }
 
+/// The pixels at rounded distance `1..=dmax` from a footprint (`dist`, its distance transform),
+/// away from unsaturated edges, each with its distance bin and its residual `rr` less the line
+/// offsets `col`/`row` (see [`line_offsets`]), in pixel order. The samples both the halo's shape
+/// and the spill's reach are read on.
+fn ring_samples<'a>(
+    rr: &'a [f32],
+    dist: &'a [f32],
+    m: &'a Masks,
+    w: usize,
+    (col, row): (&'a [f64], &'a [f64]),
+    dmax: usize,
+) -> impl Iterator<Item = (usize, usize, f64)> + 'a {
+    dist.iter().enumerate().filter_map(move |(i, &d)| {
+        let (x, y) = (i % w, i / w);
+        if !(0.5..=dmax as f32 + 0.49).contains(&d)
+            || m.dist_edge_unsat.get(i) < 1.5
+            || !col[x].is_finite()
+            || !row[y].is_finite()
+        {
+            return None;
+        }
+        Some((i, d.round() as usize, rr[i] as f64 - col[x] - row[y]))
+    })
+}
+
 /// Reach (px) of the over-exposed halo beyond the real spill footprint: the first distance from
 /// it at which the mean residual (far level removed) falls below 1 DN, at most
 /// [`SPILL_REACH_MAX`]. The spilled charge decays away from the plateau region it filled, not
@@ -155,17 +180,8 @@ fn spill_reach(pairs: &[Pair], masks: &[Masks], r1: &[Vec<Plane>], thr: f32) -> 
             // Smear's column and row offsets (and the far level) come out first: a smear column
             // through the source is no halo, and would carry the reach along it.
             let (col, row) = line_offsets(&rr.data, &dist, m, w, h);
-            for (i, &d) in dist.iter().enumerate() {
-                let (x, y) = (i % w, i / w);
-                if !(0.5..=SPILL_REACH_MAX as f32 + 0.49).contains(&d)
-                    || m.dist_edge_unsat.get(i) < 1.5
-                    || !col[x].is_finite()
-                    || !row[y].is_finite()
-                {
-                    continue;
-                }
-                let b = d.round() as usize;
-                acc[b].0 += rr.data[i] as f64 - col[x] - row[y];
+            for (_, b, v) in ring_samples(&rr.data, &dist, m, w, (&col, &row), SPILL_REACH_MAX) {
+                acc[b].0 += v;
                 acc[b].1 += 1;
             }
         }
@@ -625,22 +641,10 @@ pub fn halo_shape_spread(
             let dist = super::img::distance_transform(&foot, w, h);
             let (col, row) = line_offsets(rr, &dist, m, w, h);
             let mut idx = Vec::new();
-            for y in 0..h {
-                for x in 0..w {
-                    let i = y * w + x;
-                    let d = dist[i];
-                    if !(0.5..=SHAPE_D as f32 + 0.49).contains(&d)
-                        || m.dist_edge_unsat.get(i) < 1.5
-                        || !col[x].is_finite()
-                        || !row[y].is_finite()
-                    {
-                        continue;
-                    }
-                    let b = d.round() as usize;
-                    acc[b].0 += rr[i] as f64 - col[x] - row[y];
-                    acc[b].1 += 1;
-                    idx.push((i as u32, b as u8));
-                }
+            for (i, b, v) in ring_samples(rr, &dist, m, w, (&col, &row), SHAPE_D) {
+                acc[b].0 += v;
+                acc[b].1 += 1;
+                idx.push((i as u32, b as u8));
             }
             if !idx.is_empty() {
                 nears.push(Near { mask: Plane { w, h, data: foot.iter().map(|&f| f as u8 as f32).collect() }, idx });
