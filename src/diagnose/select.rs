@@ -2088,15 +2088,16 @@ fn profile_start(
     Ok(())
 }
 
-/// One swap trial of the selection's swap pass: selected effect `j` of `steps` (whose model
-/// has loss `full`, `k_full` parameters and penalised loss `p_full`) replaced by `cand`, refitted.
+/// One swap trial of the selection's swap pass, on its own copy of the model: selected effect
+/// `j` of `steps` (whose model has loss `full`, `k_full` parameters and penalised loss `p_full`)
+/// replaced by `cand`, refitted.
 /// The new model if the replacement passes: its extra parameters (if any) change the expected
 /// image by a material amount, and its penalised loss is below `p_full` by the margin (2, or with
 /// as many parameters a tenth of what the replaced effect explains).
 #[allow(clippy::too_many_arguments)]
 fn swap_trial(
     ctx: &FitCtx,
-    steps: &[Step],
+    steps: Vec<Step>,
     j: usize,
     cand: &Candidate,
     full: LossEval,
@@ -2107,8 +2108,8 @@ fn swap_trial(
     round: usize,
 ) -> Result<Option<Vec<Step>>, DiagnoseError> {
     let design = full.design.max(0.8);
-    let k_j = coords_of(steps, Some(j)).len();
-    let rest: Vec<Step> = clone_steps(steps).into_iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s).collect();
+    let k_j = coords_of(&steps, Some(j)).len();
+    let rest: Vec<Step> = steps.into_iter().enumerate().filter(|(i, _)| *i != j).map(|(_, s)| s).collect();
     let mut rest_c = clone_steps(&rest);
     let rest_eval = ctx.eval(&mut rest_c)?;
     let rest_planes = ctx.physical_planes(&rest_c)?;
@@ -2363,7 +2364,7 @@ pub fn select(
         let trials: Vec<Result<Option<Vec<Step>>, DiagnoseError>> = jobs
             .into_par_iter()
             .map(|(j, ci, own)| {
-                swap_trial(ctx, &own, j, &candidates[ci], full, k_full, p_full, &full_planes, z_thr, round)
+                swap_trial(ctx, own, j, &candidates[ci], full, k_full, p_full, &full_planes, z_thr, round)
             })
             .collect();
         for (&(j, ci), trial) in pairs.iter().zip(trials) {
