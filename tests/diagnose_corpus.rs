@@ -460,7 +460,8 @@ fn subset_problems(scores: &[CaseScore]) -> Vec<String> {
     problems
 }
 
-/// Thresholds over the full corpus (justified in README "Diagnosis corpus results"):
+/// Thresholds over the full corpus (reasons below; results and tolerances in README "Concealed-effect
+/// corpus (the first corpus)"):
 /// - detection ≥ 80 % of hidden effects: every strength is ≥ 3 standard errors of its signature
 ///   over 6 frames, so a sound detector misses few; 80 % leaves room for the two-effect cases;
 /// - zero false discoveries on the negative controls, and at most one per ten effect cases;

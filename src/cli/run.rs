@@ -80,7 +80,7 @@ pub struct Args {
     pub check: bool,
     /// Write per-pixel fault masks of every delivered frame into this folder: STEM.labels.png, a
     /// 16-bit PNG where bit k marks the pixels the k-th applied effect of the frame record
-    /// changed (see README "Per-pixel fault masks"); named in each frame record's `masks` field.
+    /// changed (see README "Fault masks"); named in each frame record's `masks` field.
     #[arg(long)]
     pub masks: Option<PathBuf>,
     /// With --masks, also write each effect's signed change as a 32-bit float TIFF

@@ -1770,7 +1770,8 @@ fn unpaired(name: &str, fmt: Fmt, seed: u64, earth: bool, gain: f64, read: f64, 
 /// The full paired corpus: negative controls, one-effect cases and two-effect cases, over two
 /// backdrops (space with or without the Earth, a lit lab wall), mono and RGB, several sizes,
 /// frame counts and camera noise levels. Strengths are below what the eye sees and comparable to
-/// the per-pixel noise (see README, "Diagnose", for the signal-to-noise argument).
+/// the per-pixel noise (see README, "Concealed-effect corpus (the first corpus)", and
+/// `hidden_effects_are_comparable_to_the_noise`).
 pub fn corpus() -> Vec<Case> {
     use Fmt::{Mono8, Rgb8};
     use Hidden::*;

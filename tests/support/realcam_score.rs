@@ -18,7 +18,8 @@ pub struct Tol {
     pub rel: f64,
 }
 
-/// Stated tolerances per (effect, parameter). Reasoning in README "Diagnosis corpus results".
+/// Stated tolerances per (effect, parameter). Listed, with the reasoning, in README "Tolerances" (under
+/// "Concealed-effect corpus (the first corpus)").
 pub fn tolerance(effect: &str, param: &str) -> Tol {
     match (effect, param) {
         ("vignetting", "strength") => Tol { abs: 0.03, rel: 0.0 },
