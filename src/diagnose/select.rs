@@ -2232,6 +2232,43 @@ fn drop_one(
     }
     Ok(ev)
 }
+/// Backward check: every selected effect must still be significant, material and above its
+/// floor when it is dropped and the others are refitted; the weakest that is not is dropped and
+/// the check repeats. Returns the drop-one evidence of the effects kept and the model's loss.
+fn backward(
+    ctx: &FitCtx,
+    steps: &mut Vec<Step>,
+    z_thr: f64,
+    notes: &mut Vec<String>,
+) -> Result<(Vec<Evidence>, LossEval), DiagnoseError> {
+    loop {
+        let current = ctx.eval(steps)?;
+        let planes = ctx.physical_planes(steps)?;
+        let mut evidence = Vec::new();
+        let mut weakest: Option<(usize, f64)> = None;
+        // Drop-one tests of the selected effects, in parallel on copies of the model; taken in
+        // step order.
+        let jobs: Vec<(usize, Vec<Step>)> = (0..steps.len()).map(|j| (j, clone_steps(steps))).collect();
+        let results: Vec<Result<Evidence, DiagnoseError>> =
+            jobs.into_par_iter().map(|(j, mut steps)| drop_one(ctx, &mut steps, j, current, &planes, z_thr)).collect();
+        for (j, ev) in results.into_iter().enumerate() {
+            let ev = ev?;
+            if !steps[j].fixed && !ev.accepted && weakest.is_none_or(|(_, z)| ev.z < z) {
+                weakest = Some((j, ev.z));
+            }
+            evidence.push(ev);
+        }
+        let Some((j, z)) = weakest else { return Ok((evidence, current)) };
+        let s = steps.remove(j);
+        notes.push(format!(
+            "{}: dropped in the backward check (z = {z:.1} given the other effects refitted, or too small to matter)",
+            s.label
+        ));
+        if steps.iter().any(|s| !s.fixed) {
+            refine(ctx, steps)?;
+        }
+    }
+}
 
 /// Forward selection, swaps of selected effects for simpler or better ones, and a backward check.
 /// `start` is the initial model (fixed steps, or the model of an earlier pass).
@@ -2247,6 +2284,14 @@ pub fn select(
     let mut notes = Vec::new();
     let mut fixed_only: Vec<Step> = steps.iter().filter(|s| s.fixed).map(Step::boxed_clone).collect();
     let loss_null = ctx.eval(&mut fixed_only)?;
+    // A repeated selection (the likelihood changed: a re-measured noise model, the Gaussian form
+    // under a tone curve) starts from the model found before. An effect found under the old
+    // likelihood that fails its drop-one test under the new one is dropped before the forward
+    // rounds build on it: effects added to make up for it would only be undone by the backward
+    // check at the end, at the cost of many fits.
+    if steps.iter().any(|s| !s.fixed) {
+        backward(ctx, &mut steps, z_thr, &mut notes)?;
+    }
     let mut tests: Vec<Evidence> = Vec::new();
     let mut best_z: Vec<f64> = vec![f64::NEG_INFINITY; candidates.len()];
     let mut round = 0;
@@ -2383,39 +2428,7 @@ pub fn select(
     }
     // ---- backward check: every selected effect must still be significant, material and above
     // its floor when it is dropped and the others are refitted.
-    let mut evidence_final;
-    let mut current;
-    loop {
-        current = ctx.eval(&mut steps)?;
-        let planes = ctx.physical_planes(&steps)?;
-        evidence_final = Vec::new();
-        let mut weakest: Option<(usize, f64)> = None;
-        // Drop-one tests of the selected effects, in parallel on copies of the model; taken in
-        // step order.
-        let jobs: Vec<(usize, Vec<Step>)> = (0..steps.len()).map(|j| (j, clone_steps(&steps))).collect();
-        let results: Vec<Result<Evidence, DiagnoseError>> =
-            jobs.into_par_iter().map(|(j, mut steps)| drop_one(ctx, &mut steps, j, current, &planes, z_thr)).collect();
-        for (j, ev) in results.into_iter().enumerate() {
-            let ev = ev?;
-            if !steps[j].fixed && !ev.accepted && weakest.is_none_or(|(_, z)| ev.z < z) {
-                weakest = Some((j, ev.z));
-            }
-            evidence_final.push(ev);
-        }
-        match weakest {
-            Some((j, z)) => {
-                let s = steps.remove(j);
-                notes.push(format!(
-                    "{}: dropped in the backward check (z = {z:.1} given the other effects refitted, or too small to matter)",
-                    s.label
-                ));
-                if steps.iter().any(|s| !s.fixed) {
-                    refine(ctx, &mut steps)?;
-                }
-            }
-            None => break,
-        }
-    }
+    let (evidence_final, current) = backward(ctx, &mut steps, z_thr, &mut notes)?;
     Ok(Selection {
         steps,
         evidence: evidence_final,
