@@ -664,6 +664,17 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     };
     let mut rmse_after = rmse_model(&model_planes);
     super::progress("fit: rmse");
+    if std::env::var_os("FAULTCAM_DIAG_DEBUG").is_some() {
+        for s in sel.steps.iter().filter(|s| !s.fixed) {
+            let ps: Vec<String> =
+                s.fit.iter().map(|&i| format!("{} {:.4}", s.params.info().params[i].name, s.params.at(i))).collect();
+            eprintln!(
+                "RMSE check: {} {} (RMSE {rmse_after:.3} against the sim's {rmse_before:.3} DN)",
+                s.label,
+                ps.join(", ")
+            );
+        }
+    }
     while rmse_after > rmse_before && sel.steps.iter().any(|s| !s.fixed) {
         let mut best: Option<(usize, f64, Vec<Vec<Plane>>)> = None;
         for j in (0..sel.steps.len()).filter(|&j| !sel.steps[j].fixed) {

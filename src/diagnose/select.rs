@@ -1832,8 +1832,16 @@ pub fn tone_check(ctx: &FitCtx, sel: &mut Selection, z_thr: f64) -> Result<(), D
         let mut drops: Vec<String> = Vec::new();
         if ok {
             let p1 = ctx.physical_planes(&sel.steps)?;
-            let whole =
-                self::evidence(added[0], added[0], l0, sel.loss_final, added.len(), material(&p1, &p0), z_thr, 0);
+            let whole = self::evidence(
+                added[0],
+                added[0],
+                l0,
+                sel.loss_final,
+                added.len(),
+                material(added[0], &p1, &p0),
+                z_thr,
+                0,
+            );
             ok = whole.accepted
                 && b.shape.effects().iter().all(|e| sel.evidence.iter().any(|ev| ev.effect == *e && ev.accepted));
             drops.push(format!(
@@ -1913,8 +1921,23 @@ fn insert_sorted(steps: &mut Vec<Step>, s: Step) -> usize {
     pos
 }
 
-/// The `m`-th largest |with - without| over all values, m = max(20, 0.05 % of the values).
-fn material(with: &[Vec<Plane>], without: &[Vec<Plane>]) -> f64 {
+/// Effects whose change is confined by construction to a few pixels the sim names: blooming
+/// is the identity wherever no charge exceeds the well, and changes only the photosites over
+/// it and the neighbours its overflow reaches. Their materiality is judged on those pixels
+/// (see [`material`]).
+fn local_support(effect: &str) -> bool {
+    effect == "blooming"
+}
+
+/// The `m`-th largest |with - without|, m = max(20, 0.05 % of the values): at least 20 values,
+/// and a share of the image, must change by the returned amount. The share guards against a
+/// mismatch of the noise or interpolation model that a global effect gathers from every pixel
+/// (hundredths of a DN each). For a [`local_support`] effect the share is of the values the
+/// effect changes at all (its support): a local effect cannot gather such a mismatch from the
+/// rest of the frame, and a 3 DN plateau at the 80 photosites of one small glint is as material
+/// as at 8000 (the 0.05 % of a whole 640x400 frame pair would ask for 256 of them, so the rule
+/// would weigh the image's size, not the effect). A global effect keeps the whole image's share.
+fn material(effect: &str, with: &[Vec<Plane>], without: &[Vec<Plane>]) -> f64 {
     let mut d: Vec<f64> = Vec::new();
     for (a, b) in with.iter().zip(without) {
         for (pa, pb) in a.iter().zip(b) {
@@ -1924,7 +1947,8 @@ fn material(with: &[Vec<Plane>], without: &[Vec<Plane>]) -> f64 {
     if d.is_empty() {
         return 0.0;
     }
-    let m = (d.len() / 2000).max(20).min(d.len());
+    let population = if local_support(effect) { d.iter().filter(|&&v| v > 0.0).count() } else { d.len() };
+    let m = (population / 2000).max(20).min(d.len());
     let idx = d.len() - m;
     let (_, v, _) = d.select_nth_unstable_by(idx, |a, b| a.total_cmp(b));
     *v
@@ -2038,7 +2062,8 @@ fn try_candidate(
     }
     let with = optimise(ctx, &mut trial, &coords, widths)?;
     let planes = ctx.physical_planes(&trial)?;
-    let mut ev = evidence(cand.name, &cand.label, current, with, k, material(&planes, current_planes), z_thr, round);
+    let mut ev =
+        evidence(cand.name, &cand.label, current, with, k, material(cand.name, &planes, current_planes), z_thr, round);
     ev.accepted &= step_above_floor(&trial[pos]);
     ev.params = Some(trial[pos].params);
     Ok((ev, trial, pos))
@@ -2119,7 +2144,7 @@ fn swap_trial(
     // effects as they were).
     let k_c = coords_of(&trial, None).len() + k_j - k_full;
     let material_ok =
-        k_c <= k_j || material(&ctx.physical_planes(&trial)?, full_planes) >= material_threshold(cand.name);
+        k_c <= k_j || material(cand.name, &ctx.physical_planes(&trial)?, full_planes) >= material_threshold(cand.name);
     if !material_ok {
         return Ok(None);
     }
@@ -2190,7 +2215,8 @@ fn drop_one(
     let lw = if without.iter().any(|s| !s.fixed) { refine_quick(ctx, &mut without)? } else { ctx.eval(&mut without)? };
     let pw = ctx.physical_planes(&without)?;
     let k = coords_of(steps, Some(j)).len();
-    let mut ev = evidence(steps[j].name, &steps[j].label, lw, current, k, material(planes, &pw), z_thr, 0);
+    let mut ev =
+        evidence(steps[j].name, &steps[j].label, lw, current, k, material(steps[j].name, planes, &pw), z_thr, 0);
     ev.accepted &= step_above_floor(&steps[j]);
     ev.params = Some(steps[j].params);
     if std::env::var_os("FAULTCAM_DIAG_DEBUG").is_some() {
@@ -2455,9 +2481,30 @@ mod tests {
             b[0][0].data[i] = 20.0; // 19 large changes: fewer than 20
         }
         b[0][0].data[50] = 10.4;
-        assert!((material(&b, &a) - 0.4).abs() < 1e-6);
+        assert!((material("gamma", &b, &a) - 0.4).abs() < 1e-6);
         b[0][0].data[19] = 13.0;
-        assert!((material(&b, &a) - 3.0).abs() < 1e-6);
+        assert!((material("gamma", &b, &a) - 3.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn a_local_effect_is_material_on_its_support() {
+        // 80 photosites of one small glint lowered by 3 DN in a 640x400 frame pair: the 256th
+        // largest change of the 512000 values is 0, the 20th of the 80 changed ones 3 DN.
+        let a = vec![vec![Plane::filled(640, 400, 200.0)], vec![Plane::filled(640, 400, 200.0)]];
+        let mut b = a.clone();
+        for f in 0..2 {
+            for i in 0..40 {
+                b[f][0].data[1000 + 3 * i] = 197.0;
+            }
+        }
+        assert_eq!(material("gamma", &b, &a), 0.0);
+        assert!((material("blooming", &b, &a) - 3.0).abs() < 1e-6);
+        // Fewer than 20 changed values are never material, local or not.
+        let mut c = a.clone();
+        for i in 0..19 {
+            c[0][0].data[i] = 150.0;
+        }
+        assert_eq!(material("blooming", &c, &a), 0.0);
     }
 
     #[test]
