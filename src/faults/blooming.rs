@@ -1,7 +1,12 @@
 //! `blooming`: charge beyond a pixel's full well overflows into its neighbours.
 //!
 //! Charge model: the excess above the full well W is diffused with a Gaussian kernel, the
-//! pixels that now exceed W overflow again, and so on, until no pixel exceeds W. The work is
+//! pixels that now exceed W overflow again, for at most 4 rounds and only while a round removes
+//! at least 20 % of the remaining excess; what is left then fills the nearest pixels with room,
+//! breadth-first from each saturated region's border (see `INFO.model`). EFFECTS.md defines the
+//! diffusion as repeated until nothing exceeds W: the two differ where a large region sits just
+//! over the well (the diffusion stalls and the fill puts the excess into the region's 1 px rim;
+//! README "Known weaknesses"). The work is
 //! sparse: the frame is cut into 32x32 tiles and only tiles reached by overflowing charge are
 //! loaded into a floating-point pool; everything else is never touched (or, with an exposure
 //! gain, only rescaled).
