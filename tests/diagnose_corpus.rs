@@ -272,15 +272,7 @@ fn a_repeated_selection_first_drops_what_the_new_likelihood_rejects() {
     assert!(!notes.iter().any(|n| n.contains(" replaced by ")), "the repeat wandered through swaps: {notes:?}");
     let evals: usize = notes
         .iter()
-        .find_map(|n| {
-            n.split(" loss evaluations")
-                .next()
-                .filter(|_| n.contains(" loss evaluations"))?
-                .rsplit(' ')
-                .next()?
-                .parse()
-                .ok()
-        })
+        .find_map(|n| n.split_once(" loss evaluations")?.0.rsplit(' ').next()?.parse().ok())
         .expect("evaluation count in the notes");
     // Before: 7807; the first selection alone takes about 1200.
     assert!(evals < 4000, "{evals} loss evaluations");

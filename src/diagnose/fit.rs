@@ -666,12 +666,9 @@ pub fn fit(pairs: &[Pair], loc: &mut Located, opts: &Options) -> Result<Fitted, 
     super::progress("fit: rmse");
     if std::env::var_os("FAULTCAM_DIAG_DEBUG").is_some() {
         for s in sel.steps.iter().filter(|s| !s.fixed) {
-            let ps: Vec<String> =
-                s.fit.iter().map(|&i| format!("{} {:.4}", s.params.info().params[i].name, s.params.at(i))).collect();
             eprintln!(
-                "RMSE check: {} {} (RMSE {rmse_after:.3} against the sim's {rmse_before:.3} DN)",
-                s.label,
-                ps.join(", ")
+                "RMSE check: {} {:?} (RMSE {rmse_after:.3} against the sim's {rmse_before:.3} DN)",
+                s.label, s.params
             );
         }
     }

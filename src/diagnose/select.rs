@@ -2310,13 +2310,15 @@ pub fn select(
     let mut notes = Vec::new();
     let mut fixed_only: Vec<Step> = steps.iter().filter(|s| s.fixed).map(Step::boxed_clone).collect();
     let loss_null = ctx.eval(&mut fixed_only)?;
-    // A repeated selection (the likelihood changed: a re-measured noise model, the Gaussian form
-    // under a tone curve) starts from the model found before. An effect found under the old
-    // likelihood that fails its drop-one test under the new one is dropped before the forward
-    // rounds build on it: effects added to make up for it would only be undone by the backward
-    // check at the end, at the cost of many fits.
+    // A repeated selection with a re-measured noise model starts from the model found before
+    // (the other repeats start from the fixed steps). An effect found under the old likelihood
+    // that fails its drop-one test under the new one is dropped before the forward rounds build
+    // on it: effects added to make up for it would only be undone by the backward check at the
+    // end, at the cost of many fits. Its result stands for that final check while the model
+    // stays as it left it.
+    let mut checked: Option<(Vec<Evidence>, LossEval)> = None;
     if steps.iter().any(|s| !s.fixed) {
-        backward(ctx, &mut steps, z_thr, &mut notes)?;
+        checked = Some(backward(ctx, &mut steps, z_thr, &mut notes)?);
     }
     let mut tests: Vec<Evidence> = Vec::new();
     let mut best_z: Vec<f64> = vec![f64::NEG_INFINITY; candidates.len()];
@@ -2370,6 +2372,7 @@ pub fn select(
                 t.accepted = t.label == ev.label;
             }
             steps = trial;
+            checked = None;
             refine(ctx, &mut steps)?;
             if stop_on.is_some_and(|f| f(&steps)) {
                 // The caller repeats the selection in another form once this holds (a tone
@@ -2447,6 +2450,7 @@ pub fn select(
                 ));
                 swapped.push(key);
                 steps = trial;
+                checked = None;
                 continue 'outer;
             }
         }
@@ -2454,7 +2458,10 @@ pub fn select(
     }
     // ---- backward check: every selected effect must still be significant, material and above
     // its floor when it is dropped and the others are refitted.
-    let (evidence_final, current) = backward(ctx, &mut steps, z_thr, &mut notes)?;
+    let (evidence_final, current) = match checked {
+        Some(c) => c,
+        None => backward(ctx, &mut steps, z_thr, &mut notes)?,
+    };
     Ok(Selection {
         steps,
         evidence: evidence_final,
