@@ -23,7 +23,7 @@
 use super::img::{Plane, luma, planes_of};
 use super::stats;
 use super::types::{DiagnoseError, Signature};
-use crate::faults::veiling_glare::{grid, kernel};
+use crate::faults::veiling_glare::{grid, kernel_shared};
 use crate::faults::{Params, default_params};
 use crate::frame::Frame;
 use crate::rng::Rng;
@@ -113,7 +113,7 @@ pub fn cells_against(p: &Plane, floor_of: &Plane, core_share: f64, slope: f64, f
     let (w, h) = (p.w, p.h);
     let (b, gw, gh) = grid(w, h);
     let core = (core_share * w.max(h) as f64).max(1.0);
-    let k = kernel(b, gw, gh, core, slope);
+    let k = kernel_shared(b, gw, gh, core, slope);
     let kw = 2 * gw - 1;
     let (mask, bg, thr) = scene_mask(p, flat_dn);
     let m = b as isize;

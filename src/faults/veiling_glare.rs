@@ -20,6 +20,7 @@ use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, Par
 use crate::frame::{Frame, Sample};
 use crate::with_image_mut;
 use rayon::prelude::*;
+use std::sync::{Arc, Mutex};
 
 pub static INFO: EffectInfo = EffectInfo {
     name: "veiling_glare",
@@ -77,7 +78,8 @@ pub fn kernel(b: usize, gw: usize, gh: usize, core_px: f64, slope: f64) -> Vec<f
     let (kw, kh) = (2 * gw - 1, 2 * gh - 1);
     let bf = b as f64;
     let mut k = vec![0f32; kw * kh];
-    for j in 0..kh {
+    // Every cell is computed on its own (rows in parallel): the values do not depend on threads.
+    k.par_chunks_mut(kw).enumerate().for_each(|(j, row)| {
         let dy = j as f64 - (gh - 1) as f64;
         for i in 0..kw {
             let dx = i as f64 - (gw - 1) as f64;
@@ -96,8 +98,40 @@ pub fn kernel(b: usize, gw: usize, gh: usize, core_px: f64, slope: f64) -> Vec<f
                 }
                 acc * s * s
             };
-            k[j * kw + i] = v as f32;
+            row[i] = v as f32;
         }
+    });
+    k
+}
+
+/// Kernels built recently, shared by every instance: `faultcam diagnose` fits the effect through
+/// many fresh instances and its searches revisit the same core sizes. Keyed by the exact
+/// arguments of [`kernel`], so a hit is the very kernel [`kernel`] returns.
+type KernelKey = (usize, usize, usize, u64, u64);
+static KERNEL_CACHE: Mutex<Vec<(KernelKey, Arc<[f32]>)>> = Mutex::new(Vec::new());
+/// Kernels kept (at most 95 x 95 cells each: 36 KB).
+const KERNEL_CACHE_LEN: usize = 32;
+
+/// [`kernel`] through the shared cache (most recently used last; the oldest is dropped).
+pub fn kernel_shared(b: usize, gw: usize, gh: usize, core_px: f64, slope: f64) -> Arc<[f32]> {
+    let key = (b, gw, gh, core_px.to_bits(), slope.to_bits());
+    {
+        let mut cache = KERNEL_CACHE.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(pos) = cache.iter().position(|(k, _)| *k == key) {
+            let hit = cache.remove(pos);
+            let k = hit.1.clone();
+            cache.push(hit);
+            return k;
+        }
+    }
+    // Built outside the lock (another thread may build the same kernel meanwhile: same values).
+    let k: Arc<[f32]> = kernel(b, gw, gh, core_px, slope).into();
+    let mut cache = KERNEL_CACHE.lock().unwrap_or_else(|e| e.into_inner());
+    if !cache.iter().any(|(c, _)| *c == key) {
+        if cache.len() >= KERNEL_CACHE_LEN {
+            cache.remove(0);
+        }
+        cache.push((key, k.clone()));
     }
     k
 }
@@ -106,7 +140,7 @@ pub fn kernel(b: usize, gw: usize, gh: usize, core_px: f64, slope: f64) -> Vec<f
 pub struct VeilingGlare {
     key: Option<(usize, usize, usize, [u64; 2])>,
     // allocation: once per (size, shape parameters)
-    kern: Vec<f32>,
+    kern: Arc<[f32]>,
     // allocation: once per frame size
     /// Cell sums, planar per channel (`ch` planes of `gw x gh`), and whether a cell row is all 0.
     sums: Vec<u64>,
@@ -146,7 +180,7 @@ impl VeilingGlare {
             return;
         }
         let (b, gw, gh) = grid(w, h);
-        self.kern = kernel(b, gw, gh, core, slope);
+        self.kern = kernel_shared(b, gw, gh, core, slope);
         self.sums = vec![0; gw * gh * ch];
         self.cells = vec![0.0; gw * gh * ch];
         self.row_nonzero = vec![false; gh * ch];
