@@ -322,6 +322,28 @@ mod tests {
         VeilingGlare::default().apply(f, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
     }
 
+    /// The shared kernel is the kernel: a miss builds it, a hit returns the same allocation, and
+    /// arguments that differ in any bit get their own kernel (the cache is keyed exactly).
+    #[test]
+    fn shared_kernels_are_the_kernels_of_their_exact_arguments() {
+        let (b, gw, gh) = grid(200, 120);
+        let core = 17.123456789;
+        let a = kernel_shared(b, gw, gh, core, 1.7);
+        assert_eq!(&a[..], &kernel(b, gw, gh, core, 1.7)[..]);
+        let again = kernel_shared(b, gw, gh, core, 1.7);
+        assert!(Arc::ptr_eq(&a, &again), "a hit returns the cached kernel");
+        let next = f64::from_bits(core.to_bits() + 1);
+        let c = kernel_shared(b, gw, gh, next, 1.7);
+        assert!(!Arc::ptr_eq(&a, &c));
+        assert_eq!(&c[..], &kernel(b, gw, gh, next, 1.7)[..]);
+        // More kernels than the cache keeps: every one is still its own kernel.
+        for i in 0..(KERNEL_CACHE_LEN + 3) {
+            let core = 5.0 + i as f64;
+            assert_eq!(&kernel_shared(b, gw, gh, core, 2.0)[..], &kernel(b, gw, gh, core, 2.0)[..]);
+        }
+        assert!(KERNEL_CACHE.lock().unwrap().len() <= KERNEL_CACHE_LEN);
+    }
+
     /// A square `side` px source of `value` at (cx, cy) on a black Mono16 frame.
     fn source(w: u32, h: u32, cx: usize, cy: usize, side: usize, value: f32) -> Frame {
         let mut f = Frame::new(w, h, PixelFormat::Mono16).unwrap();
