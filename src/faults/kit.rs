@@ -348,6 +348,15 @@ multiversion! {
 }
 
 multiversion! {
+    /// `v = round(v + g)` (f32, half up, clipped to the sample range) with one addend per sample.
+    pub fn add_round_row<T: Sample>(row: &mut [T], add: &[f32]) {
+        for (v, &g) in row.iter_mut().zip(add) {
+            *v = T::from_f32(v.to_f32() + g);
+        }
+    }
+}
+
+multiversion! {
     /// `out += a * x` element by element (f32, no fused multiply-add: the same rounding on every
     /// path).
     pub fn axpy_row<T: Copy>(out: &mut [f32], a: f32, x: &[f32], _t: T) {

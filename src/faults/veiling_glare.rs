@@ -15,7 +15,7 @@
 //! output cell and pixel is computed independently in a fixed order: same bytes on any thread
 //! count.
 
-use super::kit::{band_rows, bands, par_bands_with};
+use super::kit::{add_round_row, band_rows, bands, par_bands_with};
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, Sample};
 use crate::with_image_mut;
@@ -142,7 +142,8 @@ pub struct VeilingGlare {
     // allocation: once per (size, shape parameters)
     kern: Arc<[f32]>,
     // allocation: once per frame size
-    /// Cell sums, planar per channel (`ch` planes of `gw x gh`), and whether a cell row is all 0.
+    /// Cell sums (`[cell row][channel][cell column]`), their values as f32 planar per channel
+    /// (`ch` planes of `gw x gh`), and whether a cell row of a channel is all 0.
     sums: Vec<u64>,
     cells: Vec<f32>,
     row_nonzero: Vec<bool>,
@@ -150,6 +151,10 @@ pub struct VeilingGlare {
     glare: Vec<f32>,
     /// Per column: left cell and weight of the right cell.
     cols: Vec<(u32, f32)>,
+    /// The columns as runs between cell centres: (first column, end column, left cell), and
+    /// each column's weight of the right cell, contiguous.
+    runs: Vec<(u32, u32, u32)>,
+    tx: Vec<f32>,
     /// Per band: one interpolated cell row (gw x ch).
     scratch: Vec<f32>,
 }
@@ -186,7 +191,15 @@ impl VeilingGlare {
         self.row_nonzero = vec![false; gh * ch];
         self.glare = vec![0.0; gw * gh * ch];
         self.cols = (0..w).map(|x| interp(x, b, gw)).collect();
-        self.scratch = vec![0.0; gw * ch * bands(h)];
+        self.tx = self.cols.iter().map(|c| c.1).collect();
+        self.runs.clear();
+        for (x, &(c0, _)) in self.cols.iter().enumerate() {
+            match self.runs.last_mut() {
+                Some(r) if r.2 == c0 => r.1 = x as u32 + 1,
+                _ => self.runs.push((x as u32, x as u32 + 1, c0)),
+            }
+        }
+        self.scratch = vec![0.0; (gw + w) * ch * bands(h)];
         self.key = Some(key);
     }
 }
@@ -198,23 +211,31 @@ fn interp(x: usize, b: usize, n: usize) -> (u32, f32) {
     (i0 as u32, (u - i0 as f64) as f32)
 }
 
-/// Cell sums of the frame, planar per channel. Parallel over cell rows (exact integer sums).
+/// Cell sums of the frame, `[cell row][channel][cell column]`. Parallel over cell rows, one pass
+/// over each row's samples for every channel (exact integer sums).
 fn cell_sums<T: Sample>(data: &[T], stride: usize, w: usize, h: usize, ch: usize, b: usize, sums: &mut [u64]) {
     let (gw, gh) = (w.div_ceil(b), h.div_ceil(b));
-    // `sums` is planar [c][cy][cx]: one chunk per (channel, cell row), disjoint.
-    sums[..gw * gh * ch].par_chunks_mut(gw).enumerate().for_each(|(k, row)| {
-        let (c, cy) = (k / gh, k % gh);
+    sums[..gw * gh * ch].par_chunks_mut(gw * ch).enumerate().for_each(|(cy, row)| {
         row.fill(0);
         let (y0, y1) = (cy * b, ((cy + 1) * b).min(h));
         for y in y0..y1 {
             let line = &data[y * stride..y * stride + w * ch];
-            for (cx, cell) in row.iter_mut().enumerate() {
+            for cx in 0..gw {
                 let (x0, x1) = (cx * b, ((cx + 1) * b).min(w));
-                let mut s = 0u64;
-                for x in x0..x1 {
-                    s += line[x * ch + c].to_u32() as u64;
+                // A cell row's samples fit a u32 sum (b < 65536 px of at most 65535); ch <= 3.
+                if ch == 1 {
+                    row[cx] += line[x0..x1].iter().map(|v| v.to_u32()).sum::<u32>() as u64;
+                } else {
+                    let mut acc = [0u32; 4];
+                    for px in line[x0 * ch..x1 * ch].chunks_exact(ch) {
+                        for (a, v) in acc.iter_mut().zip(px) {
+                            *a += v.to_u32();
+                        }
+                    }
+                    for (c, &a) in acc.iter().take(ch).enumerate() {
+                        row[c * gw + cx] += a as u64;
+                    }
                 }
-                *cell += s;
             }
         }
     });
@@ -225,12 +246,13 @@ fn add_glare<T: Sample>(
     stride: usize,
     (w, h, ch, b, gw): (usize, usize, usize, usize, usize),
     glare: &[f32],
-    cols: &[(u32, f32)],
+    (runs, tx): (&[(u32, u32, u32)], &[f32]),
     scratch: &mut [f32],
 ) {
     let gh = h.div_ceil(b);
     let plane = gw * gh;
-    par_bands_with(data, stride, h, scratch, gw * ch, |_, y0, band, cellrow| {
+    par_bands_with(data, stride, h, scratch, (gw + w) * ch, |_, y0, band, buf| {
+        let (cellrow, grow) = buf.split_at_mut(gw * ch);
         for (i, row) in band_rows(band, stride, w * ch).enumerate() {
             let (r0, ty) = interp(y0 + i, b, gh);
             let r1 = (r0 as usize + 1).min(gh - 1);
@@ -241,17 +263,30 @@ fn add_glare<T: Sample>(
                     *o = p + ty * (q - p);
                 }
             }
-            for (x, &(c0, tx)) in cols.iter().enumerate() {
-                let c1 = (c0 as usize + 1).min(gw - 1);
-                for c in 0..ch {
-                    let cr = &cellrow[c * gw..(c + 1) * gw];
-                    let (p, q) = (cr[c0 as usize], cr[c1]);
-                    let g = p + tx * (q - p);
-                    let s = &mut row[x * ch + c];
-                    // v is whole, so rounding v + g rounds the glare half up (as sample rounding does).
-                    *s = T::from_f32(s.to_f32() + g);
+            // The row's glare, p + tx (q - p) between the two nearest cell centres, run by run
+            // (p and q - p are the same for every column of a run), then added in one pass.
+            for &(x0, x1, c0) in runs {
+                let (x0, x1, c0) = (x0 as usize, x1 as usize, c0 as usize);
+                let c1 = (c0 + 1).min(gw - 1);
+                let pd = |c: usize| (cellrow[c * gw + c0], cellrow[c * gw + c1] - cellrow[c * gw + c0]);
+                if ch == 3 {
+                    let [(p0, d0), (p1, d1), (p2, d2)] = [pd(0), pd(1), pd(2)];
+                    for (g, &t) in grow[x0 * 3..x1 * 3].chunks_exact_mut(3).zip(&tx[x0..x1]) {
+                        g[0] = p0 + t * d0;
+                        g[1] = p1 + t * d1;
+                        g[2] = p2 + t * d2;
+                    }
+                } else {
+                    for c in 0..ch {
+                        let (p, d) = pd(c);
+                        for (x, &t) in (x0..x1).zip(&tx[x0..x1]) {
+                            grow[x * ch + c] = p + t * d;
+                        }
+                    }
                 }
             }
+            // v is whole, so rounding v + g rounds the glare half up (as sample rounding does).
+            add_round_row(row, &grow[..w * ch]);
         }
     });
 }
@@ -275,18 +310,21 @@ impl Effect for VeilingGlare {
         with_image_mut!(frame, img => cell_sums(img.data, stride, w, h, ch, b, &mut self.sums));
         // Cell fluxes as f32 (relative error 6e-8: far below one DN of glare), and which cell
         // rows carry any signal (dark sky rows are skipped in the convolution).
-        for (cell, &s) in self.cells.iter_mut().zip(&self.sums) {
-            *cell = s as f32;
-        }
-        for (k, nz) in self.row_nonzero.iter_mut().enumerate() {
-            *nz = self.sums[k * gw..(k + 1) * gw].iter().any(|&s| s != 0);
+        let plane = gw * gh;
+        for c in 0..ch {
+            for cy in 0..gh {
+                let src = &self.sums[(cy * ch + c) * gw..][..gw];
+                for (cell, &s) in self.cells[c * plane + cy * gw..][..gw].iter_mut().zip(src) {
+                    *cell = s as f32;
+                }
+                self.row_nonzero[c * gh + cy] = src.iter().any(|&s| s != 0);
+            }
         }
         // Glare density at each cell centre: fraction / b² * sum_i S_i K(o - i). Parallel over
         // output cell rows; each output is a fixed-order sum.
         let kw = 2 * gw - 1;
         let scale = (f / (b * b) as f64) as f32;
         let (kern, cells, nz) = (&self.kern, &self.cells, &self.row_nonzero);
-        let plane = gw * gh;
         self.glare.par_chunks_mut(gw).enumerate().for_each(|(k, out)| {
             let (c, oy) = (k / gh, k % gh);
             for (ox, o) in out.iter_mut().enumerate() {
@@ -303,7 +341,8 @@ impl Effect for VeilingGlare {
                 *o = acc * scale;
             }
         });
-        let (glare, cols, scratch) = (&self.glare, &self.cols, &mut self.scratch);
+        let (glare, scratch) = (&self.glare, &mut self.scratch);
+        let cols = (&self.runs[..], &self.tx[..]);
         with_image_mut!(frame, img => add_glare(img.data, stride, (w, h, ch, b, gw), glare, cols, scratch));
         Ok(Outcome::Keep)
     }
