@@ -149,8 +149,6 @@ pub struct VeilingGlare {
     row_nonzero: Vec<bool>,
     /// Glare density per pixel at the cell centres (DN), planar per channel.
     glare: Vec<f32>,
-    /// Per column: left cell and weight of the right cell.
-    cols: Vec<(u32, f32)>,
     /// The columns as runs between cell centres: (first column, end column, left cell), and
     /// each column's weight of the right cell, contiguous.
     runs: Vec<(u32, u32, u32)>,
@@ -190,10 +188,11 @@ impl VeilingGlare {
         self.cells = vec![0.0; gw * gh * ch];
         self.row_nonzero = vec![false; gh * ch];
         self.glare = vec![0.0; gw * gh * ch];
-        self.cols = (0..w).map(|x| interp(x, b, gw)).collect();
-        self.tx = self.cols.iter().map(|c| c.1).collect();
+        self.tx.clear();
         self.runs.clear();
-        for (x, &(c0, _)) in self.cols.iter().enumerate() {
+        for x in 0..w {
+            let (c0, tx) = interp(x, b, gw);
+            self.tx.push(tx);
             match self.runs.last_mut() {
                 Some(r) if r.2 == c0 => r.1 = x as u32 + 1,
                 _ => self.runs.push((x as u32, x as u32 + 1, c0)),
@@ -222,7 +221,7 @@ fn cell_sums<T: Sample>(data: &[T], stride: usize, w: usize, h: usize, ch: usize
             let line = &data[y * stride..y * stride + w * ch];
             for cx in 0..gw {
                 let (x0, x1) = (cx * b, ((cx + 1) * b).min(w));
-                // A cell row's samples fit a u32 sum (b < 65536 px of at most 65535); ch <= 3.
+                // A cell row's samples fit a u32 sum (b < 65536 px of at most 65535); ch <= 4.
                 if ch == 1 {
                     row[cx] += line[x0..x1].iter().map(|v| v.to_u32()).sum::<u32>() as u64;
                 } else {
