@@ -115,6 +115,40 @@ pub fn sym_fir2(out0: &mut [i16], out1: &mut [i16], base: &[i16], rows: &[usize]
     }
 }
 
+/// [`sym_fir`] followed by [`q6_to_u8`] in one pass: `out[i]` = the filter's Q6 sum rounded to
+/// a byte (round half up, clamped to 0..=255), converted in registers instead of through a Q6
+/// row (the same integer operations, so the same bytes as the two calls). Panics if a read
+/// would leave `base`.
+pub fn sym_fir_u8(out: &mut [u8], base: &[i16], center: usize, offs: &[(usize, usize)], q: &[i16]) {
+    let n = out.len();
+    assert!(offs.len() == q.len() && !q.is_empty());
+    assert!(center + n <= base.len(), "fir: centre row inside the buffer");
+    for &(a, b) in &offs[1..] {
+        assert!(a + n <= base.len() && b + n <= base.len(), "fir: taps inside the buffer");
+    }
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    {
+        if super::kit::has_avx512() {
+            // SAFETY: AVX-512 F/BW present (checked); reads are in bounds (asserted above).
+            done = unsafe { simd::fir_u8_avx512(out, base, center, offs, q) };
+        } else if super::kit::has_avx2() {
+            // SAFETY: AVX2 present (checked); reads are in bounds (asserted above).
+            done = unsafe { simd::fir_u8_avx2(out, base, center, offs, q) };
+        }
+    }
+    // The tail (fewer than one chunk) through a Q6 buffer on the stack.
+    let mut acc = [0i16; 128];
+    for (k, o) in out[done..].chunks_mut(128).enumerate() {
+        let skip = done + k * 128;
+        let a = &mut acc[..o.len()];
+        fir_scalar(a, base, center + skip, offs, q, skip);
+        for (o, &a) in o.iter_mut().zip(a.iter()) {
+            *o = ((a.max(0) as i32 + 32) >> SAMPLE_Q).min(255) as u8;
+        }
+    }
+}
+
 /// Scalar reference of [`sym_fir`] (outputs from `skip` on: tap offsets are shifted by it).
 fn fir_scalar(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usize)], q: &[i16], skip: usize) {
     for (i, o) in out.iter_mut().enumerate() {
@@ -313,6 +347,94 @@ mod simd {
                 _mm256_storeu_si256(p1.add(1), a1b);
             }
             i += 32;
+        }
+        n
+    }
+
+    /// [`super::sym_fir_u8`] on whole chunks of 64 outputs: [`fir_avx2`]'s sums, then
+    /// [`q6_to_u8_avx2`]'s conversion in registers. Returns how many outputs were written.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn fir_u8_avx2(out: &mut [u8], base: &[i16], center: usize, offs: &[(usize, usize)], q: &[i16]) -> usize {
+        let n = out.len() / 64 * 64;
+        let bp = base.as_ptr();
+        let half = _mm256_set1_epi16(32);
+        let mut i = 0;
+        while i < n {
+            // SAFETY (block): offsets + i + 64 <= offsets + n <= base.len() (checked by the
+            // caller); out holds n >= i + 64 bytes.
+            unsafe {
+                let ld = |p: usize| _mm256_loadu_si256(bp.add(p) as *const __m256i);
+                let q0 = _mm256_set1_epi16(q[0]);
+                let c = center + i;
+                let mut a0 = _mm256_mulhrs_epi16(ld(c), q0);
+                let mut a1 = _mm256_mulhrs_epi16(ld(c + 16), q0);
+                let mut a2 = _mm256_mulhrs_epi16(ld(c + 32), q0);
+                let mut a3 = _mm256_mulhrs_epi16(ld(c + 48), q0);
+                for k in 1..q.len() {
+                    let qk = _mm256_set1_epi16(q[k]);
+                    let (lo, hi) = (offs[k].0 + i, offs[k].1 + i);
+                    a0 = _mm256_add_epi16(a0, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo), ld(hi)), qk));
+                    a1 = _mm256_add_epi16(a1, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo + 16), ld(hi + 16)), qk));
+                    a2 = _mm256_add_epi16(a2, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo + 32), ld(hi + 32)), qk));
+                    a3 = _mm256_add_epi16(a3, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo + 48), ld(hi + 48)), qk));
+                }
+                let cv = |a: __m256i| _mm256_srai_epi16::<6>(_mm256_adds_epi16(a, half));
+                let p0 = _mm256_permute4x64_epi64::<0xD8>(_mm256_packus_epi16(cv(a0), cv(a1)));
+                let p1 = _mm256_permute4x64_epi64::<0xD8>(_mm256_packus_epi16(cv(a2), cv(a3)));
+                let op = out.as_mut_ptr().add(i) as *mut __m256i;
+                _mm256_storeu_si256(op, p0);
+                _mm256_storeu_si256(op.add(1), p1);
+            }
+            i += 64;
+        }
+        n
+    }
+
+    /// [`super::sym_fir_u8`] on whole chunks of 128 outputs: [`fir_avx512`]'s sums, then the
+    /// byte conversion in registers (`(a + 32) >> 6` with a saturating add, negatives to 0,
+    /// then an unsigned saturating narrow: [`super::q6_to_u8`]'s values). Returns the count.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub unsafe fn fir_u8_avx512(
+        out: &mut [u8],
+        base: &[i16],
+        center: usize,
+        offs: &[(usize, usize)],
+        q: &[i16],
+    ) -> usize {
+        let n = out.len() / 128 * 128;
+        let bp = base.as_ptr();
+        let half = _mm512_set1_epi16(32);
+        let zero = _mm512_setzero_si512();
+        let mut i = 0;
+        while i < n {
+            // SAFETY (block): offsets + i + 128 <= offsets + n <= base.len() (checked by the
+            // caller); out holds n >= i + 128 bytes.
+            unsafe {
+                let ld = |p: usize| _mm512_loadu_si512(bp.add(p) as *const __m512i);
+                let q0 = _mm512_set1_epi16(q[0]);
+                let c = center + i;
+                let mut a0 = _mm512_mulhrs_epi16(ld(c), q0);
+                let mut a1 = _mm512_mulhrs_epi16(ld(c + 32), q0);
+                let mut a2 = _mm512_mulhrs_epi16(ld(c + 64), q0);
+                let mut a3 = _mm512_mulhrs_epi16(ld(c + 96), q0);
+                for k in 1..q.len() {
+                    let qk = _mm512_set1_epi16(q[k]);
+                    let (lo, hi) = (offs[k].0 + i, offs[k].1 + i);
+                    a0 = _mm512_add_epi16(a0, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo), ld(hi)), qk));
+                    a1 = _mm512_add_epi16(a1, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo + 32), ld(hi + 32)), qk));
+                    a2 = _mm512_add_epi16(a2, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo + 64), ld(hi + 64)), qk));
+                    a3 = _mm512_add_epi16(a3, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo + 96), ld(hi + 96)), qk));
+                }
+                let cv = |a: __m512i| {
+                    _mm512_cvtusepi16_epi8(_mm512_max_epi16(_mm512_srai_epi16::<6>(_mm512_adds_epi16(a, half)), zero))
+                };
+                let op = out.as_mut_ptr().add(i) as *mut __m256i;
+                _mm256_storeu_si256(op, cv(a0));
+                _mm256_storeu_si256(op.add(1), cv(a1));
+                _mm256_storeu_si256(op.add(2), cv(a2));
+                _mm256_storeu_si256(op.add(3), cv(a3));
+            }
+            i += 128;
         }
         n
     }

@@ -140,10 +140,10 @@ pub struct MotionBlur {
     // of each point-symmetric pair (dy > 0, or dy = 0 and dx > 0), and their Q15 weights
     pairs: Vec<(i32, i32)>,
     q15: Vec<i16>,
-    // allocation: once per frame size: 8-bit frames: mirrored Q6 copy of the frame, per band a
-    // Q6 output row and the tap offsets
-    padded16: Vec<i16>,
-    acc16: Vec<i16>,
+    // allocation: once per frame size, streak and thread count: 8-bit frames: per band the rows
+    // it reads from the unmodified frame, its ring of 2r + 1 mirrored Q6 rows and its tap offsets
+    halo: Vec<u8>,
+    ring16: Vec<i16>,
     offs: Vec<(usize, usize)>,
     // allocation: once per frame size: mirrored f32 copy of the frame with a border of `radius`
     padded: Vec<f32>,
@@ -207,35 +207,106 @@ fn pair_up(taps: &[(i32, i32, f32)]) -> (Vec<(i32, i32)>, Vec<f64>) {
     (pairs, half)
 }
 
-fn build_padded_q6(src: &[u8], stride: usize, w: usize, h: usize, ch: usize, r: usize, padded: &mut [i16]) {
-    let pw = (w + 2 * r) * ch;
-    padded.par_chunks_mut(pw).enumerate().for_each(|(py, prow)| {
-        let sy = mirror(py as isize - r as isize, h);
-        super::defocus::pad_row_q6(&src[sy * stride..sy * stride + w * ch], w, ch, r, prow);
-    });
+/// Whether virtual row `yv` (mirrored at the frame's edges) of band `[y0, y1)` is read from the
+/// band's copy of the unmodified frame (a row outside the band, or a mirrored one) rather than
+/// from the band itself (overwritten row by row as the band's output goes out).
+fn from_halo(yv: isize, y0: usize, y1: usize, h: usize) -> bool {
+    let s = mirror(yv, h);
+    !(s as isize == yv && (y0..y1).contains(&s))
 }
 
-/// 8-bit convolution: output row y is the FIR over the padded rows starting at row y, with the
-/// same tap offsets `offs` (relative to that row) for every row.
+/// 8-bit convolution in place: output row y is the FIR (`fir16::sym_fir_u8`) over the mirrored
+/// Q6 rows y - r ..= y + r, held in a ring of `2r + 1` rows per band (in cache) instead of a Q6
+/// copy of the whole frame, and rounded to bytes in registers. The rows a band needs but does not
+/// own (or reads mirrored) are copied from the unmodified frame first. Every output is the same
+/// FIR over the same samples, so the bytes do not depend on the band split (one band per
+/// thread). `halo` and `ring` are scratch (they only grow).
+#[allow(clippy::too_many_arguments)]
 fn convolve_q6(
-    dst: &mut [u8],
+    d: &mut [u8],
     stride: usize,
+    w: usize,
     h: usize,
-    rl: usize,
-    pw: usize,
-    center: usize,
-    offs: &[(usize, usize)],
+    ch: usize,
+    r: usize,
+    pairs: &[(i32, i32)],
     q: &[i16],
-    padded: &[i16],
-    acc: &mut [i16],
+    halo: &mut Vec<u8>,
+    ring: &mut Vec<i16>,
+    offs: &mut Vec<(usize, usize)>,
 ) {
-    par_bands_with(dst, stride, h, acc, rl, |_, y0, band, acc| {
-        for (i, orow) in band_rows(band, stride, rl).enumerate() {
-            let y = y0 + i;
-            fir16::sym_fir(acc, &padded[y * pw..], center, offs, q);
-            fir16::q6_to_u8(orow, acc);
-        }
-    });
+    let rl = w * ch;
+    let pw = (w + 2 * r) * ch;
+    let n = 2 * r + 1;
+    let threads = rayon::current_num_threads().max(1);
+    let per = h.div_ceil(threads).max(16);
+    let nb = h.div_ceil(per);
+    let (per_halo, per_ring) = (2 * r * rl, n * pw);
+    if halo.len() < per_halo * nb {
+        halo.resize(per_halo * nb, 0);
+    }
+    if ring.len() < per_ring * nb {
+        ring.resize(per_ring * nb, 0);
+    }
+    if offs.len() < pairs.len() * nb {
+        offs.resize(pairs.len() * nb, (0, 0));
+    }
+    let bounds = |b: usize| (b * per, ((b + 1) * per).min(h));
+    // Pass 1: the rows each band reads from the unmodified frame (at most r above and r below).
+    {
+        let src: &[u8] = d;
+        halo[..per_halo * nb].par_chunks_mut(per_halo.max(1)).enumerate().for_each(|(b, hb)| {
+            let (y0, y1) = bounds(b);
+            let mut j = 0;
+            for yv in y0 as isize - r as isize..(y1 + r) as isize {
+                if from_halo(yv, y0, y1, h) {
+                    let s = mirror(yv, h);
+                    hb[j * rl..(j + 1) * rl].copy_from_slice(&src[s * stride..s * stride + rl]);
+                    j += 1;
+                }
+            }
+        });
+    }
+    // Pass 2: the bands, each walking down its rows with its ring.
+    let used = d.len().min(stride * h);
+    d[..used]
+        .par_chunks_mut(stride * per)
+        .zip(halo[..per_halo * nb].par_chunks(per_halo.max(1)))
+        .zip(ring[..per_ring * nb].par_chunks_mut(per_ring))
+        .zip(offs[..pairs.len() * nb].par_chunks_mut(pairs.len()))
+        .enumerate()
+        .for_each(|(b, (((band, hb), ring), offs))| {
+            let (y0, y1) = bounds(b);
+            let first = y0 as isize - r as isize;
+            let slot = |yv: isize| (yv - first) as usize % n;
+            let mut j = 0;
+            // Mirrored Q6 copy of virtual row yv into its ring slot.
+            let mut produce = |yv: isize, band: &[u8], ring: &mut [i16]| {
+                let src = if from_halo(yv, y0, y1, h) {
+                    j += 1;
+                    &hb[(j - 1) * rl..j * rl]
+                } else {
+                    let i = yv as usize - y0;
+                    &band[i * stride..i * stride + rl]
+                };
+                let k = slot(yv);
+                super::defocus::pad_row_q6(src, w, ch, r, &mut ring[k * pw..(k + 1) * pw]);
+            };
+            for yv in first..y0 as isize + r as isize {
+                produce(yv, band, ring);
+            }
+            for y in y0..y1 {
+                let yi = y as isize;
+                produce(yi + r as isize, band, ring);
+                // Tap (dx, dy) of output row y: ring row y + dy, pixel x + dx (+ r of padding).
+                let at = |dx: i32, dy: i32| slot(yi + dy as isize) * pw + (r as isize + dx as isize) as usize * ch;
+                for (o, &(dx, dy)) in offs.iter_mut().zip(pairs) {
+                    *o = (at(-dx, -dy), at(dx, dy));
+                }
+                let i = y - y0;
+                fir16::sym_fir_u8(&mut band[i * stride..i * stride + rl], ring, at(0, 0), offs, q);
+            }
+        });
 }
 
 impl Effect for MotionBlur {
@@ -271,17 +342,19 @@ impl Effect for MotionBlur {
                 streak::blur_u8(d, stride, w, h, ch, plan, &mut self.streak_scratch);
             }
             FrameData::U8(d) => {
-                let pw = (w + 2 * r) * ch;
-                self.padded16.resize(pw * (h + 2 * r), 0);
-                self.acc16.resize(w * ch * bands(h), 0);
-                // Offsets relative to the padded row of the output row (no mirroring needed inside).
-                let at = |dx: i32, dy: i32| {
-                    (r as isize + dy as isize) as usize * pw + (r as isize + dx as isize) as usize * ch
-                };
-                self.offs.clear();
-                self.offs.extend(self.pairs.iter().map(|&(dx, dy)| (at(-dx, -dy), at(dx, dy))));
-                build_padded_q6(d, stride, w, h, ch, r, &mut self.padded16);
-                convolve_q6(d, stride, h, w * ch, pw, at(0, 0), &self.offs, &self.q15, &self.padded16, &mut self.acc16);
+                convolve_q6(
+                    d,
+                    stride,
+                    w,
+                    h,
+                    ch,
+                    r,
+                    &self.pairs,
+                    &self.q15,
+                    &mut self.halo,
+                    &mut self.ring16,
+                    &mut self.offs,
+                );
             }
             FrameData::U16(d) => {
                 self.padded.resize((w + 2 * r) * ch * (h + 2 * r), 0.0);
