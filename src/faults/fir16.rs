@@ -149,6 +149,112 @@ pub fn sym_fir_u8(out: &mut [u8], base: &[i16], center: usize, offs: &[(usize, u
     }
 }
 
+/// One column of point-symmetric tap pairs for [`sym_fir_cols_u8`]: the taps at `(dx, dy)` and
+/// `(-dx, -dy)` for `dy` in `dy0..=dy1`, `dx >= 0` (for `dx = 0`, `dy0 >= 1`), with the Q15
+/// weights `wq[w0..=w0 + dy1 - dy0]` (0 for a gap: `mulhrs(_, 0) = 0`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TapCol {
+    /// `dx` (pixels, `>= 0`).
+    pub dx: usize,
+    pub dy0: i32,
+    pub dy1: i32,
+    pub w0: usize,
+}
+
+impl TapCol {
+    /// Pairs in the column.
+    pub fn len(&self) -> usize {
+        (self.dy1 - self.dy0) as usize + 1
+    }
+
+    /// Whether the column has no pairs (never: `dy0 <= dy1`).
+    pub fn is_empty(&self) -> bool {
+        self.dy1 < self.dy0
+    }
+}
+
+/// Output rows processed together by [`sym_fir_cols_u8`].
+pub const COL_ROWS: usize = 4;
+
+/// Source vectors [`sym_fir_cols_u8`] loads for a column of `k` pairs, per side.
+pub fn col_loads(k: usize) -> usize {
+    k + COL_ROWS - 1
+}
+
+/// A 2D point-symmetric FIR ([`sym_fir`]'s sums: the centre `mulhrs(x, q0)` plus, per tap pair,
+/// `mulhrs(x_lo + x_hi, w)`, wrapping 16-bit adds, rounded to bytes as [`q6_to_u8`]) for
+/// [`COL_ROWS`] consecutive output rows `y + j` at once, the tap pairs grouped by columns
+/// ([`TapCol`]): within a column the source rows of `dy` and `dy + 1` serve neighbouring output
+/// rows, so each source vector is loaded once for all of them and held in registers (a column
+/// of `k` pairs costs `2 (k + COL_ROWS - 1)` loads instead of `2 k COL_ROWS`). `centre[j]` is the
+/// offset in `base` of output row `j`'s centre sample 0; per column, in order, `offs` holds
+/// [`col_loads`]`(k)` offsets `lo[m]` (of sample 0 of source row `y + COL_ROWS - 1 - dy0 - m`,
+/// shifted by `-dx` pixels) and as many `hi[m]` (row `y + dy0 + m`, shifted by `+dx`): pair
+/// `dy0 + s` of output row `j` is `lo[COL_ROWS - 1 - j + s] + hi[j + s]`. The same integer values
+/// as [`sym_fir`] and [`q6_to_u8`] per row (every pair's sum and product is the same; the sums
+/// of the products are wrapping, so their order does not matter). Panics if a read would leave
+/// `base`.
+pub fn sym_fir_cols_u8(
+    outs: [&mut [u8]; COL_ROWS],
+    base: &[i16],
+    centre: [usize; COL_ROWS],
+    cols: &[TapCol],
+    offs: &[usize],
+    q0: i16,
+    wq: &[i16],
+) {
+    let n = outs[0].len();
+    assert!(outs.iter().all(|o| o.len() == n));
+    assert!(centre.iter().chain(offs).all(|&o| o + n <= base.len()), "fir: rows inside the buffer");
+    assert_eq!(offs.len(), cols.iter().map(|c| 2 * col_loads(c.len())).sum::<usize>());
+    assert!(cols.iter().all(|c| c.dy0 <= c.dy1 && c.w0 + c.len() <= wq.len()));
+    let [o0, o1, o2, o3] = outs;
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    {
+        if super::kit::has_avx512() {
+            // SAFETY: AVX-512 F/BW present (checked); reads are in bounds (asserted above).
+            done = unsafe { simd::fir_cols_avx512([&mut *o0, &mut *o1, &mut *o2, &mut *o3], base, centre, cols, offs, q0, wq) };
+        } else if super::kit::has_avx2() {
+            // SAFETY: AVX2 present (checked); reads are in bounds (asserted above).
+            done = unsafe { simd::fir_cols_avx2([&mut *o0, &mut *o1, &mut *o2, &mut *o3], base, centre, cols, offs, q0, wq) };
+        }
+    }
+    let outs = [&mut o0[done..], &mut o1[done..], &mut o2[done..], &mut o3[done..]];
+    fir_cols_scalar(outs, base, centre, cols, offs, q0, wq, done);
+}
+
+/// Scalar reference of [`sym_fir_cols_u8`] (outputs from `skip` on).
+#[allow(clippy::too_many_arguments)]
+fn fir_cols_scalar(
+    outs: [&mut [u8]; COL_ROWS],
+    base: &[i16],
+    centre: [usize; COL_ROWS],
+    cols: &[TapCol],
+    offs: &[usize],
+    q0: i16,
+    wq: &[i16],
+    skip: usize,
+) {
+    for (j, out) in outs.into_iter().enumerate() {
+        for (i, o) in out.iter_mut().enumerate() {
+            let x = skip + i;
+            let mut acc = mulhrs(base[centre[j] + x], q0);
+            let mut p = 0;
+            for c in cols {
+                let m = col_loads(c.len());
+                let (lo, hi) = (&offs[p..p + m], &offs[p + m..p + 2 * m]);
+                for s in 0..c.len() {
+                    let v = base[lo[COL_ROWS - 1 - j + s] + x].wrapping_add(base[hi[j + s] + x]);
+                    acc = acc.wrapping_add(mulhrs(v, wq[c.w0 + s]));
+                }
+                p += 2 * m;
+            }
+            *o = ((acc.max(0) as i32 + 32) >> SAMPLE_Q).min(255) as u8;
+        }
+    }
+}
+
 /// Scalar reference of [`sym_fir`] (outputs from `skip` on: tap offsets are shifted by it).
 fn fir_scalar(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usize)], q: &[i16], skip: usize) {
     for (i, o) in out.iter_mut().enumerate() {
@@ -435,6 +541,128 @@ mod simd {
                 _mm256_storeu_si256(op.add(3), cv(a3));
             }
             i += 128;
+        }
+        n
+    }
+
+    /// [`super::sym_fir_cols_u8`] on whole chunks of 16 outputs per row (one register per output
+    /// row; a column's source vectors rotate through registers); returns the count.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn fir_cols_avx2(
+        mut outs: [&mut [u8]; super::COL_ROWS],
+        base: &[i16],
+        centre: [usize; super::COL_ROWS],
+        cols: &[super::TapCol],
+        offs: &[usize],
+        q0: i16,
+        wq: &[i16],
+    ) -> usize {
+        let n = outs[0].len() / 16 * 16;
+        let bp = base.as_ptr();
+        let q0v = _mm256_set1_epi16(q0);
+        let half = _mm256_set1_epi16(32);
+        let mut i = 0;
+        while i < n {
+            // SAFETY (block): every offset in `centre` and `offs` plus i + 16 is at most
+            // base.len() and every weight index is inside `wq` (asserted by the caller); each
+            // output holds n >= i + 16 bytes.
+            unsafe {
+                let ld = |p: usize| _mm256_loadu_si256(bp.add(p + i) as *const __m256i);
+                let mut a0 = _mm256_mulhrs_epi16(ld(centre[0]), q0v);
+                let mut a1 = _mm256_mulhrs_epi16(ld(centre[1]), q0v);
+                let mut a2 = _mm256_mulhrs_epi16(ld(centre[2]), q0v);
+                let mut a3 = _mm256_mulhrs_epi16(ld(centre[3]), q0v);
+                let mut p = offs.as_ptr();
+                for c in cols {
+                    let k = c.len();
+                    let m = super::col_loads(k);
+                    let (lo, hi) = (p, p.add(m));
+                    let (mut l3, mut l2, mut l1, mut l0) = (ld(*lo), ld(*lo.add(1)), ld(*lo.add(2)), ld(*lo.add(3)));
+                    let (mut h0, mut h1, mut h2, mut h3) = (ld(*hi), ld(*hi.add(1)), ld(*hi.add(2)), ld(*hi.add(3)));
+                    let w = wq.as_ptr().add(c.w0);
+                    let mut s = 0;
+                    loop {
+                        let wv = _mm256_set1_epi16(*w.add(s));
+                        a0 = _mm256_add_epi16(a0, _mm256_mulhrs_epi16(_mm256_add_epi16(l0, h0), wv));
+                        a1 = _mm256_add_epi16(a1, _mm256_mulhrs_epi16(_mm256_add_epi16(l1, h1), wv));
+                        a2 = _mm256_add_epi16(a2, _mm256_mulhrs_epi16(_mm256_add_epi16(l2, h2), wv));
+                        a3 = _mm256_add_epi16(a3, _mm256_mulhrs_epi16(_mm256_add_epi16(l3, h3), wv));
+                        s += 1;
+                        if s == k {
+                            break;
+                        }
+                        (l3, l2, l1, l0) = (l2, l1, l0, ld(*lo.add(3 + s)));
+                        (h0, h1, h2, h3) = (h1, h2, h3, ld(*hi.add(3 + s)));
+                    }
+                    p = p.add(2 * m);
+                }
+                for (o, a) in outs.iter_mut().zip([a0, a1, a2, a3]) {
+                    let v = _mm256_srai_epi16::<6>(_mm256_adds_epi16(a, half));
+                    let v = _mm256_permute4x64_epi64::<0xD8>(_mm256_packus_epi16(v, v));
+                    _mm_storeu_si128(o.as_mut_ptr().add(i) as *mut __m128i, _mm256_castsi256_si128(v));
+                }
+            }
+            i += 16;
+        }
+        n
+    }
+
+    /// [`fir_cols_avx2`] with 32 outputs per register.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub unsafe fn fir_cols_avx512(
+        mut outs: [&mut [u8]; super::COL_ROWS],
+        base: &[i16],
+        centre: [usize; super::COL_ROWS],
+        cols: &[super::TapCol],
+        offs: &[usize],
+        q0: i16,
+        wq: &[i16],
+    ) -> usize {
+        let n = outs[0].len() / 32 * 32;
+        let bp = base.as_ptr();
+        let q0v = _mm512_set1_epi16(q0);
+        let (half, zero) = (_mm512_set1_epi16(32), _mm512_setzero_si512());
+        let mut i = 0;
+        while i < n {
+            // SAFETY (block): every offset in `centre` and `offs` plus i + 32 is at most
+            // base.len() and every weight index is inside `wq` (asserted by the caller); each
+            // output holds n >= i + 32 bytes.
+            unsafe {
+                let ld = |p: usize| _mm512_loadu_si512(bp.add(p + i) as *const __m512i);
+                let mut a0 = _mm512_mulhrs_epi16(ld(centre[0]), q0v);
+                let mut a1 = _mm512_mulhrs_epi16(ld(centre[1]), q0v);
+                let mut a2 = _mm512_mulhrs_epi16(ld(centre[2]), q0v);
+                let mut a3 = _mm512_mulhrs_epi16(ld(centre[3]), q0v);
+                let mut p = offs.as_ptr();
+                for c in cols {
+                    let k = c.len();
+                    let m = super::col_loads(k);
+                    let (lo, hi) = (p, p.add(m));
+                    let (mut l3, mut l2, mut l1, mut l0) = (ld(*lo), ld(*lo.add(1)), ld(*lo.add(2)), ld(*lo.add(3)));
+                    let (mut h0, mut h1, mut h2, mut h3) = (ld(*hi), ld(*hi.add(1)), ld(*hi.add(2)), ld(*hi.add(3)));
+                    let w = wq.as_ptr().add(c.w0);
+                    let mut s = 0;
+                    loop {
+                        let wv = _mm512_set1_epi16(*w.add(s));
+                        a0 = _mm512_add_epi16(a0, _mm512_mulhrs_epi16(_mm512_add_epi16(l0, h0), wv));
+                        a1 = _mm512_add_epi16(a1, _mm512_mulhrs_epi16(_mm512_add_epi16(l1, h1), wv));
+                        a2 = _mm512_add_epi16(a2, _mm512_mulhrs_epi16(_mm512_add_epi16(l2, h2), wv));
+                        a3 = _mm512_add_epi16(a3, _mm512_mulhrs_epi16(_mm512_add_epi16(l3, h3), wv));
+                        s += 1;
+                        if s == k {
+                            break;
+                        }
+                        (l3, l2, l1, l0) = (l2, l1, l0, ld(*lo.add(3 + s)));
+                        (h0, h1, h2, h3) = (h1, h2, h3, ld(*hi.add(3 + s)));
+                    }
+                    p = p.add(2 * m);
+                }
+                for (o, a) in outs.iter_mut().zip([a0, a1, a2, a3]) {
+                    let v = _mm512_max_epi16(_mm512_srai_epi16::<6>(_mm512_adds_epi16(a, half)), zero);
+                    _mm256_storeu_si256(o.as_mut_ptr().add(i) as *mut __m256i, _mm512_cvtusepi16_epi8(v));
+                }
+            }
+            i += 32;
         }
         n
     }

@@ -140,11 +140,16 @@ pub struct MotionBlur {
     // of each point-symmetric pair (dy > 0, or dy = 0 and dx > 0), and their Q15 weights
     pairs: Vec<(i32, i32)>,
     q15: Vec<i16>,
+    // the same pairs grouped by columns for `fir16::sym_fir_cols_u8`, and their weights
+    cols: Vec<fir16::TapCol>,
+    wq: Vec<i16>,
     // allocation: once per frame size, streak and thread count: 8-bit frames: per band the rows
-    // it reads from the unmodified frame, its ring of 2r + 1 mirrored Q6 rows and its tap offsets
+    // it reads from the unmodified frame, its ring of 2r + 4 mirrored Q6 rows and its tap offsets (per pair, and per
+    // column of pairs)
     halo: Vec<u8>,
     ring16: Vec<i16>,
     offs: Vec<(usize, usize)>,
+    coffs: Vec<usize>,
     // allocation: once per frame size: mirrored f32 copy of the frame with a border of `radius`
     padded: Vec<f32>,
     // allocation: once per frame size: one accumulator row per band
@@ -207,6 +212,29 @@ fn pair_up(taps: &[(i32, i32, f32)]) -> (Vec<(i32, i32)>, Vec<f64>) {
     (pairs, half)
 }
 
+/// The tap pairs (`pairs[k]`, weight `q[k]`, `k >= 1`; `pairs[0]` is the centre) grouped into
+/// columns for `fir16::sym_fir_cols_u8`: each pair as `(dx, dy)` with `dx >
+/// 0`, or `dx = 0` and `dy > 0`; per `dx` the range of `dy` with the weights (0 in gaps).
+fn tap_cols(pairs: &[(i32, i32)], q: &[i16]) -> (Vec<fir16::TapCol>, Vec<i16>) {
+    let norm: Vec<(i32, i32, i16)> = pairs[1..]
+        .iter()
+        .zip(&q[1..])
+        .map(|(&(dx, dy), &w)| if dx < 0 || (dx == 0 && dy < 0) { (-dx, -dy, w) } else { (dx, dy, w) })
+        .collect();
+    let mut dxs: Vec<i32> = norm.iter().map(|t| t.0).collect();
+    dxs.sort_unstable();
+    dxs.dedup();
+    let (mut cols, mut wq) = (Vec::new(), Vec::new());
+    for dx in dxs {
+        let dys = norm.iter().filter(|t| t.0 == dx).map(|t| t.1);
+        let (dy0, dy1) = (dys.clone().min().unwrap_or(0), dys.max().unwrap_or(0));
+        let w0 = wq.len();
+        wq.extend((dy0..=dy1).map(|dy| norm.iter().find(|t| t.0 == dx && t.1 == dy).map_or(0, |t| t.2)));
+        cols.push(fir16::TapCol { dx: dx as usize, dy0, dy1, w0 });
+    }
+    (cols, wq)
+}
+
 /// Whether virtual row `yv` (mirrored at the frame's edges) of band `[y0, y1)` is read from the
 /// band's copy of the unmodified frame (a row outside the band, or a mirrored one) rather than
 /// from the band itself (overwritten row by row as the band's output goes out).
@@ -231,13 +259,17 @@ fn convolve_q6(
     r: usize,
     pairs: &[(i32, i32)],
     q: &[i16],
+    cols: &[fir16::TapCol],
+    wq: &[i16],
     halo: &mut Vec<u8>,
     ring: &mut Vec<i16>,
     offs: &mut Vec<(usize, usize)>,
+    coffs: &mut Vec<usize>,
 ) {
     let rl = w * ch;
     let pw = (w + 2 * r) * ch;
-    let n = 2 * r + 1;
+    const R: usize = fir16::COL_ROWS;
+    let n = 2 * r + R;
     let threads = rayon::current_num_threads().max(1);
     let per = h.div_ceil(threads).max(16);
     let nb = h.div_ceil(per);
@@ -250,6 +282,10 @@ fn convolve_q6(
     }
     if offs.len() < pairs.len() * nb {
         offs.resize(pairs.len() * nb, (0, 0));
+    }
+    let nco = cols.iter().map(|c| 2 * fir16::col_loads(c.len())).sum::<usize>().max(1);
+    if coffs.len() < nco * nb {
+        coffs.resize(nco * nb, 0);
     }
     let bounds = |b: usize| (b * per, ((b + 1) * per).min(h));
     // Pass 1: the rows each band reads from the unmodified frame (at most r above and r below).
@@ -274,8 +310,9 @@ fn convolve_q6(
         .zip(halo[..per_halo * nb].par_chunks(per_halo.max(1)))
         .zip(ring[..per_ring * nb].par_chunks_mut(per_ring))
         .zip(offs[..pairs.len() * nb].par_chunks_mut(pairs.len()))
+        .zip(coffs[..nco * nb].par_chunks_mut(nco))
         .enumerate()
-        .for_each(|(b, (((band, hb), ring), offs))| {
+        .for_each(|(b, ((((band, hb), ring), offs), coffs))| {
             let (y0, y1) = bounds(b);
             let first = y0 as isize - r as isize;
             let slot = |yv: isize| (yv - first) as usize % n;
@@ -295,7 +332,32 @@ fn convolve_q6(
             for yv in first..y0 as isize + r as isize {
                 produce(yv, band, ring);
             }
-            for y in y0..y1 {
+            let mut y = y0;
+            // COL_ROWS output rows at a time, their source rows loaded once per column of taps.
+            while y + R <= y1 {
+                let yi = y as isize;
+                for t in 0..R {
+                    produce(yi + (r + t) as isize, band, ring);
+                }
+                // Sample 0 of virtual row yv, shifted by dx pixels.
+                let at = |yv: isize, dx: isize| slot(yv) * pw + (r as isize + dx) as usize * ch;
+                let mut p = 0;
+                for c in cols {
+                    let (m, dx) = (fir16::col_loads(c.len()), c.dx as isize);
+                    for t in 0..m as isize {
+                        coffs[p + t as usize] = at(yi + (R - 1) as isize - c.dy0 as isize - t, -dx);
+                        coffs[p + m + t as usize] = at(yi + c.dy0 as isize + t, dx);
+                    }
+                    p += 2 * m;
+                }
+                let centre: [usize; R] = std::array::from_fn(|j| at(yi + j as isize, 0));
+                let i = y - y0;
+                let mut it = band[i * stride..].chunks_mut(stride).map(|row| &mut row[..rl]);
+                let outs: [&mut [u8]; R] = std::array::from_fn(|_| it.next().expect("R rows in the band"));
+                fir16::sym_fir_cols_u8(outs, ring, centre, cols, &coffs[..p], q[0], wq);
+                y += R;
+            }
+            for y in y..y1 {
                 let yi = y as isize;
                 produce(yi + r as isize, band, ring);
                 // Tap (dx, dy) of output row y: ring row y + dy, pixel x + dx (+ r of padding).
@@ -329,6 +391,7 @@ impl Effect for MotionBlur {
             let (pairs, half) = pair_up(&self.taps);
             self.q15 = fir16::q15_pairs(&half);
             self.pairs = pairs;
+            (self.cols, self.wq) = tap_cols(&self.pairs, &self.q15);
             self.streak = runs_streak_with(len, ang, &self.taps).then(|| streak::StreakPlan::new(len, ang));
             self.key = Some((len.to_bits(), ang.to_bits()));
         }
@@ -351,9 +414,12 @@ impl Effect for MotionBlur {
                     r,
                     &self.pairs,
                     &self.q15,
+                    &self.cols,
+                    &self.wq,
                     &mut self.halo,
                     &mut self.ring16,
                     &mut self.offs,
+                    &mut self.coffs,
                 );
             }
             FrameData::U16(d) => {
