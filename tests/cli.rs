@@ -521,6 +521,11 @@ fn blur_kernels_give_the_same_bytes_on_every_path() {
         &["--effect", "motion_blur", "--set", "motion_blur.length_px=90", "--set", "motion_blur.angle_deg=0"],
         &["--effect", "motion_blur", "--set", "motion_blur.length_px=30", "--set", "motion_blur.angle_deg=170"],
         &["--effect", "motion_blur", "--set", "motion_blur.length_px=24.5", "--set", "motion_blur.angle_deg=90"],
+        // The 8-bit FIR: the column kernel (oblique and vertical streaks), the row kernel (0 deg).
+        &["--effect", "motion_blur", "--set", "motion_blur.length_px=10", "--set", "motion_blur.angle_deg=30"],
+        &["--effect", "motion_blur", "--set", "motion_blur.length_px=24", "--set", "motion_blur.angle_deg=100"],
+        &["--effect", "motion_blur", "--set", "motion_blur.length_px=23", "--set", "motion_blur.angle_deg=145"],
+        &["--effect", "motion_blur", "--set", "motion_blur.length_px=12", "--set", "motion_blur.angle_deg=0"],
     ];
     for case in cases {
         let run = |env: Option<&str>| -> Vec<String> {

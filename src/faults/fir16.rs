@@ -756,6 +756,56 @@ mod tests {
                 }
             }
         }
+        // The column kernel: the same bytes as sym_fir + q6_to_u8 row by row, over columns with
+        // negative and positive dy, a gap (weight 0), dx = 0, at lengths around the chunk sizes.
+        let (pw, ch) = (700usize, 3usize);
+        let cols = [
+            TapCol { dx: 0, dy0: 1, dy1: 3, w0: 0 },
+            TapCol { dx: 1, dy0: -2, dy1: 1, w0: 3 },
+            TapCol { dx: 4, dy0: 2, dy1: 2, w0: 7 },
+        ];
+        let wq: [i16; 8] = [2100, 1300, 700, 900, 0, 2500, 1200, 400];
+        let q0 = 32768 - 2 * wq.iter().map(|&v| v as i32).sum::<i32>();
+        let base: Vec<i16> = (0..pw * 12).map(|_| rng.below(16321) as i16).collect();
+        // (dx, dy) pairs and their weights for sym_fir.
+        let mut pairs = vec![((0isize, 0isize), q0 as i16)];
+        for c in &cols {
+            for (s, dy) in (c.dy0..=c.dy1).enumerate() {
+                pairs.push(((c.dx as isize, dy as isize), wq[c.w0 + s]));
+            }
+        }
+        for n in [0usize, 1, 15, 16, 17, 31, 32, 33, 100, 600] {
+            let c0 = 4 * pw + 4 * ch;
+            let mut rows: Vec<Vec<u8>> = vec![vec![0u8; n]; COL_ROWS];
+            let [a, b, c, d] = &mut rows[..] else { unreachable!() };
+            // Sample 0 of row y + t (t from -4), shifted by dx pixels; per column lo[m] (row
+            // COL_ROWS - 1 - dy0 - m, -dx) and hi[m] (row dy0 + m, +dx).
+            let at = |t: isize, dx: isize| (c0 as isize + t * pw as isize + dx * ch as isize) as usize;
+            let mut offs = Vec::new();
+            for c in &cols {
+                let m = col_loads(c.len()) as isize;
+                let dy0 = c.dy0 as isize;
+                offs.extend((0..m).map(|t| at(COL_ROWS as isize - 1 - dy0 - t, -(c.dx as isize))));
+                offs.extend((0..m).map(|t| at(dy0 + t, c.dx as isize)));
+            }
+            let centre: [usize; COL_ROWS] = std::array::from_fn(|j| at(j as isize, 0));
+            sym_fir_cols_u8([&mut a[..], &mut b[..], &mut c[..], &mut d[..]], &base, centre, &cols, &offs, q0 as i16, &wq);
+            for (j, got) in rows.iter().enumerate() {
+                let cj = c0 + j * pw;
+                let at = |dx: isize, dy: isize| (cj as isize + dy * pw as isize + dx * ch as isize) as usize;
+                let offs: Vec<(usize, usize)> =
+                    pairs.iter().map(|&((dx, dy), _)| (at(-dx, -dy), at(dx, dy))).collect();
+                let q: Vec<i16> = pairs.iter().map(|p| p.1).collect();
+                let mut acc = vec![0i16; n];
+                sym_fir(&mut acc, &base, cj, &offs, &q);
+                let mut want = vec![0u8; n];
+                q6_to_u8(&mut want, &acc);
+                assert_eq!(*got, want, "column kernel, n {n}, row {j}");
+                let mut fused = vec![0u8; n];
+                sym_fir_u8(&mut fused, &base, cj, &offs, &q);
+                assert_eq!(fused, want, "sym_fir_u8, n {n}, row {j}");
+            }
+        }
         // The conversions: every i16 and every byte, at lengths around the chunk sizes.
         let all: Vec<i16> = (i16::MIN..=i16::MAX).collect();
         let mut fast = vec![0u8; all.len()];

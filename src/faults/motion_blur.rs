@@ -235,6 +235,17 @@ fn tap_cols(pairs: &[(i32, i32)], q: &[i16]) -> (Vec<fir16::TapCol>, Vec<i16>) {
     (cols, wq)
 }
 
+/// Whether the column kernel (`fir16::sym_fir_cols_u8`) runs an 8-bit FIR: when it loads at
+/// most 3/4 of the source vectors the row kernel (`fir16::sym_fir_u8`, two loads per pair and
+/// row, four independent sums per row) does for `COL_ROWS` rows. Streaks near the horizontal have
+/// one pair per column (no sharing between rows) and keep the row kernel.
+fn cols_pay(npairs: usize, cols: &[fir16::TapCol]) -> bool {
+    let rows = fir16::COL_ROWS;
+    let by_cols = rows + cols.iter().map(|c| 2 * fir16::col_loads(c.len())).sum::<usize>();
+    let by_rows = rows * (2 * npairs.saturating_sub(1) + 1);
+    4 * by_cols <= 3 * by_rows
+}
+
 /// Whether virtual row `yv` (mirrored at the frame's edges) of band `[y0, y1)` is read from the
 /// band's copy of the unmodified frame (a row outside the band, or a mirrored one) rather than
 /// from the band itself (overwritten row by row as the band's output goes out).
@@ -288,6 +299,7 @@ fn convolve_q6(
         coffs.resize(nco * nb, 0);
     }
     let bounds = |b: usize| (b * per, ((b + 1) * per).min(h));
+    let use_cols = cols_pay(pairs.len(), cols);
     // Pass 1: the rows each band reads from the unmodified frame (at most r above and r below).
     {
         let src: &[u8] = d;
@@ -334,7 +346,7 @@ fn convolve_q6(
             }
             let mut y = y0;
             // COL_ROWS output rows at a time, their source rows loaded once per column of taps.
-            while y + R <= y1 {
+            while use_cols && y + R <= y1 {
                 let yi = y as isize;
                 for t in 0..R {
                     produce(yi + (r + t) as isize, band, ring);
@@ -537,6 +549,57 @@ mod tests {
                 }
             }
             assert!(worst < 1.0, "length {len} angle {ang}: max |error| {worst} DN");
+        }
+    }
+
+    /// The 8-bit FIR as it ran before the ring and the column kernel: a mirrored Q6 copy of the
+    /// whole frame, `fir16::sym_fir` per row, `fir16::q6_to_u8`.
+    fn fir_reference(f: &Frame, len: f64, ang: f64) -> Frame {
+        let (w, h, ch) = (f.width as usize, f.height as usize, f.channels());
+        let taps = line_taps(len, ang);
+        let r = taps.iter().map(|t| t.0.unsigned_abs().max(t.1.unsigned_abs())).max().unwrap() as usize;
+        let (pairs, half) = pair_up(&taps);
+        let q = fir16::q15_pairs(&half);
+        let pw = (w + 2 * r) * ch;
+        let mut padded = vec![0i16; pw * (h + 2 * r)];
+        let FrameData::U8(src) = &f.data else { unreachable!() };
+        for (py, prow) in padded.chunks_mut(pw).enumerate() {
+            let sy = mirror(py as isize - r as isize, h);
+            crate::faults::defocus::pad_row_q6(&src[sy * f.stride..sy * f.stride + w * ch], w, ch, r, prow);
+        }
+        let at = |dx: i32, dy: i32| (r as isize + dy as isize) as usize * pw + (r as isize + dx as isize) as usize * ch;
+        let offs: Vec<(usize, usize)> = pairs.iter().map(|&(dx, dy)| (at(-dx, -dy), at(dx, dy))).collect();
+        let mut out = f.clone();
+        let stride = out.stride;
+        let FrameData::U8(d) = &mut out.data else { unreachable!() };
+        let mut acc = vec![0i16; w * ch];
+        for y in 0..h {
+            fir16::sym_fir(&mut acc, &padded[y * pw..], at(0, 0), &offs, &q);
+            fir16::q6_to_u8(&mut d[y * stride..y * stride + w * ch], &acc);
+        }
+        out
+    }
+
+    #[test]
+    fn eight_bit_fir_ring_and_column_kernel_equal_the_whole_frame_fir() {
+        // Oblique, vertical and horizontal streaks (column and row kernels), frames shorter
+        // than the taps, band and group tails (heights not multiples of 4), 1 to 3 threads.
+        for (w, h, format) in [(203u32, 131u32, PixelFormat::Rgb8), (150, 97, PixelFormat::Mono8), (37, 9, PixelFormat::Rgb8)] {
+            let f = crate::faults::kit::bench_scene(w, h, format, 4).unwrap();
+            for (len, ang) in [(10.0, 30.0), (24.0, 100.0), (23.0, 145.0), (12.0, 0.0), (3.0, 60.0), (24.0, 5.0), (0.7, 20.0)] {
+                assert!(!runs_streak(len, ang));
+                let want = fir_reference(&f, len, ang);
+                for threads in [1, 2, 3] {
+                    let mut g = f.clone();
+                    let mut p = Params::defaults(&INFO);
+                    p.set("length_px", len).unwrap();
+                    p.set("angle_deg", ang).unwrap();
+                    rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(|| {
+                        MotionBlur::default().apply(&mut g, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
+                    });
+                    assert!(g == want, "{format} {w}x{h} {len} px at {ang} deg, {threads} threads");
+                }
+            }
         }
     }
 
