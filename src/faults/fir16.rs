@@ -618,21 +618,20 @@ mod simd {
         q0: i16,
         wq: &[i16],
     ) -> usize {
-        let n = outs[0].len() / 32 * 32;
+        let len = outs[0].len();
         let bp = base.as_ptr();
         let q0v = _mm512_set1_epi16(q0);
         let (half, zero) = (_mm512_set1_epi16(32), _mm512_setzero_si512());
-        let mut i = 0;
-        while i < n {
-            // SAFETY (block): every offset in `centre` and `offs` plus i + 32 is at most
-            // base.len() and every weight index is inside `wq` (asserted by the caller); each
-            // output holds n >= i + 32 bytes.
-            unsafe {
-                let ld = |p: usize| _mm512_loadu_si512(bp.add(p + i) as *const __m512i);
-                let mut a0 = _mm512_mulhrs_epi16(ld(centre[0]), q0v);
-                let mut a1 = _mm512_mulhrs_epi16(ld(centre[1]), q0v);
-                let mut a2 = _mm512_mulhrs_epi16(ld(centre[2]), q0v);
-                let mut a3 = _mm512_mulhrs_epi16(ld(centre[3]), q0v);
+        // V registers of 32 samples per output row and source vector (32 zmm registers hold
+        // 4 V sums and 8 V source vectors for V = 2).
+        macro_rules! chunk {
+            ($v:literal, $i:expr) => {{
+                let i = $i;
+                let ld = |p: usize| -> [__m512i; $v] {
+                    std::array::from_fn(|t| _mm512_loadu_si512(bp.add(p + i + 32 * t) as *const __m512i))
+                };
+                let mulc = |p: usize| ld(p).map(|x| _mm512_mulhrs_epi16(x, q0v));
+                let (mut a0, mut a1, mut a2, mut a3) = (mulc(centre[0]), mulc(centre[1]), mulc(centre[2]), mulc(centre[3]));
                 let mut p = offs.as_ptr();
                 for c in cols {
                     let k = c.len();
@@ -644,10 +643,12 @@ mod simd {
                     let mut s = 0;
                     loop {
                         let wv = _mm512_set1_epi16(*w.add(s));
-                        a0 = _mm512_add_epi16(a0, _mm512_mulhrs_epi16(_mm512_add_epi16(l0, h0), wv));
-                        a1 = _mm512_add_epi16(a1, _mm512_mulhrs_epi16(_mm512_add_epi16(l1, h1), wv));
-                        a2 = _mm512_add_epi16(a2, _mm512_mulhrs_epi16(_mm512_add_epi16(l2, h2), wv));
-                        a3 = _mm512_add_epi16(a3, _mm512_mulhrs_epi16(_mm512_add_epi16(l3, h3), wv));
+                        for t in 0..$v {
+                            a0[t] = _mm512_add_epi16(a0[t], _mm512_mulhrs_epi16(_mm512_add_epi16(l0[t], h0[t]), wv));
+                            a1[t] = _mm512_add_epi16(a1[t], _mm512_mulhrs_epi16(_mm512_add_epi16(l1[t], h1[t]), wv));
+                            a2[t] = _mm512_add_epi16(a2[t], _mm512_mulhrs_epi16(_mm512_add_epi16(l2[t], h2[t]), wv));
+                            a3[t] = _mm512_add_epi16(a3[t], _mm512_mulhrs_epi16(_mm512_add_epi16(l3[t], h3[t]), wv));
+                        }
                         s += 1;
                         if s == k {
                             break;
@@ -658,13 +659,28 @@ mod simd {
                     p = p.add(2 * m);
                 }
                 for (o, a) in outs.iter_mut().zip([a0, a1, a2, a3]) {
-                    let v = _mm512_max_epi16(_mm512_srai_epi16::<6>(_mm512_adds_epi16(a, half)), zero);
-                    _mm256_storeu_si256(o.as_mut_ptr().add(i) as *mut __m256i, _mm512_cvtusepi16_epi8(v));
+                    for t in 0..$v {
+                        let v = _mm512_max_epi16(_mm512_srai_epi16::<6>(_mm512_adds_epi16(a[t], half)), zero);
+                        _mm256_storeu_si256(o.as_mut_ptr().add(i + 32 * t) as *mut __m256i, _mm512_cvtusepi16_epi8(v));
+                    }
                 }
-            }
+            }};
+        }
+        let n2 = len / 64 * 64;
+        let mut i = 0;
+        while i < n2 {
+            // SAFETY (block): every offset in `centre` and `offs` plus i + 64 is at most
+            // base.len() and every weight index is inside `wq` (asserted by the caller); each
+            // output holds n2 >= i + 64 bytes.
+            unsafe { chunk!(2, i) };
+            i += 64;
+        }
+        if len - i >= 32 {
+            // SAFETY: as above, with i + 32 <= len.
+            unsafe { chunk!(1, i) };
             i += 32;
         }
-        n
+        i
     }
 
     /// Whole chunks of 128 outputs; returns how many outputs were written.
