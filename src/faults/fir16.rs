@@ -214,10 +214,14 @@ pub fn sym_fir_cols_u8(
     {
         if super::kit::has_avx512() {
             // SAFETY: AVX-512 F/BW present (checked); reads are in bounds (asserted above).
-            done = unsafe { simd::fir_cols_avx512([&mut *o0, &mut *o1, &mut *o2, &mut *o3], base, centre, cols, offs, q0, wq) };
+            done = unsafe {
+                simd::fir_cols_avx512([&mut *o0, &mut *o1, &mut *o2, &mut *o3], base, centre, cols, offs, q0, wq)
+            };
         } else if super::kit::has_avx2() {
             // SAFETY: AVX2 present (checked); reads are in bounds (asserted above).
-            done = unsafe { simd::fir_cols_avx2([&mut *o0, &mut *o1, &mut *o2, &mut *o3], base, centre, cols, offs, q0, wq) };
+            done = unsafe {
+                simd::fir_cols_avx2([&mut *o0, &mut *o1, &mut *o2, &mut *o3], base, centre, cols, offs, q0, wq)
+            };
         }
     }
     let outs = [&mut o0[done..], &mut o1[done..], &mut o2[done..], &mut o3[done..]];
@@ -460,7 +464,13 @@ mod simd {
     /// [`super::sym_fir_u8`] on whole chunks of 64 outputs: [`fir_avx2`]'s sums, then
     /// [`q6_to_u8_avx2`]'s conversion in registers. Returns how many outputs were written.
     #[target_feature(enable = "avx2")]
-    pub unsafe fn fir_u8_avx2(out: &mut [u8], base: &[i16], center: usize, offs: &[(usize, usize)], q: &[i16]) -> usize {
+    pub unsafe fn fir_u8_avx2(
+        out: &mut [u8],
+        base: &[i16],
+        center: usize,
+        offs: &[(usize, usize)],
+        q: &[i16],
+    ) -> usize {
         let n = out.len() / 64 * 64;
         let bp = base.as_ptr();
         let half = _mm256_set1_epi16(32);
@@ -805,12 +815,19 @@ mod tests {
                 offs.extend((0..m).map(|t| at(dy0 + t, c.dx as isize)));
             }
             let centre: [usize; COL_ROWS] = std::array::from_fn(|j| at(j as isize, 0));
-            sym_fir_cols_u8([&mut a[..], &mut b[..], &mut c[..], &mut d[..]], &base, centre, &cols, &offs, q0 as i16, &wq);
+            sym_fir_cols_u8(
+                [&mut a[..], &mut b[..], &mut c[..], &mut d[..]],
+                &base,
+                centre,
+                &cols,
+                &offs,
+                q0 as i16,
+                &wq,
+            );
             for (j, got) in rows.iter().enumerate() {
                 let cj = c0 + j * pw;
                 let at = |dx: isize, dy: isize| (cj as isize + dy * pw as isize + dx * ch as isize) as usize;
-                let offs: Vec<(usize, usize)> =
-                    pairs.iter().map(|&((dx, dy), _)| (at(-dx, -dy), at(dx, dy))).collect();
+                let offs: Vec<(usize, usize)> = pairs.iter().map(|&((dx, dy), _)| (at(-dx, -dy), at(dx, dy))).collect();
                 let q: Vec<i16> = pairs.iter().map(|p| p.1).collect();
                 let mut acc = vec![0i16; n];
                 sym_fir(&mut acc, &base, cj, &offs, &q);

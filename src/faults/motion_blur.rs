@@ -584,9 +584,13 @@ mod tests {
     fn eight_bit_fir_ring_and_column_kernel_equal_the_whole_frame_fir() {
         // Oblique, vertical and horizontal streaks (column and row kernels), frames shorter
         // than the taps, band and group tails (heights not multiples of 4), 1 to 3 threads.
-        for (w, h, format) in [(203u32, 131u32, PixelFormat::Rgb8), (150, 97, PixelFormat::Mono8), (37, 9, PixelFormat::Rgb8)] {
+        for (w, h, format) in
+            [(203u32, 131u32, PixelFormat::Rgb8), (150, 97, PixelFormat::Mono8), (37, 9, PixelFormat::Rgb8)]
+        {
             let f = crate::faults::kit::bench_scene(w, h, format, 4).unwrap();
-            for (len, ang) in [(10.0, 30.0), (24.0, 100.0), (23.0, 145.0), (12.0, 0.0), (3.0, 60.0), (24.0, 5.0), (0.7, 20.0)] {
+            for (len, ang) in
+                [(10.0, 30.0), (24.0, 100.0), (23.0, 145.0), (12.0, 0.0), (3.0, 60.0), (24.0, 5.0), (0.7, 20.0)]
+            {
                 assert!(!runs_streak(len, ang));
                 let want = fir_reference(&f, len, ang);
                 for threads in [1, 2, 3] {
