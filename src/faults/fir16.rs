@@ -119,6 +119,7 @@ pub fn sym_fir2(out0: &mut [i16], out1: &mut [i16], base: &[i16], rows: &[usize]
 /// a byte (round half up, clamped to 0..=255), converted in registers instead of through a Q6
 /// row (the same integer operations, so the same bytes as the two calls). Panics if a read
 /// would leave `base`.
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
 pub fn sym_fir_u8(out: &mut [u8], base: &[i16], center: usize, offs: &[(usize, usize)], q: &[i16]) {
     let n = out.len();
     assert!(offs.len() == q.len() && !q.is_empty());
@@ -194,6 +195,7 @@ pub fn col_loads(k: usize) -> usize {
 /// as [`sym_fir`] and [`q6_to_u8`] per row (every pair's sum and product is the same; the sums
 /// of the products are wrapping, so their order does not matter). Panics if a read would leave
 /// `base`.
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
 pub fn sym_fir_cols_u8(
     outs: [&mut [u8]; COL_ROWS],
     base: &[i16],
