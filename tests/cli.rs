@@ -511,6 +511,8 @@ fn blur_kernels_give_the_same_bytes_on_every_path() {
         &["--effect", "defocus", "--set", "defocus.sigma_px=0.7"],
         &["--effect", "defocus", "--set", "defocus.sigma_px=2.5"],
         &["--effect", "defocus", "--set", "defocus.sigma_px=8"],
+        &["--effect", "defocus", "--set", "defocus.sigma_px=3"],
+        &["--effect", "defocus", "--set", "defocus.sigma_px=4.5"],
         &["--effect", "motion_blur", "--set", "motion_blur.length_px=30", "--set", "motion_blur.angle_deg=30"],
         &["--effect", "motion_blur", "--set", "motion_blur.length_px=100", "--set", "motion_blur.angle_deg=137"],
         &["--effect", "motion_blur", "--set", "motion_blur.length_px=0.7", "--set", "motion_blur.angle_deg=0"],
