@@ -346,6 +346,11 @@ impl Plane {
         let (rl, n) = (self.rl(), self.h + 2 * self.m);
         self.d[..rl * n].chunks_mut(rl)
     }
+    /// Row `jj` counted from the top margin row.
+    fn row_mut(&mut self, jj: usize) -> &mut [i16] {
+        let rl = self.rl();
+        &mut self.d[jj * rl..(jj + 1) * rl]
+    }
     fn row(&self, y: isize) -> &[i16] {
         let i = (y + self.m as isize) as usize;
         &self.d[i * self.rl()..(i + 1) * self.rl()]
@@ -356,15 +361,22 @@ impl Plane {
 /// (those outputs are not used).
 const PLANE_SLACK: usize = 256;
 
-/// Scratch of the pyramid path (grows only).
+/// Scratch of the pyramid path (grows only). allocation: when the frame size or sigma grows.
 #[derive(Default)]
 pub(crate) struct PyrScratch {
-    l1: Plane,
+    /// Per channel: the first level, and the plane the final upsampler reads.
+    dec: [Plane; 3],
+    fin: [Plane; 3],
     l2: Plane,
     t: Plane,
     row32: Vec<i32>,
     pad32: Vec<i32>,
+    pad16: Vec<u16>,
+    split16: Vec<u16>,
     f16: Vec<i16>,
+    v16: Vec<u16>,
+    eo8: Vec<u8>,
+    rows8: Vec<u8>,
 }
 
 /// Binomial [1,5,10,10,5,1]: the decimating pre-filter (weights / 32).
@@ -397,12 +409,41 @@ macro_rules! multiversion {
 }
 
 multiversion! {
-    /// `out[i] = sum_k B5[k] * (rows[k][i])` for u8 rows (units v * 32).
-    fn vsum_u8(out: &mut [i32], r0: &[u8], r1: &[u8], r2: &[u8], r3: &[u8], r4: &[u8], r5: &[u8]) {
+    /// `out[i] = (sum_k B5[k] rows[k][i] + rnd) >> 2` for u8 rows (units v * 8, at most 2040: the
+    /// decimating horizontal pass then fits 16-bit lanes). `rnd` 1 or 2 (see [`rnd`]).
+    fn vsum_u8(out: &mut [u16], r0: &[u8], r1: &[u8], r2: &[u8], r3: &[u8], r4: &[u8], r5: &[u8], rnd: u16) {
         let n = out.len();
         let (r0, r1, r2, r3, r4, r5) = (&r0[..n], &r1[..n], &r2[..n], &r3[..n], &r4[..n], &r5[..n]);
         for i in 0..n {
-            out[i] = (r0[i] as i32 + r5[i] as i32) + 5 * (r1[i] as i32 + r4[i] as i32) + 10 * (r2[i] as i32 + r3[i] as i32);
+            let s = (r0[i] as u16 + r5[i] as u16) + 5 * (r1[i] as u16 + r4[i] as u16) + 10 * (r2[i] as u16 + r3[i] as u16);
+            out[i] = (s + rnd) >> 2;
+        }
+    }
+}
+
+multiversion! {
+    /// Decimating horizontal pass of one channel in u16 lanes (units v * 8 in, at most 2040):
+    /// `out[i] = (sum_k B5[k] pad[2i + k] + rnd) >> 2` (Q6; the sum is at most 65280).
+    fn hdec16(out: &mut [i16], pad: &[u16], rnd: u16) {
+        let n = out.len();
+        let pad = &pad[..2 * n + 4];
+        for i in 0..n {
+            let p = &pad[2 * i..2 * i + 6];
+            let s = (p[0] + p[5]) + 5 * (p[1] + p[4]) + 10 * (p[2] + p[3]);
+            out[i] = ((s + rnd) >> 2) as i16;
+        }
+    }
+}
+
+multiversion! {
+    /// Three-channel interleaved u16 row to three rows of `a.len()` samples.
+    fn split3_u16(src: &[u16], a: &mut [u16], b: &mut [u16], c: &mut [u16]) {
+        let n = a.len();
+        let (b, c, src) = (&mut b[..n], &mut c[..n], &src[..3 * n]);
+        for i in 0..n {
+            a[i] = src[3 * i];
+            b[i] = src[3 * i + 1];
+            c[i] = src[3 * i + 2];
         }
     }
 }
@@ -466,9 +507,10 @@ multiversion! {
     }
 }
 
-/// Level 1 from the 8-bit frame: low-res pixel i (at full-res position 2i + 1/2) = the B5
-/// pre-filter over full-res pixels 2i - 2 ..= 2i + 3 (mirrored at the frame's borders), for
-/// i in -m..ceil(w/2) + m, likewise in y. Exact integer sums, one rounding to Q6.
+/// Level 1 from the 8-bit frame, one plane per channel (`outs[c]`): low-res pixel i (at
+/// full-res position 2i + 1/2) = the B5 pre-filter over full-res pixels 2i - 2 ..= 2i + 3
+/// (mirrored at the frame's borders), for i in -m..ceil(w/2) + m, likewise in y. Vertical sums
+/// on the interleaved rows (rounded to v * 8), split per channel, horizontal sums rounded to Q6.
 #[allow(clippy::too_many_arguments)]
 fn decimate_u8(
     d: &[u8],
@@ -477,17 +519,21 @@ fn decimate_u8(
     h: usize,
     ch: usize,
     m: usize,
-    out: &mut Plane,
-    f16: &mut Vec<i16>,
-    pad32: &mut Vec<i32>,
+    outs: &mut [Plane],
+    pad16: &mut Vec<u16>,
+    split16: &mut Vec<u16>,
 ) {
     let (wl, hl) = (w.div_ceil(2), h.div_ceil(2));
-    out.set(wl, hl, m, ch);
+    for o in outs.iter_mut() {
+        o.set(wl, hl, m, 1);
+    }
     let rl = w * ch;
     let np = 2 * (wl + 2 * m) + 4; // full-res columns -2m-2 ..= 2(wl+m-1)+3
-    pad32.resize(np * ch, 0);
+    pad16.resize(np * ch, 0);
+    split16.resize(3 * np, 0);
     let x0 = -2 * m as isize - 2;
-    for (jj, orow) in out.rows_mut().enumerate() {
+    let rows = hl + 2 * m;
+    for jj in 0..rows {
         let j = jj as isize - m as isize;
         let r = |k: isize| {
             let y = mirror(2 * j - 2 + k, h);
@@ -496,15 +542,23 @@ fn decimate_u8(
         // Interior columns in place, margins mirrored from them.
         let a = (-x0) as usize;
         let inner = (np - a).min(w);
-        vsum_u8(&mut pad32[a * ch..(a + inner) * ch], r(0), r(1), r(2), r(3), r(4), r(5));
+        vsum_u8(&mut pad16[a * ch..(a + inner) * ch], r(0), r(1), r(2), r(3), r(4), r(5), rnd(jj, 0));
         for px in (0..a).chain(a + inner..np) {
             let sx = mirror(px as isize + x0, w);
             for c in 0..ch {
-                pad32[px * ch + c] = pad32[(a + sx) * ch + c];
+                pad16[px * ch + c] = pad16[(a + sx) * ch + c];
             }
         }
-        // Units v * 1024 -> Q6 (v * 64): / 16.
-        hdec(orow, pad32, ch, 4, f16);
+        if ch == 1 {
+            hdec16(outs[0].row_mut(jj), pad16, rnd(jj, 1));
+        } else {
+            let (s0, rest) = split16.split_at_mut(np);
+            let (s1, s2) = rest.split_at_mut(np);
+            split3_u16(pad16, s0, s1, s2);
+            for (o, sp) in outs.iter_mut().zip([&*s0, &*s1, &*s2]) {
+                hdec16(o.row_mut(jj), sp, rnd(jj, 1));
+            }
+        }
     }
 }
 
@@ -659,74 +713,126 @@ fn upsample_q6(c: &Plane, w: usize, h: usize, out: &mut Plane, row32: &mut Vec<i
     }
 }
 
+/// Rounding offset of the 16-bit roundings of row `y`: `rnd` is 1 or 2 alternating with the row
+/// (`salt` shifts the pattern between stages), and a division by a step S adds S/2 - 2 + rnd
+/// (S/2 - 1 or S/2) before the shift. Round half up (S/2 always) biases a rounding of integers
+/// by (S - 1)/(2S) - 1/2... precisely: the mean of floor((r + k)/S) - r/S over the remainders r
+/// is k/S - (S - 1)/(2S), +1/8 of the step for S = 4 and k = 2; the five roundings of the 16-bit
+/// pyramid then added about +0.07 DN to the mean of a 96x80 rgb8 test frame. S/2 - 1 and S/2
+/// bias by -1/(2S) and +1/(2S), so alternating them keeps the mean, and every rounding stays
+/// within half a step.
+#[inline]
+fn rnd(y: usize, salt: usize) -> u16 {
+    1 + ((y + salt) & 1) as u16
+}
+
+/// The final coarse plane from Q6 to Q4 (`(v + 2) >> 2`, values <= 4080), in place: the final
+/// upsampler's sums then fit 16-bit lanes (16 x 4080 = 65280).
+fn plane_to_q4(c: &mut Plane) {
+    let rl = c.rl();
+    for (jj, row) in c.rows_mut().enumerate() {
+        q6_to_q4(row, rnd(jj, rl.max(1)) as i16);
+    }
+}
+
 multiversion! {
-    /// Horizontal step of the final upsampler, without rounding (units q * 16): fine pixel 2n
-    /// into `e[n ch + c]`, 2n + 1 into `o[n ch + c]` (`t` holds coarse n - 1 at `n ch`).
-    fn hup_i32(e: &mut [i32], o: &mut [i32], t: &[i16], ch: usize) {
+    /// `v = (v + rnd) >> 2` (Q6 to Q4; the values are not negative).
+    fn q6_to_q4(v: &mut [i16], rnd: i16) {
+        for x in v.iter_mut() {
+            *x = (*x + rnd) >> 2;
+        }
+    }
+}
+
+multiversion! {
+    /// Vertical step of the final upsampler in u16 lanes, Q4 in and out:
+    /// `(a r0 + b r1 + c r2 + 6 + rnd) >> 4` (a + b + c = 16, so the sum stays below 65536).
+    fn vup16(out: &mut [u16], r0: &[i16], r1: &[i16], r2: &[i16], a: u16, b: u16, c: u16, rnd: u16) {
+        let n = out.len();
+        let (r0, r1, r2) = (&r0[..n], &r1[..n], &r2[..n]);
+        for i in 0..n {
+            let s = (r0[i] as u16).wrapping_mul(a).wrapping_add((r1[i] as u16).wrapping_mul(b));
+            out[i] = s.wrapping_add((r2[i] as u16).wrapping_mul(c)).wrapping_add(6 + rnd) >> 4;
+        }
+    }
+}
+
+multiversion! {
+    /// Horizontal step of the final upsampler into bytes (Q4 in): for `v` holding coarse pixel
+    /// n - 1 at index n, fine pixel 2n (weights 5, 10, 1 on n - 1, n, n + 1) into `e[n]` and 2n + 1
+    /// (1, 10, 5) into `o[n]`, `(s + 126 + rnd) >> 8` (the /16 and Q4 in one rounding; below 65536).
+    fn hup16(e: &mut [u8], o: &mut [u8], v: &[u16], rnd: u16) {
         let n = e.len();
-        let (t0, t1, t2) = (&t[..n], &t[ch..ch + n], &t[2 * ch..2 * ch + n]);
+        let (t0, t1, t2) = (&v[..n], &v[1..n + 1], &v[2..n + 2]);
         let o = &mut o[..n];
         for i in 0..n {
-            let (a, b, d) = (t0[i] as i32, 10 * t1[i] as i32, t2[i] as i32);
-            e[i] = 5 * a + b + d;
-            o[i] = a + b + 5 * d;
+            let m = t1[i].wrapping_mul(10).wrapping_add(126 + rnd);
+            e[i] = (t0[i].wrapping_mul(5).wrapping_add(m).wrapping_add(t2[i]) >> 8).min(255) as u8;
+            o[i] = (t0[i].wrapping_add(m).wrapping_add(t2[i].wrapping_mul(5)) >> 8).min(255) as u8;
         }
     }
 }
 
 multiversion! {
-    /// Vertical step of the final upsampler into bytes: `(a h0 + b h1 + c h2 + 2^13) >> 14`
-    /// (Q6 and the two /16 in one rounding), clamped.
-    fn vup_u8(out: &mut [u8], h0: &[i32], h1: &[i32], h2: &[i32], a: i32, b: i32, c: i32) {
-        let n = out.len();
-        let (h0, h1, h2) = (&h0[..n], &h1[..n], &h2[..n]);
-        for i in 0..n {
-            out[i] = ((a * h0[i] + b * h1[i] + c * h2[i] + 8192) >> 14).clamp(0, 255) as u8;
+    /// `out` = bytes of `e` and `o` alternating, as many as fit (an odd last byte from `e`).
+    fn zip_u8(out: &mut [u8], e: &[u8], o: &[u8]) {
+        let n = out.len() / 2;
+        let (e2, o2) = (&e[..n], &o[..n]);
+        for (i, d) in out.chunks_exact_mut(2).enumerate() {
+            d[0] = e2[i];
+            d[1] = o2[i];
+        }
+        if out.len() % 2 == 1 {
+            out[2 * n] = e[n];
         }
     }
 }
 
-/// Coarse plane (margin >= 1) to the 8-bit frame (`w x h`, fine pixels 0..w): each coarse row
-/// upsampled horizontally once (a ring of three rows), then the rows combined vertically. The
-/// same integer sums as vertical-then-horizontal (exact), one rounding.
-fn upsample_u8(c: &Plane, d: &mut [u8], stride: usize, w: usize, h: usize, row32: &mut Vec<i32>) {
-    let ch = c.ch;
-    let rl = w * ch;
-    let np = w.div_ceil(2) * ch; // coarse samples 0..wl
-    let hw = 2 * np; // fine samples of one horizontally upsampled row (even pixel count)
-    assert!(c.m >= 1);
-    row32.resize(3 * hw + 2 * np, 0);
-    let off = (c.m - 1) * ch;
-    let (ring, eo) = row32.split_at_mut(3 * hw);
-    let mut held = [isize::MIN; 3];
+/// Q4 coarse planes (margin >= 1, one per channel) to the 8-bit frame (`w x h`, fine pixels
+/// 0..w), per fine row and channel: the three coarse rows combined vertically (u16, rounded to
+/// Q4), then the horizontal step into bytes; rgb8: the three channel rows merged into the frame
+/// row. `v`, `eo`, `rows8` scratch.
+#[allow(clippy::too_many_arguments)]
+fn upsample_u8(
+    cs: &[Plane],
+    d: &mut [u8],
+    stride: usize,
+    w: usize,
+    h: usize,
+    v: &mut Vec<u16>,
+    eo: &mut Vec<u8>,
+    rows8: &mut Vec<u8>,
+) {
+    let ch = cs.len();
+    let np = w.div_ceil(2); // coarse pixels 0..np give the fine pixels 0..w
+    v.resize(np + 2, 0);
+    eo.resize(2 * np, 0);
+    rows8.resize(3 * w, 0);
     for y in 0..h {
         let n = (y / 2) as isize;
-        for k in n - 1..=n + 1 {
-            let slot = k.rem_euclid(3) as usize;
-            if held[slot] != k {
-                let (e, o) = eo.split_at_mut(np);
-                hup_i32(e, o, &c.row(k)[off..off + np + 2 * ch], ch);
-                interleave_px(&mut ring[slot * hw..(slot + 1) * hw], e, o, ch);
-                held[slot] = k;
-            }
-        }
         let (a, b, e) = up_w(y as isize);
-        let sl = |k: isize| k.rem_euclid(3) as usize * hw;
-        let (s0, s1, s2) = (sl(n - 1), sl(n), sl(n + 1));
-        vup_u8(
-            &mut d[y * stride..y * stride + rl],
-            &ring[s0..s0 + hw],
-            &ring[s1..s1 + hw],
-            &ring[s2..s2 + hw],
-            a,
-            b,
-            e,
-        );
+        let drow = &mut d[y * stride..y * stride + w * ch];
+        for (k, c) in cs.iter().enumerate() {
+            assert!(c.m >= 1 && c.ch == 1);
+            let off = c.m - 1;
+            let r = |k: isize| &c.row(n + k)[off..off + np + 2];
+            vup16(v, r(-1), r(0), r(1), a as u16, b as u16, e as u16, rnd(y, 0));
+            let (ev, od) = eo.split_at_mut(np);
+            hup16(ev, od, v, rnd(y, 1));
+            let out = if ch == 1 { &mut *drow } else { &mut rows8[k * w..(k + 1) * w] };
+            zip_u8(out, ev, od);
+        }
+        if ch == 3 {
+            let (r0, rest) = rows8.split_at(w);
+            let (r1, r2) = rest.split_at(w);
+            super::kit::merge_rgb8_row(drow, r0, r1, &r2[..w]);
+        }
     }
 }
 
-/// The pyramid blur of an 8-bit frame: decimate (one or two levels), the discrete-Gaussian FIR
-/// `q` (Q15 half kernel; `None` for none) on the coarsest plane, upsample back.
+/// The pyramid blur of an 8-bit frame (one or three channels, each on its own planes): decimate
+/// (one or two levels), the discrete-Gaussian FIR `q` (Q15 half kernel; `None` for none) on the
+/// coarsest plane, upsample back.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn pyr_blur_u8(
     d: &mut [u8],
@@ -738,32 +844,32 @@ pub(crate) fn pyr_blur_u8(
     q: Option<&[i16]>,
     s: &mut PyrScratch,
 ) {
+    assert!(ch == 1 || ch == 3, "pyramid: one or three channels");
     let r = q.map_or(0, |q| q.len() - 1);
-    let PyrScratch { l1, l2, t, row32, pad32, f16 } = s;
-    if levels == 1 {
-        decimate_u8(d, stride, w, h, ch, r + 1, l1, f16, pad32);
-        let c = if let Some(q) = q {
-            fir_plane(l1, q, t, l2);
-            &*l2
+    let PyrScratch { dec, fin, l2, t, row32, pad32, pad16, split16, f16, v16, eo8, rows8 } = s;
+    let m2 = r + 2;
+    let m1 = if levels == 1 { r + 1 } else { 2 * m2 + 3 };
+    decimate_u8(d, stride, w, h, ch, m1, &mut dec[..ch], pad16, split16);
+    for (dc, fc) in dec.iter_mut().zip(fin.iter_mut()).take(ch) {
+        if levels == 1 {
+            match q {
+                Some(q) => fir_plane(dc, q, t, fc),
+                None => std::mem::swap(dc, fc),
+            }
         } else {
-            &*l1
-        };
-        upsample_u8(c, d, stride, w, h, row32);
-    } else {
-        let m2 = r + 2;
-        decimate_u8(d, stride, w, h, ch, 2 * m2 + 3, l1, f16, pad32);
-        decimate_q6(l1, m2, l2, f16, pad32);
-        let (w1, h1) = (l1.w, l1.h);
-        let c = if let Some(q) = q {
-            fir_plane(l2, q, t, l1);
-            &*l1
-        } else {
-            &*l2
-        };
-        // `c` may be l1 (the FIR's output); upsample into t.
-        upsample_q6(c, w1, h1, t, row32, f16);
-        upsample_u8(t, d, stride, w, h, row32);
+            decimate_q6(dc, m2, l2, f16, pad32);
+            let (w1, h1) = (dc.w, dc.h);
+            let c = if let Some(q) = q {
+                fir_plane(l2, q, t, dc);
+                &*dc
+            } else {
+                &*l2
+            };
+            upsample_q6(c, w1, h1, fc, row32, f16);
+        }
+        plane_to_q4(fc);
     }
+    upsample_u8(&fin[..ch], d, stride, w, h, v16, eo8, rows8);
 }
 
 impl Effect for Defocus {
