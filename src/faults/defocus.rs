@@ -18,25 +18,30 @@ pub static INFO: EffectInfo = EffectInfo {
             pixel), truncated at |n| <= ceil(4 sigma_px) + 1 and renormalised. Borders are mirrored \
             (half-sample symmetric), which makes the operator conserve the total signal: the image mean is \
             kept up to the final rounding (zero on average). Channels are blurred independently. 8-bit \
-            frames, sigma_px < 2.5: 16-bit fixed point (samples x 64, weights rounded to multiples of \
-            2^-15 that sum exactly to 1, every product rounded to nearest, the same integer operations \
-            on every CPU path): each output is within 1 DN of the exact convolution (tested against \
-            an f64 reference on point sources and hard edges; rounding alone accounts for 0.5 DN); cost \
-            grows with sigma_px (2 ceil(4 sigma_px) + 3 taps per axis). 8-bit frames, sigma_px >= 2.5: \
-            a pyramid (the Gaussian has almost nothing above a quarter of the sampling rate there): per \
-            level, pre-filter with the binomial [1,5,10,10,5,1]/32 and keep every second row and column \
-            (the coarse grid on the half-sample points, so the mirrored borders stay half-sample \
-            mirrors), the discrete Gaussian of sigma_c on the coarsest grid (the fixed-point FIR above), \
-            and per level an upsampler by 2 with the same binomial (weights 5,10,1 / 16 and 1,10,5 / \
-            16); one level below sigma_px 4.5, two from it; the variances add: sigma_px^2 = 2.5 + \
-            4 sigma_c^2 (one level) or 12.5 + 16 sigma_c^2 (two). Exact integer sums, a rounding to \
-            x64 per level and one to 8 bits, the same integer operations on every CPU path; all the \
-            weights sum exactly to 1, so the mean is kept (within 0.02 DN). Against the discrete \
-            Gaussian this path is within 3 DN on point sources, hard edges and texture (tested for \
-            sigma 2.5-20, even and odd frame sizes: largest 2.9 DN at sigma 2.75, 2.6 at 5.5, \
-            under 1.5 DN from sigma 10 up: the pre-filter's aliasing and the upsampler's images). 16-bit frames are \
-            computed in f32 with the discrete Gaussian, rounded to nearest and clipped (|error| < 0.5 \
-            DN + f32 rounding; cost grows with sigma_px). sigma_px = 0 is the identity.",
+            frames, sigma_px < 1.85: 16-bit fixed point (the kernel cut at |n| <= ceil(3 sigma_px) + 1 and \
+            renormalised, samples x 64, weights rounded to multiples of 2^-15 that sum exactly to 1, every \
+            product rounded to nearest, the same integer operations on every CPU path): each output is \
+            within 1 DN of the exact convolution (tested against an f64 reference on point sources and \
+            hard edges; rounding alone accounts for 0.5 DN); cost grows with sigma_px (2 ceil(3 \
+            sigma_px) + 3 taps per axis). 8-bit frames, sigma_px >= 1.85: a pyramid (the Gaussian has \
+            little above a quarter of the sampling rate there): per level, pre-filter with the binomial \
+            [1,5,10,10,5,1]/32 and keep every second row and column (the coarse grid on the half-sample \
+            points, so the mirrored borders stay half-sample mirrors), the discrete Gaussian of sigma_c \
+            on the coarsest grid (the fixed-point FIR above), and per level an upsampler by 2 with the \
+            same binomial (weights 5,10,1 / 16 and 1,10,5 / 16); one level below sigma_px 4.5, two \
+            below 9.5, three from 9.5; the variances add: sigma_px^2 = 2.5 + 4 sigma_c^2, 12.5 + 16 \
+            sigma_c^2 or 52.5 + 64 sigma_c^2. rgb8 runs as three planes (split and merged with byte \
+            shuffles). Integer sums in 16-bit lanes with six roundings (pre-filter sums to v x 8 and \
+            x 64, the coarse plane to x 16, the upsampler's vertical step to x 16, the last to 8 bits; \
+            the rounding offset alternates between S/2 - 1 and S/2 from row to row, so the roundings \
+            do not bias the mean), the same integer operations on every CPU path; all the weights sum \
+            exactly to 1, so a flat image stays flat and the mean is kept (within 0.02 DN). Against \
+            the discrete Gaussian this path is within 3 DN on point sources, hard edges and texture \
+            (tested for sigma 1.85-20, even and odd frame sizes: 2.3 DN at sigma 1.85, 1.4 at 2, \
+            largest 2.9 DN at sigma 2.75 and 13 (just above the level switches at 4.5 and 9.5 it is \
+            2.2): the pre-filter's aliasing and the upsampler's images). 16-bit frames are computed \
+            in f32 with the discrete Gaussian, rounded to nearest and clipped (|error| < 0.5 DN + f32 \
+            rounding; cost grows with sigma_px). sigma_px = 0 is the identity.",
     params: &[ParamSpec::float("sigma_px", "px", 0.0, 20.0, 1.5, "standard deviation of the Gaussian PSF")],
     formats: ALL_FORMATS,
 };
@@ -80,8 +85,9 @@ pub fn discrete_gaussian_f64(sigma: f64) -> Vec<f64> {
 }
 
 /// The 8-bit paths' kernel: the discrete Gaussian `k` of `sigma` cut to |n| <= ceil(3 sigma) + 1
-/// and renormalised (the weight beyond is below 5e-4 of the total, under 0.13 DN on a full-scale
-/// edge; the fixed-point rounding is 0.5 DN), a quarter fewer taps than the f32 kernel's.
+/// and renormalised (the weight cut is at most 3.5e-4 of the total for sigma < 1.85, 5.2e-4 for
+/// the coarse sigmas up to 2.33: at most 0.13 DN on a full-scale edge, against the fixed-point
+/// rounding's 0.5 DN), a quarter fewer taps than the f32 kernel's.
 fn truncated(k: &[f64], sigma: f64) -> Vec<f64> {
     let r = k.len() / 2;
     let r8 = ((3.0 * sigma).ceil() as usize + 1).min(r);
@@ -109,9 +115,10 @@ pub const FIR_MAX_SIGMA: f64 = 3.0;
 pub const BOX_MAX_ERROR_DN: f64 = 4.0;
 
 /// Stated bound of the pyramid path against the exact discrete Gaussian (DN, 8-bit) on point
-/// sources, hard edges and texture (measured: 2.9 DN at sigma 2.75, 2.6 at 5.5, under 1.5 from
-/// sigma 10): the pre-filter's aliasing and the upsampler's images, which the Gaussian
-/// attenuates less at small sigma, plus the rounding.
+/// sources, hard edges and texture (measured: 2.3 DN at sigma 1.85, 2.9 at 2.75 and at 13, 2.6
+/// at 5.5): the pre-filter's aliasing and the upsampler's images, which the Gaussian attenuates
+/// less at a small coarse sigma (just above each level switch), plus the roundings. Below sigma
+/// 1.85 the error grows fast (3.0 DN at 1.8, 6.4 at 1.6), so the FIR stays there.
 pub const PYR_MAX_ERROR_DN: f64 = 3.0;
 
 /// Largest kernel radius (sigma_px = 20: ceil(80) + 1).
@@ -312,11 +319,11 @@ fn blur_u8(
 
 // ---------------------------------------------------------------------------------------------
 // Pyramid path (8-bit frames, sigma_px >= PYR_MIN_SIGMA): the Gaussian computed on a grid of half
-// (or a quarter of) the resolution. All integer arithmetic in plain Rust (exact on every CPU
+// (a quarter, an eighth of) the resolution. All integer arithmetic in plain Rust (exact on every CPU
 // path; the compiler's vectorisation cannot change the values), compiled once more with AVX2
 // and with AVX-512 enabled for the CPUs that have them.
 
-/// 8-bit frames from this sigma_px use the pyramid (`pyr_blur_u8`).
+/// 8-bit frames from this sigma_px use the pyramid (`pyr_blur_u8`); below it the FIR.
 pub const PYR_MIN_SIGMA: f64 = 1.85;
 /// From this sigma_px the pyramid has two levels (x4), below it one (x2).
 pub const PYR_TWO_LEVELS: f64 = 4.5;
@@ -749,14 +756,13 @@ fn upsample_q6(c: &Plane, w: usize, h: usize, out: &mut Plane, row32: &mut Vec<i
     }
 }
 
-/// Rounding offset of the 16-bit roundings of row `y`: `rnd` is 1 or 2 alternating with the row
-/// (`salt` shifts the pattern between stages), and a division by a step S adds S/2 - 2 + rnd
-/// (S/2 - 1 or S/2) before the shift. Round half up (S/2 always) biases a rounding of integers
-/// by (S - 1)/(2S) - 1/2... precisely: the mean of floor((r + k)/S) - r/S over the remainders r
-/// is k/S - (S - 1)/(2S), +1/8 of the step for S = 4 and k = 2; the five roundings of the 16-bit
-/// pyramid then added about +0.07 DN to the mean of a 96x80 rgb8 test frame. S/2 - 1 and S/2
-/// bias by -1/(2S) and +1/(2S), so alternating them keeps the mean, and every rounding stays
-/// within half a step.
+/// Rounding offset of the 16-bit roundings of row `y`: `rnd` is 1 or 2, alternating with the row
+/// (`salt` shifts the pattern between stages); a division by a step S adds S/2 - 2 + rnd (S/2 - 1
+/// or S/2) before the shift. Over equally likely remainders r, floor((r + k)/S) - r/S averages
+/// k/S - (S - 1)/(2S): round half up (k = S/2) biases every rounding by +1/(2S) of a step, and the
+/// six roundings of the 16-bit pyramid added about +0.07 DN to the mean of a 96x80 rgb8 test
+/// frame. k = S/2 - 1 and S/2 bias by -1/(2S) and +1/(2S), so alternating them keeps the mean,
+/// and every rounding stays within half a step.
 #[inline]
 fn rnd(y: usize, salt: usize) -> u16 {
     1 + ((y + salt) & 1) as u16
@@ -1094,6 +1100,39 @@ mod tests {
             };
             assert!((var - sigma * sigma).abs() < 1e-9, "{sigma}: {levels} {sc}");
             assert!(sc > 0.6, "{sigma}: coarse sigma {sc}");
+        }
+    }
+
+    /// Tiny and odd frames through every 8-bit path (FIR, one, two and three levels): no panic, a
+    /// flat frame stays exactly flat (every weight sum is exactly one), and a dot keeps its total
+    /// within the rounding.
+    #[test]
+    fn tiny_frames_stay_flat_and_keep_a_dot() {
+        for format in [PixelFormat::Mono8, PixelFormat::Rgb8] {
+            for (w, h) in [(1u32, 1u32), (2, 1), (1, 5), (3, 2), (17, 3), (5, 40)] {
+                for sigma in [1.2, 1.85, 3.0, 6.0, 13.0, 20.0] {
+                    let mut p = Params::defaults(&INFO);
+                    p.set("sigma_px", sigma).unwrap();
+                    let mut f = Frame::new(w, h, format).unwrap();
+                    for y in 0..h as usize {
+                        for x in 0..w as usize {
+                            for c in 0..f.channels() {
+                                f.set(x, y, c, 77.0);
+                            }
+                        }
+                    }
+                    let flat = f.clone();
+                    Defocus::default().apply(&mut f, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
+                    assert_eq!(f, flat, "{format} {w}x{h} sigma {sigma}");
+                    let mut d = Frame::new(w, h, format).unwrap();
+                    d.set(w as usize / 2, h as usize / 2, 0, 255.0);
+                    Defocus::default().apply(&mut d, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
+                    let total: f64 = d.packed_samples_f32().iter().map(|&v| v as f64).sum();
+                    // Each output sample rounds by at most 0.5 DN.
+                    let n = (w * h) as f64;
+                    assert!((total - 255.0).abs() <= 0.5 * n + 1e-9, "{format} {w}x{h} sigma {sigma}: total {total}");
+                }
+            }
         }
     }
 

@@ -946,6 +946,22 @@ mod tests {
     use super::*;
 
     #[test]
+    fn rgb8_split_and_merge_equal_the_plain_loops() {
+        let mut r = Rng::new(11);
+        for n in [0usize, 1, 15, 16, 17, 47, 48, 100, 333] {
+            let src: Vec<u8> = (0..3 * n).map(|_| r.below(256) as u8).collect();
+            let (mut a, mut b, mut c) = (vec![0u8; n], vec![0u8; n], vec![0u8; n]);
+            split_rgb8_row(&src, &mut a, &mut b, &mut c);
+            for i in 0..n {
+                assert_eq!((a[i], b[i], c[i]), (src[3 * i], src[3 * i + 1], src[3 * i + 2]), "{n} px, pixel {i}");
+            }
+            let mut back = vec![0u8; 3 * n];
+            merge_rgb8_row(&mut back, &a, &b, &c);
+            assert_eq!(back, src, "{n} px");
+        }
+    }
+
+    #[test]
     fn byte_lookup_and_threshold_masks_equal_their_references() {
         let mut r = Rng::new(5);
         let lut: [u8; 256] = std::array::from_fn(|v| ((v * 37 + 11) % 256) as u8);
