@@ -51,6 +51,7 @@ pub(crate) const RGB8_MERGE: [[[u8; 16]; 3]; 3] = {
 
 /// Split an interleaved RGB8 row (`3 n` bytes) into three planar rows of `n` bytes. A permutation
 /// of bytes: the same result on every path (16-pixel `pshufb` steps on AVX2 CPUs).
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
 pub fn split_rgb8_row(src: &[u8], r: &mut [u8], g: &mut [u8], b: &mut [u8]) {
     let n = r.len();
     assert!(g.len() == n && b.len() == n && src.len() >= 3 * n);
@@ -67,6 +68,7 @@ pub fn split_rgb8_row(src: &[u8], r: &mut [u8], g: &mut [u8], b: &mut [u8]) {
 
 /// Interleave three planar rows of `n` bytes into an RGB8 row (`3 n` bytes): the inverse of
 /// [`split_rgb8_row`], the same result on every path.
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
 pub fn merge_rgb8_row(dst: &mut [u8], r: &[u8], g: &[u8], b: &[u8]) {
     let n = r.len();
     assert!(g.len() == n && b.len() == n && dst.len() >= 3 * n);
