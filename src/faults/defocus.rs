@@ -194,9 +194,37 @@ const BLUR_BAND: usize = 120;
 /// Rows `y'` in `[y0 - r, y1 + r)` whose source row `mirror(y')` is not read from the band itself
 /// (outside the band, or mirrored at the bottom edge): these are copied to the halo first.
 #[inline]
-fn from_halo(yv: isize, y0: usize, y1: usize, h: usize) -> bool {
+pub(crate) fn from_halo(yv: isize, y0: usize, y1: usize, h: usize) -> bool {
     let s = mirror(yv, h);
     !(s as isize == yv && (y0..y1).contains(&s))
+}
+
+/// Pass 1 of the in-place banded blurs (`defocus`'s FIR, `motion_blur`'s FIR): for every band
+/// `b` of `rows_per` rows, copies the rows `from_halo` names (reach `r` above and below) from the
+/// still unmodified frame `src` (`rl` bytes of each `stride`) into the band's `per_halo` slice
+/// of `halo`, in order of the virtual row, so no band reads a row another band overwrites.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn fill_band_halos(
+    src: &[u8],
+    halo: &mut [u8],
+    per_halo: usize,
+    rows_per: usize,
+    h: usize,
+    r: usize,
+    stride: usize,
+    rl: usize,
+) {
+    halo.par_chunks_mut(per_halo.max(1)).enumerate().for_each(|(b, hb)| {
+        let (y0, y1) = (b * rows_per, ((b + 1) * rows_per).min(h));
+        let mut j = 0;
+        for yv in y0 as isize - r as isize..(y1 + r) as isize {
+            if from_halo(yv, y0, y1, h) {
+                let s = mirror(yv, h);
+                hb[j * rl..(j + 1) * rl].copy_from_slice(&src[s * stride..s * stride + rl]);
+                j += 1;
+            }
+        }
+    });
 }
 
 /// Q6 (`v * 64`) copy of 8-bit row `src`, mirrored by `r` pixels at both ends, into `pad`.
@@ -242,20 +270,7 @@ fn blur_u8(
     }
     let bounds = |b: usize| (b * rows_per, ((b + 1) * rows_per).min(h));
     // Pass 1: copy the rows each band needs but does not own (the frame is still unmodified).
-    {
-        let src: &[u8] = d;
-        halo[..per_halo * nb].par_chunks_mut(per_halo.max(1)).enumerate().for_each(|(b, hb)| {
-            let (y0, y1) = bounds(b);
-            let mut j = 0;
-            for yv in y0 as isize - r as isize..(y1 + r) as isize {
-                if from_halo(yv, y0, y1, h) {
-                    let s = mirror(yv, h);
-                    hb[j * rl..(j + 1) * rl].copy_from_slice(&src[s * stride..s * stride + rl]);
-                    j += 1;
-                }
-            }
-        });
-    }
+    fill_band_halos(d, &mut halo[..per_halo * nb], per_halo, rows_per, h, r, stride, rl);
     // Pass 2: the bands.
     let used = d.len().min(stride * h);
     d[..used]

@@ -1,6 +1,6 @@
 //! `motion_blur`: linear motion during the exposure, a normalised line PSF.
 
-use super::defocus::mirror;
+use super::defocus::{fill_band_halos, from_halo, mirror};
 use super::fir16;
 use super::kit::{axpy_row, band_rows, bands, mirrored_row_f32, par_bands_with, round_row};
 use super::streak;
@@ -246,14 +246,6 @@ fn cols_pay(npairs: usize, cols: &[fir16::TapCol]) -> bool {
     4 * by_cols <= 3 * by_rows
 }
 
-/// Whether virtual row `yv` (mirrored at the frame's edges) of band `[y0, y1)` is read from the
-/// band's copy of the unmodified frame (a row outside the band, or a mirrored one) rather than
-/// from the band itself (overwritten row by row as the band's output goes out).
-fn from_halo(yv: isize, y0: usize, y1: usize, h: usize) -> bool {
-    let s = mirror(yv, h);
-    !(s as isize == yv && (y0..y1).contains(&s))
-}
-
 /// 8-bit convolution in place: output row y is the FIR (`fir16::sym_fir_u8`) over the mirrored
 /// Q6 rows y - r ..= y + r, held in a ring of `2r + 1` rows per band (in cache) instead of a Q6
 /// copy of the whole frame, and rounded to bytes in registers. The rows a band needs but does not
@@ -301,20 +293,7 @@ fn convolve_q6(
     let bounds = |b: usize| (b * per, ((b + 1) * per).min(h));
     let use_cols = cols_pay(pairs.len(), cols);
     // Pass 1: the rows each band reads from the unmodified frame (at most r above and r below).
-    {
-        let src: &[u8] = d;
-        halo[..per_halo * nb].par_chunks_mut(per_halo.max(1)).enumerate().for_each(|(b, hb)| {
-            let (y0, y1) = bounds(b);
-            let mut j = 0;
-            for yv in y0 as isize - r as isize..(y1 + r) as isize {
-                if from_halo(yv, y0, y1, h) {
-                    let s = mirror(yv, h);
-                    hb[j * rl..(j + 1) * rl].copy_from_slice(&src[s * stride..s * stride + rl]);
-                    j += 1;
-                }
-            }
-        });
-    }
+    fill_band_halos(d, &mut halo[..per_halo * nb], per_halo, per, h, r, stride, rl);
     // Pass 2: the bands, each walking down its rows with its ring.
     let used = d.len().min(stride * h);
     d[..used]
