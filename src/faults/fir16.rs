@@ -310,6 +310,51 @@ mod simd {
     use super::mulhrs;
     use std::arch::x86_64::*;
 
+    /// The point-symmetric FIR's Q6 sums of 64 outputs from `c` (`bp + c`, pairs at `offs[k] + i`,
+    /// centre weight `q[0]`): one `vpmulhrsw` per tap pair and register, wrapping 16-bit adds.
+    /// Shared by [`fir_avx2`] (stores the sums) and [`fir_u8_avx2`] (rounds them to bytes).
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    unsafe fn sums64_avx2(bp: *const i16, c: usize, offs: &[(usize, usize)], q: &[i16], i: usize) -> [__m256i; 4] {
+        // SAFETY (block): the caller's bounds: c + 64 and offs[k] + i + 64 lie within the base.
+        unsafe {
+            let ld = |p: usize| _mm256_loadu_si256(bp.add(p) as *const __m256i);
+            let q0 = _mm256_set1_epi16(q[0]);
+            let mut a = [0, 16, 32, 48].map(|o| _mm256_mulhrs_epi16(ld(c + o), q0));
+            for k in 1..q.len() {
+                let qk = _mm256_set1_epi16(q[k]);
+                let (lo, hi) = (offs[k].0 + i, offs[k].1 + i);
+                for (j, aj) in a.iter_mut().enumerate() {
+                    let o = 16 * j;
+                    *aj = _mm256_add_epi16(*aj, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo + o), ld(hi + o)), qk));
+                }
+            }
+            a
+        }
+    }
+
+    /// [`sums64_avx2`] in four zmm registers: the sums of 128 outputs, for [`fir_avx512`] and
+    /// [`fir_u8_avx512`].
+    #[target_feature(enable = "avx512f,avx512bw")]
+    #[inline]
+    unsafe fn sums128_avx512(bp: *const i16, c: usize, offs: &[(usize, usize)], q: &[i16], i: usize) -> [__m512i; 4] {
+        // SAFETY (block): the caller's bounds: c + 128 and offs[k] + i + 128 lie within the base.
+        unsafe {
+            let ld = |p: usize| _mm512_loadu_si512(bp.add(p) as *const __m512i);
+            let q0 = _mm512_set1_epi16(q[0]);
+            let mut a = [0, 32, 64, 96].map(|o| _mm512_mulhrs_epi16(ld(c + o), q0));
+            for k in 1..q.len() {
+                let qk = _mm512_set1_epi16(q[k]);
+                let (lo, hi) = (offs[k].0 + i, offs[k].1 + i);
+                for (j, aj) in a.iter_mut().enumerate() {
+                    let o = 32 * j;
+                    *aj = _mm512_add_epi16(*aj, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo + o), ld(hi + o)), qk));
+                }
+            }
+            a
+        }
+    }
+
     /// Whole chunks of 64 outputs; returns how many outputs were written.
     #[target_feature(enable = "avx2")]
     pub unsafe fn fir_avx2(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usize)], q: &[i16]) -> usize {
@@ -319,21 +364,7 @@ mod simd {
         while i < n {
             // SAFETY (block): offsets + i + 64 <= offsets + n <= base.len() (checked by the caller).
             unsafe {
-                let ld = |p: usize| _mm256_loadu_si256(bp.add(p) as *const __m256i);
-                let q0 = _mm256_set1_epi16(q[0]);
-                let c = center + i;
-                let mut a0 = _mm256_mulhrs_epi16(ld(c), q0);
-                let mut a1 = _mm256_mulhrs_epi16(ld(c + 16), q0);
-                let mut a2 = _mm256_mulhrs_epi16(ld(c + 32), q0);
-                let mut a3 = _mm256_mulhrs_epi16(ld(c + 48), q0);
-                for k in 1..q.len() {
-                    let qk = _mm256_set1_epi16(q[k]);
-                    let (lo, hi) = (offs[k].0 + i, offs[k].1 + i);
-                    a0 = _mm256_add_epi16(a0, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo), ld(hi)), qk));
-                    a1 = _mm256_add_epi16(a1, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo + 16), ld(hi + 16)), qk));
-                    a2 = _mm256_add_epi16(a2, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo + 32), ld(hi + 32)), qk));
-                    a3 = _mm256_add_epi16(a3, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo + 48), ld(hi + 48)), qk));
-                }
+                let [a0, a1, a2, a3] = sums64_avx2(bp, center + i, offs, q, i);
                 let op = out.as_mut_ptr().add(i) as *mut __m256i;
                 _mm256_storeu_si256(op, a0);
                 _mm256_storeu_si256(op.add(1), a1);
@@ -481,21 +512,7 @@ mod simd {
             // SAFETY (block): offsets + i + 64 <= offsets + n <= base.len() (checked by the
             // caller); out holds n >= i + 64 bytes.
             unsafe {
-                let ld = |p: usize| _mm256_loadu_si256(bp.add(p) as *const __m256i);
-                let q0 = _mm256_set1_epi16(q[0]);
-                let c = center + i;
-                let mut a0 = _mm256_mulhrs_epi16(ld(c), q0);
-                let mut a1 = _mm256_mulhrs_epi16(ld(c + 16), q0);
-                let mut a2 = _mm256_mulhrs_epi16(ld(c + 32), q0);
-                let mut a3 = _mm256_mulhrs_epi16(ld(c + 48), q0);
-                for k in 1..q.len() {
-                    let qk = _mm256_set1_epi16(q[k]);
-                    let (lo, hi) = (offs[k].0 + i, offs[k].1 + i);
-                    a0 = _mm256_add_epi16(a0, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo), ld(hi)), qk));
-                    a1 = _mm256_add_epi16(a1, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo + 16), ld(hi + 16)), qk));
-                    a2 = _mm256_add_epi16(a2, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo + 32), ld(hi + 32)), qk));
-                    a3 = _mm256_add_epi16(a3, _mm256_mulhrs_epi16(_mm256_add_epi16(ld(lo + 48), ld(hi + 48)), qk));
-                }
+                let [a0, a1, a2, a3] = sums64_avx2(bp, center + i, offs, q, i);
                 let cv = |a: __m256i| _mm256_srai_epi16::<6>(_mm256_adds_epi16(a, half));
                 let p0 = _mm256_permute4x64_epi64::<0xD8>(_mm256_packus_epi16(cv(a0), cv(a1)));
                 let p1 = _mm256_permute4x64_epi64::<0xD8>(_mm256_packus_epi16(cv(a2), cv(a3)));
@@ -528,21 +545,7 @@ mod simd {
             // SAFETY (block): offsets + i + 128 <= offsets + n <= base.len() (checked by the
             // caller); out holds n >= i + 128 bytes.
             unsafe {
-                let ld = |p: usize| _mm512_loadu_si512(bp.add(p) as *const __m512i);
-                let q0 = _mm512_set1_epi16(q[0]);
-                let c = center + i;
-                let mut a0 = _mm512_mulhrs_epi16(ld(c), q0);
-                let mut a1 = _mm512_mulhrs_epi16(ld(c + 32), q0);
-                let mut a2 = _mm512_mulhrs_epi16(ld(c + 64), q0);
-                let mut a3 = _mm512_mulhrs_epi16(ld(c + 96), q0);
-                for k in 1..q.len() {
-                    let qk = _mm512_set1_epi16(q[k]);
-                    let (lo, hi) = (offs[k].0 + i, offs[k].1 + i);
-                    a0 = _mm512_add_epi16(a0, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo), ld(hi)), qk));
-                    a1 = _mm512_add_epi16(a1, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo + 32), ld(hi + 32)), qk));
-                    a2 = _mm512_add_epi16(a2, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo + 64), ld(hi + 64)), qk));
-                    a3 = _mm512_add_epi16(a3, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo + 96), ld(hi + 96)), qk));
-                }
+                let [a0, a1, a2, a3] = sums128_avx512(bp, center + i, offs, q, i);
                 let cv = |a: __m512i| {
                     _mm512_cvtusepi16_epi8(_mm512_max_epi16(_mm512_srai_epi16::<6>(_mm512_adds_epi16(a, half)), zero))
                 };
@@ -710,21 +713,7 @@ mod simd {
         while i < n {
             // SAFETY (block): offsets + i + 128 <= offsets + n <= base.len() (checked by the caller).
             unsafe {
-                let ld = |p: usize| _mm512_loadu_si512(bp.add(p) as *const __m512i);
-                let q0 = _mm512_set1_epi16(q[0]);
-                let c = center + i;
-                let mut a0 = _mm512_mulhrs_epi16(ld(c), q0);
-                let mut a1 = _mm512_mulhrs_epi16(ld(c + 32), q0);
-                let mut a2 = _mm512_mulhrs_epi16(ld(c + 64), q0);
-                let mut a3 = _mm512_mulhrs_epi16(ld(c + 96), q0);
-                for k in 1..q.len() {
-                    let qk = _mm512_set1_epi16(q[k]);
-                    let (lo, hi) = (offs[k].0 + i, offs[k].1 + i);
-                    a0 = _mm512_add_epi16(a0, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo), ld(hi)), qk));
-                    a1 = _mm512_add_epi16(a1, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo + 32), ld(hi + 32)), qk));
-                    a2 = _mm512_add_epi16(a2, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo + 64), ld(hi + 64)), qk));
-                    a3 = _mm512_add_epi16(a3, _mm512_mulhrs_epi16(_mm512_add_epi16(ld(lo + 96), ld(hi + 96)), qk));
-                }
+                let [a0, a1, a2, a3] = sums128_avx512(bp, center + i, offs, q, i);
                 let op = out.as_mut_ptr().add(i) as *mut __m512i;
                 _mm512_storeu_si512(op, a0);
                 _mm512_storeu_si512(op.add(1), a1);
