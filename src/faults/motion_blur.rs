@@ -372,7 +372,7 @@ fn convolve_q6(
 /// most 3.5 ms there (24 px), and the default 10 px and the shorter streaks keep their bytes.
 pub const ROW_BOX_MIN_PX: f64 = 24.0;
 
-/// Whether an 8-bit frame runs [`RowBox`] (a box sum with the model's weights, within 0.51 DN):
+/// Whether an 8-bit frame runs [`RowBox`] (a box sum with the model's weights, within 0.55 DN):
 /// streaks exactly along x (0 or 180 deg) longer than [`ROW_BOX_MIN_PX`].
 pub fn runs_row_box(length: f64, angle_deg: f64) -> bool {
     RowBox::new(length, angle_deg, &line_taps(length, angle_deg)).is_some()
@@ -388,114 +388,173 @@ pub fn runs_row_box(length: f64, angle_deg: f64) -> bool {
 pub struct RowBox {
     /// Full-weight taps each side of the centre.
     n: usize,
-    /// Normalised weights: interior, `|dx| = n + 1`, `|dx| = n + 2` (the model's, in f32).
-    a: [f32; 3],
+    /// Fraction bits of the sum `B` (see `row_box_k`): the largest `q <= 6` with `(2n + 5) 255
+    /// 2^q < 2^16`.
+    q: u32,
+    /// The end taps' weights relative to an interior one, times `2^(9 + q)` (rounded; applied as
+    /// `mulhi(e << 7, w)` = `e w / 2^9`).
+    w: [u16; 2],
+    /// The final division by `D` = the `B` of a flat 1 DN row: `out = ((mulhi(B, dm) >> (ds - 1))
+    /// + 1) >> 1`, `dm = round(2^(16 + ds) / D)` (the largest `ds` with `dm < 2^16`).
+    dm: u16,
+    ds: u32,
 }
 
 impl RowBox {
     /// The plan for the streak's [`line_taps`] `taps`, or `None` when it is not a row of that
-    /// shape (not along x, shorter than 2 px, or longer than the 16-bit sums hold).
+    /// shape (not along x, not longer than [`ROW_BOX_MIN_PX`], or longer than the 16-bit sums
+    /// hold).
     fn new(length: f64, angle_deg: f64, taps: &[(i32, i32, f32)]) -> Option<RowBox> {
         if angle_deg.rem_euclid(180.0) != 0.0 || length <= ROW_BOX_MIN_PX {
             return None;
         }
         let n = (length / 2.0 - 1.0).floor() as usize;
-        // The box's 16-bit sums: (2n + 1) 255 < 2^16.
-        if (2 * n + 1) * 255 > u16::MAX as usize || taps.iter().any(|t| t.1 != 0 || t.0.unsigned_abs() as usize > n + 2)
-        {
+        let k = 2 * n + 1;
+        // The sums with the end taps: (2n + 5) 255 2^q < 2^16.
+        let q = (0..=6u32).rev().find(|&q| (k + 4) * (255 << q) <= u16::MAX as usize)?;
+        if taps.iter().any(|t| t.1 != 0 || t.0.unsigned_abs() as usize > n + 2) {
             return None;
         }
-        let total: f64 = taps.iter().map(|t| t.2 as f64).sum();
         let sum_at = |lo: usize, hi: usize| -> f64 {
             taps.iter().filter(|t| (lo..=hi).contains(&(t.0.unsigned_abs() as usize))).map(|t| t.2 as f64).sum()
         };
-        let interior = sum_at(0, n) / (2 * n + 1) as f64;
+        let interior = sum_at(0, n) / k as f64;
         // The interior weights are equal (each pixel's tent lies wholly inside the line, sampled
         // at the same 1/8 px steps): up to the f32 rounding of the taps.
-        let uniform = taps.iter().filter(|t| t.0.unsigned_abs() as usize <= n).all(|t| {
-            (t.2 as f64 - interior).abs() <= 1e-6 * interior
-        });
+        let uniform =
+            taps.iter().filter(|t| t.0.unsigned_abs() as usize <= n).all(|t| (t.2 as f64 - interior).abs() <= 1e-6 * interior);
         if !uniform {
             return None;
         }
-        let a = [interior / total, sum_at(n + 1, n + 1) / 2.0 / total, sum_at(n + 2, n + 2) / 2.0 / total];
-        Some(RowBox { n, a: a.map(|v| v as f32) })
+        let rel = |d: usize| sum_at(d, d) / 2.0 / interior;
+        let w = [rel(n + 1), rel(n + 2)].map(|r| (r * 2f64.powi(9 + q as i32)).round().min(65535.0) as u16);
+        let dd = (k << q) as f64 + 2.0 * (w[0] as f64 + w[1] as f64) / 512.0;
+        let ds = (1..=15u32).rev().find(|&s| (2f64.powi(16 + s as i32) / dd).round() < 65536.0).unwrap_or(1);
+        let dm = (2f64.powi(16 + ds as i32) / dd).round() as u16;
+        Some(RowBox { n, q, w, dm, ds })
     }
 }
 
-/// Per-band scratch of [`row_box`]: the padded row, two window-sum rows and the box sums.
+/// Output samples per segment of a row in [`row_box_k`]: the segment's three rows of window sums
+/// (plus the padded row) stay in the L1 cache (about 26 KB at 100 px rgb8).
+const ROW_BOX_SEG: usize = 2048;
+
+/// Per-band scratch of [`row_box`] (u16s): the padded row and three segments of window sums.
 fn row_box_scratch(w: usize, ch: usize, n: usize) -> usize {
-    4 * (w + 2 * (n + 2)) * ch
+    (w + 2 * (n + 2)) * ch + 3 * (ROW_BOX_SEG + (2 * n + 4) * ch)
 }
 
-/// One row of [`row_box`] in place (`row`, `w` pixels of `ch` samples, read whole into the padded
-/// copy before any output is written); `s` is the
-/// scratch of [`row_box_scratch`] u16s. The box sum of `k = 2n + 1` pixels by doubling: windows
-/// of 1, 2, 4, .. pixels (`cur[i] + cur[i + width]`), the ones in `k`'s binary digits added up
-/// (exact 16-bit integer sums); then per sample `(box a0 + (e1 sum) a1 + (e2 sum) a2 + 0.5)`
-/// truncated, in f32 in this order without fused multiply-adds: the same operations and the same
-/// bytes on every path.
+/// `(x e) >> 16` (the high half of the 16-bit product: one `vpmulhuw`).
+#[inline(always)]
+fn mulhi(x: u16, e: u16) -> u16 {
+    ((x as u32 * e as u32) >> 16) as u16
+}
+
+/// One row of [`row_box`] in place (`row`, `w` pixels of `ch` samples, copied whole into the
+/// padded row first); `s` is the scratch of [`row_box_scratch`] u16s. Segment by segment of
+/// [`ROW_BOX_SEG`] output samples: the box sum `S` of `k = 2n + 1` pixels by doubling, windows of
+/// 1, 2, 4, .. pixels (`cur[i] + cur[i + width]`), the ones in `k`'s binary digits added up on
+/// the way (exact 16-bit sums: `k 255 < 2^16`); then per sample `B = S 2^q + mulhi(e1 << 7, w1)
+/// + mulhi(e2 << 7, w2)` (`e1`, `e2` the sums of the two end-tap pairs) and the division by `D`
+/// (see [`RowBox`]). Integer operations only: the same bytes on every path and segment split.
 #[inline(always)]
 fn row_box_k(row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut [u16]) {
     let rr = plan.n + 2;
     let np = (w + 2 * rr) * ch;
     let (p, s) = s.split_at_mut(np);
-    let (c0, s) = s.split_at_mut(np);
-    let (c1, acc) = s.split_at_mut(np);
-    let acc = &mut acc[..np];
+    let halo = (2 * rr) * ch;
+    let sl = ROW_BOX_SEG + halo;
+    let (c0, s) = s.split_at_mut(sl);
+    let (c1, acc) = s.split_at_mut(sl);
+    let acc = &mut acc[..sl];
     let src = &*row;
     // The row mirrored (half-sample symmetric) by rr pixels a side, as u16.
     for (d, &v) in p[rr * ch..(rr + w) * ch].iter_mut().zip(&src[..w * ch]) {
         *d = v as u16;
     }
     for px in (0..rr).chain(rr + w..w + 2 * rr) {
-        let sx = mirror(px as isize - rr as isize, w);
+        let sx = if px < rr && rr <= w {
+            rr - 1 - px
+        } else if px >= rr + w && rr <= w {
+            2 * w + rr - 1 - px
+        } else {
+            mirror(px as isize - rr as isize, w)
+        };
         for c in 0..ch {
             p[px * ch + c] = src[sx * ch + c] as u16;
         }
     }
-    c0.copy_from_slice(p);
-    let (mut cur, mut nxt) = (c0, c1);
-    let (mut kk, mut cw, mut aw) = (2 * plan.n + 1, 1usize, 0usize);
-    loop {
-        // cur[i] = sum of the cw pixels from i; acc[i] = sum of the aw pixels from i.
-        if kk & 1 == 1 {
-            let m = np - (aw + cw - 1) * ch;
+    let wc = w * ch;
+    let mut s0 = 0;
+    while s0 < wc {
+        let s1 = (s0 + ROW_BOX_SEG).min(wc);
+        row_box_seg(&mut row[s0..s1], &p[s0..s1 + halo], ch, plan, c0, c1, acc);
+        s0 = s1;
+    }
+}
+
+/// The outputs `out` of [`row_box_k`] from the padded samples `p` (`out.len() + (2n + 4) ch`
+/// of them); `c0`, `c1`, `acc` scratch of at least `p.len()`.
+#[inline(always)]
+fn row_box_seg(out: &mut [u8], p: &[u16], ch: usize, plan: RowBox, c0: &mut [u16], c1: &mut [u16], acc: &mut [u16]) {
+    let np = p.len();
+    let k = 2 * plan.n + 1;
+    let top = usize::BITS - 1 - k.leading_zeros();
+    // Level b: cur[i] = the sum of the cw = 2^b pixels from i (p, then c0 and c1 in turn);
+    // acc[i] = the sum of the aw pixels from i (aw = k's digits below b). Only acc[..out.len() +
+    // 2 ch] is used, which every level's next window covers (2 cw - 1 <= 2n).
+    let (mut cw, mut aw) = (1usize, 0usize);
+    for b in 0..top {
+        let (rd, wr): (&[u16], &mut [u16]) = match b {
+            0 => (p, &mut *c0),
+            _ if b % 2 == 1 => (&*c0, &mut *c1),
+            _ => (&*c1, &mut *c0),
+        };
+        let m = np - (2 * cw - 1) * ch;
+        let (lo, hi) = (&rd[..m], &rd[cw * ch..cw * ch + m]);
+        if k >> b & 1 == 1 {
             if aw == 0 {
-                acc[..m].copy_from_slice(&cur[..m]);
+                acc[..m].copy_from_slice(lo);
             } else {
-                for (a, &c) in acc[..m].iter_mut().zip(&cur[aw * ch..aw * ch + m]) {
+                for (a, &c) in acc[..m].iter_mut().zip(&rd[aw * ch..aw * ch + m]) {
                     *a += c;
                 }
             }
             aw += cw;
         }
-        kk >>= 1;
-        if kk == 0 {
-            break;
-        }
-        let m = np - (2 * cw - 1) * ch;
-        for ((d, &x), &y) in nxt[..m].iter_mut().zip(&cur[..m]).zip(&cur[cw * ch..cw * ch + m]) {
+        for ((d, &x), &y) in wr[..m].iter_mut().zip(lo).zip(hi) {
             *d = x + y;
         }
-        std::mem::swap(&mut cur, &mut nxt);
         cw *= 2;
     }
-    // Output pixel x: centre at padded pixel x + rr, box from x + 2, end taps at x + 1, x + 2n +
-    // 3 (|dx| = n + 1) and x, x + 2n + 4 (|dx| = n + 2).
-    let wc = w * ch;
+    let cur: &[u16] = match top {
+        0 => p,
+        _ if top % 2 == 1 => c0,
+        _ => c1,
+    };
+    // Output x: centre at padded x + rr, box from x + 2, end taps at x + 1, x + 2n + 3 (|dx| =
+    // n + 1) and x, x + 2n + 4 (|dx| = n + 2), in pixels.
+    let wc = out.len();
     let n2 = 2 * plan.n;
-    let [a0, a1, a2] = plan.a;
-    let bx = &acc[2 * ch..2 * ch + wc];
+    let (at, bt) = (&acc[2 * ch..2 * ch + wc], &cur[(2 + aw) * ch..(2 + aw) * ch + wc]);
     let (l2, l1) = (&p[..wc], &p[ch..ch + wc]);
     let (r1, r2) = (&p[(n2 + 3) * ch..(n2 + 3) * ch + wc], &p[(n2 + 4) * ch..(n2 + 4) * ch + wc]);
-    for (t, o) in row[..wc].iter_mut().enumerate() {
-        let e1 = (l1[t] + r1[t]) as f32;
-        let e2 = (l2[t] + r2[t]) as f32;
-        let v = (bx[t] as f32 * a0 + e1 * a1 + e2 * a2 + 0.5).min(255.0);
-        // SAFETY: 0.5 <= v <= 255 (non-negative samples and weights): a whole i32 after the
-        // truncation (no saturating conversion, which does not vectorise).
-        *o = unsafe { v.to_int_unchecked::<i32>() } as u8;
+    // The shifts by q and ds - 1 as multiplications (vpmullw, vpmulhuw: the compiler keeps them
+    // in 16-bit lanes): `x << q = x 2^q`, `x >> (ds - 1) = mulhi(x, 2^(17 - ds))` (2 <= ds <= 16).
+    debug_assert!((2..=16).contains(&plan.ds));
+    let (sq, [w1, w2], dm, sd) = (1u16 << plan.q, plan.w, plan.dm, 1u16 << (17 - plan.ds));
+    let body = |sum: u16, e1: u16, e2: u16| -> u8 {
+        let b = sum * sq + mulhi(e1 << 7, w1) + mulhi(e2 << 7, w2);
+        ((mulhi(mulhi(b, dm), sd) + 1) >> 1).min(255) as u8
+    };
+    if aw == 0 {
+        for t in 0..wc {
+            out[t] = body(bt[t], l1[t] + r1[t], l2[t] + r2[t]);
+        }
+    } else {
+        for t in 0..wc {
+            out[t] = body(at[t] + bt[t], l1[t] + r1[t], l2[t] + r2[t]);
+        }
     }
 }
 
