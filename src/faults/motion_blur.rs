@@ -41,7 +41,7 @@ pub static INFO: EffectInfo = EffectInfo {
             the model it is within 10 DN on hard edges and point sources from 24 px, 6 DN from 37.5 \
             px, 3.5 DN at 100 px, 0.55 DN for axis-aligned streaks (the final rounding plus the 16-bit \
             truncations), mean within 0.05 DN (tested). 8-bit frames, streaks exactly along x (0 or \
-            180 deg) longer than 24 px: the model's PSF is then one row, 2n + 1 equal weights (n = \
+            180 deg) longer than 28 px: the model's PSF is then one row, 2n + 1 equal weights (n = \
             floor(length_px / 2 - 1)) and two end-tap pairs; an exact 16-bit box sum (windows of \
             1, 2, 4, .. px added by doubling: cost independent of the length) plus the end taps \
             and the normalisation as 16-bit multiply-highs, the same integer operations on every \
@@ -373,9 +373,10 @@ fn convolve_q6(
 }
 
 /// 8-bit streaks exactly along x longer than this run [`RowBox`] (cost independent of the
-/// length, about 1.3 ms rgb8 1920x1200 on the Zen 4); up to it the exact FIR's row kernel costs at
-/// most 3.5 ms there (24 px), and the default 10 px and the shorter streaks keep their bytes.
-pub const ROW_BOX_MIN_PX: f64 = 24.0;
+/// length, 3.7-4.3 ms rgb8 1920x1200 on the loaded Zen 4 from 26 to 66 px); up to it the exact
+/// FIR's row kernel costs no more than that on the AVX2 kernels (the two about equal at 29 px,
+/// 4.3-4.4 ms; BENCHMARKS.md "Stop 40 motion_blur"), and the shorter streaks keep their bytes.
+pub const ROW_BOX_MIN_PX: f64 = 28.0;
 
 /// Whether an 8-bit frame runs [`RowBox`] (a box sum with the model's weights, within 0.55 DN):
 /// streaks exactly along x (0 or 180 deg) longer than [`ROW_BOX_MIN_PX`].
@@ -758,7 +759,7 @@ mod tests {
             (24.0, 30.0),
             (24.0, 0.0),
             (28.0, 10.0),
-            (24.0, 180.0),
+            (28.0, 180.0),
         ] {
             assert!(!runs_streak(len, ang) && !runs_row_box(len, ang), "{len} px at {ang} deg runs the FIR");
             let mut f = orig.clone();
@@ -943,14 +944,14 @@ mod streak_tests {
         out
     }
 
-    /// Streaks exactly along x longer than 24 px: the row box (exact 16-bit sums with the model's
+    /// Streaks exactly along x longer than 28 px: the row box (exact 16-bit sums with the model's
     /// weights, the end taps and the division as multiply-highs) is within 0.55 DN of the model
     /// (the final rounding 0.5 plus the truncations: two end-tap products, the division's
     /// product and reciprocal, about 0.03 DN), keeps the mean, and does not depend on the thread
     /// count; frames narrower than the streak (mirrored more than once) included.
     #[test]
     fn row_box_is_within_the_stated_bound_of_the_model() {
-        assert!(!runs_row_box(24.0, 0.0) && !runs_row_box(30.0, 0.5) && !runs_row_box(30.0, 90.0));
+        assert!(!runs_row_box(28.0, 0.0) && !runs_row_box(30.0, 0.5) && !runs_row_box(30.0, 90.0));
         let mut frames = scenes();
         frames.push(crate::faults::kit::bench_scene(37, 9, PixelFormat::Rgb8, 4).unwrap());
         let mut report = Vec::new();
@@ -958,8 +959,8 @@ mod streak_tests {
             let (w, h, ch) = (f.width as usize, f.height as usize, f.channels());
             let src: Vec<f64> = f.packed_samples_f32().iter().map(|&v| v as f64).collect();
             for (len, ang) in [
-                (24.5, 0.0),
-                (25.0, 180.0),
+                (28.5, 0.0),
+                (29.0, 180.0),
                 (30.0, 0.0),
                 (37.3, 0.0),
                 (40.0, 180.0),
