@@ -384,9 +384,13 @@ pub(crate) struct Plane {
 
 impl Plane {
     fn set(&mut self, w: usize, h: usize, m: usize, ch: usize) {
+        self.set_rows(w, h, m, ch, h + 2 * m);
+    }
+    /// As [`Plane::set`] with storage for `rows` rows only (a ring: row `jj` in slot `jj % rows`).
+    fn set_rows(&mut self, w: usize, h: usize, m: usize, ch: usize, rows: usize) {
         (self.w, self.h, self.m, self.ch) = (w, h, m, ch);
         // Grow only: the planes change size between stages and channels (no refill each time).
-        let need = (w + 2 * m) * (h + 2 * m) * ch + PLANE_SLACK;
+        let need = (w + 2 * m) * rows * ch + PLANE_SLACK;
         if self.d.len() < need {
             self.d.resize(need, 0);
         }
@@ -405,10 +409,17 @@ impl Plane {
         &mut self.d[jj * rl..(jj + 1) * rl]
     }
     fn row(&self, y: isize) -> &[i16] {
-        let i = (y + self.m as isize) as usize;
-        &self.d[i * self.rl()..(i + 1) * self.rl()]
+        self.row_at((y + self.m as isize) as usize)
+    }
+    /// Row `jj` of the storage (counted from the top margin row; a ring's slot).
+    fn row_at(&self, jj: usize) -> &[i16] {
+        &self.d[jj * self.rl()..(jj + 1) * self.rl()]
     }
 }
+
+/// Rows of the first level's ring when the pyramid has more levels (each second-level row reads
+/// six first-level rows; eight slots, so the rows still needed are never overwritten).
+const L1_RING: usize = 8;
 
 /// Samples after the last row of a plane: the FIR runs whole 128-sample chunks past the row ends
 /// (those outputs are not used).
@@ -420,7 +431,8 @@ pub(crate) struct PyrScratch {
     /// Per channel: the first level, and the plane the final upsampler reads.
     dec: [Plane; 3],
     fin: [Plane; 3],
-    l2: Plane,
+    /// Per channel: the second level (the first is then a ring of [`L1_RING`] rows).
+    l2: [Plane; 3],
     l3: Plane,
     t: Plane,
     row32: Vec<i32>,
@@ -575,13 +587,15 @@ fn decimate_u8(
     ch: usize,
     m: usize,
     outs: &mut [Plane],
+    ring: Option<usize>,
     pad16: &mut Vec<u16>,
     split16: &mut Vec<u16>,
     msrc: &mut Vec<(u32, u32)>,
+    after: &mut dyn FnMut(usize, &[Plane]),
 ) {
     let (wl, hl) = (w.div_ceil(2), h.div_ceil(2));
     for o in outs.iter_mut() {
-        o.set(wl, hl, m, 1);
+        o.set_rows(wl, hl, m, 1, ring.unwrap_or(hl + 2 * m));
     }
     let rl = w * ch;
     let np = 2 * (wl + 2 * m) + 4; // full-res columns -2m-2 ..= 2(wl+m-1)+3
@@ -596,6 +610,7 @@ fn decimate_u8(
     msrc.extend((0..a).chain(a + inner..np).map(|px| (px as u32, mirror(px as isize + x0, w) as u32)));
     for jj in 0..rows {
         let j = jj as isize - m as isize;
+        let slot = ring.map_or(jj, |n| jj % n);
         let r = |k: isize| {
             let y = mirror(2 * j - 2 + k, h);
             &d[y * stride..y * stride + rl]
@@ -607,15 +622,16 @@ fn decimate_u8(
             pad16.copy_within(sx..sx + ch, px);
         }
         if ch == 1 {
-            hdec16(outs[0].row_mut(jj), pad16, rnd(jj, 1));
+            hdec16(outs[0].row_mut(slot), pad16, rnd(jj, 1));
         } else {
             let (s0, rest) = split16.split_at_mut(np);
             let (s1, s2) = rest.split_at_mut(np);
             split3_u16(pad16, s0, s1, s2);
             for (o, sp) in outs.iter_mut().zip([&*s0, &*s1, &*s2]) {
-                hdec16(o.row_mut(jj), sp, rnd(jj, 1));
+                hdec16(o.row_mut(slot), sp, rnd(jj, 1));
             }
         }
+        after(jj, outs);
     }
 }
 
@@ -632,10 +648,16 @@ fn decimate_q6(inp: &Plane, m: usize, out: &mut Plane, f16: &mut Vec<i16>, pad32
     for (jj, orow) in out.rows_mut().enumerate() {
         let j = jj as isize - m as isize;
         let r = |k: isize| &inp.row(2 * j - 2 + k)[off..off + np * ch];
-        vsum_q6(pad32, r(0), r(1), r(2), r(3), r(4), r(5));
-        // Units q * 1024 -> q: / 1024.
-        hdec(orow, pad32, ch, 10, f16);
+        decimate_q6_row(orow, [r(0), r(1), r(2), r(3), r(4), r(5)], ch, f16, pad32);
     }
+}
+
+/// One row of [`decimate_q6`]: from the six input rows 2j - 2 ..= 2j + 3 (each from input column
+/// -2m - 2, `pad32.len()` samples).
+fn decimate_q6_row(orow: &mut [i16], r: [&[i16]; 6], ch: usize, f16: &mut Vec<i16>, pad32: &mut [i32]) {
+    vsum_q6(pad32, r[0], r[1], r[2], r[3], r[4], r[5]);
+    // Units q * 1024 -> q: / 1024.
+    hdec(orow, pad32, ch, 10, f16);
 }
 
 /// Separable discrete-Gaussian FIR (`fir16::sym_fir`, Q15 half kernel `q`) on a plane; the
@@ -913,16 +935,44 @@ pub(crate) fn pyr_blur_u8(
         2 => 2 * mc + 3,
         _ => 2 * (2 * mc + 3) + 3,
     };
-    decimate_u8(d, stride, w, h, ch, m1, &mut dec[..ch], pad16, split16, msrc);
-    for (dc, fc) in dec.iter_mut().zip(fin.iter_mut()).take(ch) {
-        let (w1, h1) = (dc.w, dc.h);
-        match levels {
-            1 => match q {
+    if levels == 1 {
+        decimate_u8(d, stride, w, h, ch, m1, &mut dec[..ch], None, pad16, split16, msrc, &mut |_, _| {});
+        for (dc, fc) in dec.iter_mut().zip(fin.iter_mut()).take(ch) {
+            match q {
                 Some(q) => fir_plane(dc, q, t, fc),
                 None => std::mem::swap(dc, fc),
-            },
-            2 => {
-                decimate_q6(dc, mc, l2, f16, pad32);
+            }
+            plane_to_q4(fc);
+        }
+    } else {
+        // The first level streams through a ring of rows: each second-level row is decimated as
+        // soon as its six first-level rows are there (the same values as from the whole plane,
+        // without writing the first level out to memory and reading it back).
+        let (w1, h1) = (w.div_ceil(2), h.div_ceil(2));
+        let (w2, h2) = (w1.div_ceil(2), h1.div_ceil(2));
+        let m2 = if levels == 2 { mc } else { 2 * mc + 3 };
+        for p in l2[..ch].iter_mut() {
+            p.set(w2, h2, m2, 1);
+        }
+        let np = 2 * (w2 + 2 * m2) + 4;
+        pad32.resize(np, 0);
+        // Second-level row jj2 reads first-level rows 2 jj2 + 1 ..= 2 jj2 + 6 (m1 = 2 m2 + 3), from
+        // first-level column -2 m2 - 2 (index m1 - 2 m2 - 2 = 1).
+        let off = m1 - 2 * m2 - 2;
+        let rows2 = h2 + 2 * m2;
+        let mut next = 0usize;
+        decimate_u8(d, stride, w, h, ch, m1, &mut dec[..ch], Some(L1_RING), pad16, split16, msrc, &mut |jj1, l1| {
+            while next < rows2 && 2 * next + 6 <= jj1 {
+                for (p, o) in l1.iter().zip(l2.iter_mut()) {
+                    let r = |k: usize| &p.row_at((2 * next + 1 + k) % L1_RING)[off..off + np];
+                    decimate_q6_row(o.row_mut(next), [r(0), r(1), r(2), r(3), r(4), r(5)], 1, f16, pad32);
+                }
+                next += 1;
+            }
+        });
+        debug_assert_eq!(next, rows2);
+        for ((dc, fc), l2) in dec.iter_mut().zip(fin.iter_mut()).zip(l2.iter_mut()).take(ch) {
+            if levels == 2 {
                 let c = if let Some(q) = q {
                     fir_plane(l2, q, t, dc);
                     &*dc
@@ -930,11 +980,8 @@ pub(crate) fn pyr_blur_u8(
                     &*l2
                 };
                 upsample_q6(c, w1, h1, fc, row32, f16);
-            }
-            _ => {
-                decimate_q6(dc, 2 * mc + 3, l2, f16, pad32);
+            } else {
                 decimate_q6(l2, mc, l3, f16, pad32);
-                let (w2, h2) = (l2.w, l2.h);
                 let c = if let Some(q) = q {
                     fir_plane(l3, q, t, dc);
                     &*dc
@@ -944,8 +991,8 @@ pub(crate) fn pyr_blur_u8(
                 upsample_q6(c, w2, h2, l2, row32, f16);
                 upsample_q6(l2, w1, h1, fc, row32, f16);
             }
+            plane_to_q4(fc);
         }
-        plane_to_q4(fc);
     }
     upsample_u8(&fin[..ch], d, stride, w, h, v16, eo8, rows8);
 }
