@@ -421,6 +421,9 @@ impl Plane {
 /// six first-level rows; eight slots, so the rows still needed are never overwritten).
 const L1_RING: usize = 8;
 
+/// Rows of the last upsampler's ring (the final upsampler reads three consecutive rows).
+const FIN_RING: usize = 4;
+
 /// Samples after the last row of a plane: the FIR runs whole 128-sample chunks past the row ends
 /// (those outputs are not used).
 const PLANE_SLACK: usize = 256;
@@ -778,20 +781,27 @@ fn upsample_q6(c: &Plane, w: usize, h: usize, out: &mut Plane, row32: &mut Vec<i
     let nc = (w + 2 * m).div_ceil(2) + 2; // coarse pixels -2 .. -2 + nc
     assert!(c.m >= 2 && nc <= c.w + c.m + 2);
     row32.resize(nc * ch, 0);
+    eo.resize(2 * (nc - 2) * ch, 0);
+    for (yy, orow) in out.rows_mut().enumerate() {
+        upsample_q6_row(c, yy as isize - m as isize, orow, row32, eo);
+    }
+}
+
+/// Fine row `y` of [`upsample_q6`] (margin 2) into `orow`; `row32` and `eo` sized by the caller
+/// (`nc ch` and `2 (nc - 2) ch`, nc = (w + 4).div_ceil(2) + 2).
+fn upsample_q6_row(c: &Plane, y: isize, orow: &mut [i16], row32: &mut [i32], eo: &mut [i16]) {
+    let ch = c.ch;
+    let nc = row32.len() / ch;
     let off = (c.m - 2) * ch;
     let np = (nc - 2) * ch;
-    eo.resize(2 * np, 0);
-    for (yy, orow) in out.rows_mut().enumerate() {
-        let y = yy as isize - m as isize;
-        let n = y.div_euclid(2);
-        let (a, b, d) = up_w(y);
-        let r = |k: isize| &c.row(n + k)[off..off + nc * ch];
-        vup(row32, r(-1), r(0), r(1), a, b, d);
-        // Fine x from -2 (coarse n = -1: t index 1 - 1 = 0 is coarse -2).
-        let (e, o) = eo.split_at_mut(np);
-        hup_q6(e, o, row32, ch);
-        interleave_px(orow, e, o, ch);
-    }
+    let n = y.div_euclid(2);
+    let (a, b, d) = up_w(y);
+    let r = |k: isize| &c.row(n + k)[off..off + nc * ch];
+    vup(row32, r(-1), r(0), r(1), a, b, d);
+    // Fine x from -2 (coarse n = -1: t index 1 - 1 = 0 is coarse -2).
+    let (e, o) = eo[..2 * np].split_at_mut(np);
+    hup_q6(e, o, row32, ch);
+    interleave_px(orow, e, o, ch);
 }
 
 /// Rounding offset of the 16-bit roundings of row `y`: `rnd` is 1 or 2, alternating with the row
@@ -874,7 +884,7 @@ multiversion! {
 /// row. `v`, `eo`, `rows8` scratch.
 #[allow(clippy::too_many_arguments)]
 fn upsample_u8(
-    cs: &[Plane],
+    cs: &mut [Plane],
     d: &mut [u8],
     stride: usize,
     w: usize,
@@ -882,8 +892,13 @@ fn upsample_u8(
     v: &mut Vec<u16>,
     eo: &mut Vec<u8>,
     rows8: &mut Vec<u8>,
+    ring: Option<usize>,
+    produce: &mut dyn FnMut(usize, &mut [Plane]),
 ) {
     let ch = cs.len();
+    // Rows of `cs` (counted from the top margin row) made so far: all of them, or, with a ring,
+    // made by `produce` just before they are first read.
+    let mut made = if ring.is_some() { 0 } else { usize::MAX };
     let np = w.div_ceil(2); // coarse pixels 0..np give the fine pixels 0..w
     v.resize(np + 2, 0);
     eo.resize(2 * np, 0);
@@ -892,10 +907,17 @@ fn upsample_u8(
         let n = (y / 2) as isize;
         let (a, b, e) = up_w(y as isize);
         let drow = &mut d[y * stride..y * stride + w * ch];
+        while made <= (n + 1) as usize + cs[0].m {
+            produce(made, cs);
+            made += 1;
+        }
         for (k, c) in cs.iter().enumerate() {
             assert!(c.m >= 1 && c.ch == 1);
             let off = c.m - 1;
-            let r = |k: isize| &c.row(n + k)[off..off + np + 2];
+            let r = |k: isize| {
+                let jj = (n + k + c.m as isize) as usize;
+                &c.row_at(ring.map_or(jj, |r| jj % r))[off..off + np + 2]
+            };
             vup16(v, r(-1), r(0), r(1), a as u16, b as u16, e as u16, rnd(y, 0));
             let (ev, od) = eo.split_at_mut(np);
             hup16(ev, od, v, rnd(y, 1));
@@ -944,6 +966,7 @@ pub(crate) fn pyr_blur_u8(
             }
             plane_to_q4(fc);
         }
+        upsample_u8(&mut fin[..ch], d, stride, w, h, v16, eo8, rows8, None, &mut |_, _| {});
     } else {
         // The first level streams through a ring of rows: each second-level row is decimated as
         // soon as its six first-level rows are there (the same values as from the whole plane,
@@ -971,16 +994,9 @@ pub(crate) fn pyr_blur_u8(
             }
         });
         debug_assert_eq!(next, rows2);
-        for ((dc, fc), l2) in dec.iter_mut().zip(fin.iter_mut()).zip(l2.iter_mut()).take(ch) {
-            if levels == 2 {
-                let c = if let Some(q) = q {
-                    fir_plane(l2, q, t, dc);
-                    &*dc
-                } else {
-                    &*l2
-                };
-                upsample_q6(c, w1, h1, fc, row32, f16);
-            } else {
+        // Per channel down to the coarsest level and up to the second (on `dec[c]` or `l2[c]`).
+        for (dc, l2) in dec.iter_mut().zip(l2.iter_mut()).take(ch) {
+            if levels == 3 {
                 decimate_q6(l2, mc, l3, f16, pad32);
                 let c = if let Some(q) = q {
                     fir_plane(l3, q, t, dc);
@@ -989,12 +1005,31 @@ pub(crate) fn pyr_blur_u8(
                     &*l3
                 };
                 upsample_q6(c, w2, h2, l2, row32, f16);
-                upsample_q6(l2, w1, h1, fc, row32, f16);
+            } else if let Some(q) = q {
+                fir_plane(l2, q, t, dc);
+                std::mem::swap(dc, l2);
             }
-            plane_to_q4(fc);
         }
+        // The second level to the first (Q6, margin 2, rounded to Q4) streams through a ring of
+        // rows, made just before the final upsampler reads them (the same values as the whole
+        // planes, which are never written out).
+        let m = 2;
+        for fc in fin[..ch].iter_mut() {
+            fc.set_rows(w1, h1, m, 1, FIN_RING);
+        }
+        let nc = (w1 + 2 * m).div_ceil(2) + 2;
+        row32.resize(nc, 0);
+        f16.resize(2 * (nc - 2), 0);
+        let rl = w1 + 2 * m;
+        let l2 = &l2[..ch];
+        upsample_u8(&mut fin[..ch], d, stride, w, h, v16, eo8, rows8, Some(FIN_RING), &mut |jj, fc| {
+            for (c, p) in l2.iter().zip(fc.iter_mut()) {
+                let row = p.row_mut(jj % FIN_RING);
+                upsample_q6_row(c, jj as isize - m as isize, row, row32, f16);
+                q6_to_q4(row, rnd(jj, rl.max(1)) as i16);
+            }
+        });
     }
-    upsample_u8(&fin[..ch], d, stride, w, h, v16, eo8, rows8);
 }
 
 impl Effect for Defocus {
