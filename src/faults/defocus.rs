@@ -446,7 +446,6 @@ pub(crate) struct PyrScratch {
     f16: Vec<i16>,
     v16: Vec<u16>,
     eo8: Vec<u8>,
-    rows8: Vec<u8>,
 }
 
 /// Binomial [1,5,10,10,5,1]: the decimating pre-filter (weights / 32).
@@ -925,7 +924,7 @@ multiversion! {
 /// Q4 coarse planes (margin >= 1, one per channel) to the 8-bit frame (`w x h`, fine pixels
 /// 0..w), per fine row and channel: the three coarse rows combined vertically (u16, rounded to
 /// Q4), then the horizontal step into bytes; rgb8: the three channel rows merged into the frame
-/// row. `v`, `eo`, `rows8` scratch.
+/// row (straight from the even and odd pixel rows, `kit::merge_rgb8_eo_row`). `v`, `eo` scratch.
 #[allow(clippy::too_many_arguments)]
 fn upsample_u8(
     cs: &mut [Plane],
@@ -935,7 +934,6 @@ fn upsample_u8(
     h: usize,
     v: &mut Vec<u16>,
     eo: &mut Vec<u8>,
-    rows8: &mut Vec<u8>,
     ring: Option<usize>,
     produce: &mut dyn FnMut(usize, &mut [Plane]),
 ) {
@@ -945,8 +943,7 @@ fn upsample_u8(
     let mut made = if ring.is_some() { 0 } else { usize::MAX };
     let np = w.div_ceil(2); // coarse pixels 0..np give the fine pixels 0..w
     v.resize(np + 2, 0);
-    eo.resize(2 * np, 0);
-    rows8.resize(3 * w, 0);
+    eo.resize(2 * np * ch, 0);
     for y in 0..h {
         let n = (y / 2) as isize;
         let (a, b, e) = up_w(y as isize);
@@ -963,15 +960,16 @@ fn upsample_u8(
                 &c.row_at(ring.map_or(jj, |r| jj % r))[off..off + np + 2]
             };
             vup16(v, r(-1), r(0), r(1), a as u16, b as u16, e as u16, rnd(y, 0));
-            let (ev, od) = eo.split_at_mut(np);
+            let (ev, od) = eo[2 * k * np..2 * (k + 1) * np].split_at_mut(np);
             hup16(ev, od, v, rnd(y, 1));
-            let out = if ch == 1 { &mut *drow } else { &mut rows8[k * w..(k + 1) * w] };
-            zip_u8(out, ev, od);
+            if ch == 1 {
+                zip_u8(drow, ev, od);
+            }
         }
         if ch == 3 {
-            let (r0, rest) = rows8.split_at(w);
-            let (r1, r2) = rest.split_at(w);
-            super::kit::merge_rgb8_row(drow, r0, r1, &r2[..w]);
+            // The even and odd pixels of the three channels straight into the frame row.
+            let s = |k: usize, p: usize| &eo[(2 * k + p) * np..(2 * k + p + 1) * np];
+            super::kit::merge_rgb8_eo_row(drow, [s(0, 0), s(1, 0), s(2, 0)], [s(0, 1), s(1, 1), s(2, 1)], w);
         }
     }
 }
@@ -992,7 +990,7 @@ pub(crate) fn pyr_blur_u8(
 ) {
     assert!(ch == 1 || ch == 3, "pyramid: one or three channels");
     let r = q.map_or(0, |q| q.len() - 1);
-    let PyrScratch { dec, fin, l2, l3, t, row32, pad32, pad16, split16, msrc, f16, v16, eo8, rows8 } = s;
+    let PyrScratch { dec, fin, l2, l3, t, row32, pad32, pad16, split16, msrc, f16, v16, eo8 } = s;
     // Margins: the coarsest plane r + 2 (the FIR leaves 2 for the upsampler), each finer one
     // what the next decimation reads (2 m + 3); one level: r + 1 (the final upsampler reads 1).
     let mc = r + 2;
@@ -1010,7 +1008,7 @@ pub(crate) fn pyr_blur_u8(
             }
             plane_to_q4(fc);
         }
-        upsample_u8(&mut fin[..ch], d, stride, w, h, v16, eo8, rows8, None, &mut |_, _| {});
+        upsample_u8(&mut fin[..ch], d, stride, w, h, v16, eo8, None, &mut |_, _| {});
     } else {
         // The first level streams through a ring of rows: each second-level row is decimated as
         // soon as its six first-level rows are there (the same values as from the whole plane,
@@ -1066,7 +1064,7 @@ pub(crate) fn pyr_blur_u8(
         f16.resize(2 * (nc - 2), 0);
         let rl = w1 + 2 * m;
         let l2 = &l2[..ch];
-        upsample_u8(&mut fin[..ch], d, stride, w, h, v16, eo8, rows8, Some(FIN_RING), &mut |jj, fc| {
+        upsample_u8(&mut fin[..ch], d, stride, w, h, v16, eo8, Some(FIN_RING), &mut |jj, fc| {
             for (c, p) in l2.iter().zip(fc.iter_mut()) {
                 let row = p.row_mut(jj % FIN_RING);
                 upsample_q6_row(c, jj as isize - m as isize, row, row32, f16);
