@@ -439,7 +439,8 @@ pub(crate) struct PyrScratch {
     l3: Plane,
     t: Plane,
     row32: Vec<i32>,
-    pad32: Vec<i32>,
+    /// Per channel: a ring of horizontal decimation sums (`hdec_q6`).
+    h32: [Vec<i32>; 3],
     pad16: Vec<u16>,
     split16: Vec<u16>,
     msrc: Vec<(u32, u32)>,
@@ -449,6 +450,7 @@ pub(crate) struct PyrScratch {
 }
 
 /// Binomial [1,5,10,10,5,1]: the decimating pre-filter (weights / 32).
+#[cfg(test)]
 const B5: [i32; 6] = [1, 5, 10, 10, 5, 1];
 
 macro_rules! multiversion {
@@ -561,61 +563,60 @@ multiversion! {
     }
 }
 
-multiversion! {
-    /// `out[i] = sum_k B5[k] * rows[k][i]` for Q6 rows (units q * 32).
-    fn vsum_q6(out: &mut [i32], r0: &[i16], r1: &[i16], r2: &[i16], r3: &[i16], r4: &[i16], r5: &[i16]) {
-        let n = out.len();
-        let (r0, r1, r2, r3, r4, r5) = (&r0[..n], &r1[..n], &r2[..n], &r3[..n], &r4[..n], &r5[..n]);
-        for i in 0..n {
-            out[i] = (r0[i] as i32 + r5[i] as i32) + 5 * (r1[i] as i32 + r4[i] as i32) + 10 * (r2[i] as i32 + r3[i] as i32);
-        }
+/// Horizontal B5 sums at every second sample of a Q6 row (one channel): `out[i] = sum_k B5[k]
+/// row[2i + k]` in i32 (`row` holds at least 2 out.len() + 4 samples). The decimation of the
+/// second and third levels runs horizontally first (each input row once, into a ring), then
+/// vertically ([`vdec_q6`]): the same integer sums as vertical-first, in the other order.
+fn hdec_q6(out: &mut [i32], row: &[i16]) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx2() {
+        // SAFETY: the CPU has AVX2 (checked).
+        done = unsafe { hdec_q6_avx2(out, row) };
+    }
+    let n = out.len();
+    let row = &row[..2 * n + 4];
+    for i in done..n {
+        let p = &row[2 * i..2 * i + 6];
+        out[i] = (p[0] as i32 + p[5] as i32) + 5 * (p[1] as i32 + p[4] as i32) + 10 * (p[2] as i32 + p[3] as i32);
     }
 }
 
+/// [`hdec_q6`] on AVX2, 8 outputs per step (`vpmaddwd` on sample pairs, as [`hdec16_avx2`]; the
+/// products and sums are exact in i32); returns the outputs done (a multiple of 8).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn hdec_q6_avx2(out: &mut [i32], row: &[i16]) -> usize {
+    use std::arch::x86_64::*;
+    let n = out.len() / 8 * 8;
+    assert!(row.len() >= 2 * out.len() + 4);
+    // SAFETY: step i reads row[2i ..= 2i + 19] (2i + 19 <= 2n + 3 < row.len()) and writes
+    // out[i .. i + 8] (i + 8 <= n <= out.len()).
+    unsafe {
+        let c0 = _mm256_set1_epi32(1 | (5 << 16));
+        let c1 = _mm256_set1_epi32(10 | (10 << 16));
+        let c2 = _mm256_set1_epi32(5 | (1 << 16));
+        let p = row.as_ptr();
+        for i in (0..n).step_by(8) {
+            let q = p.add(2 * i);
+            let a = _mm256_madd_epi16(_mm256_loadu_si256(q as *const __m256i), c0);
+            let b = _mm256_madd_epi16(_mm256_loadu_si256(q.add(2) as *const __m256i), c1);
+            let c = _mm256_madd_epi16(_mm256_loadu_si256(q.add(4) as *const __m256i), c2);
+            _mm256_storeu_si256(out.as_mut_ptr().add(i) as *mut __m256i, _mm256_add_epi32(_mm256_add_epi32(a, b), c));
+        }
+    }
+    n
+}
+
 multiversion! {
-    /// Decimating horizontal pass: `out[i ch + c] = (sum_k B5[k] pad[(2i + k) ch + c] + half) >> shift`.
-    fn hdec(out: &mut [i16], pad: &[i32], ch: usize, shift: u32, f16: &mut Vec<i16>) {
-        let half = 1i32 << (shift - 1);
-        match ch {
-            1 => {
-                let n = out.len();
-                let pad = &pad[..2 * n + 4];
-                for i in 0..n {
-                    let p = &pad[2 * i..2 * i + 6];
-                    let s = (p[0] + p[5]) + 5 * (p[1] + p[4]) + 10 * (p[2] + p[3]);
-                    out[i] = ((s + half) >> shift) as i16;
-                }
-            }
-            3 => {
-                // All positions at the full rate (contiguous, so vectorised), then every other
-                // pixel kept (four-sample moves, the fourth overwritten by the next).
-                let n = out.len() / 3;
-                let m = 6 * n - 3;
-                f16.resize(m + 1, 0);
-                let (p0, p1, p2) = (&pad[..m], &pad[3..3 + m], &pad[6..6 + m]);
-                let (p3, p4, p5) = (&pad[9..9 + m], &pad[12..12 + m], &pad[15..15 + m]);
-                let f = &mut f16[..m];
-                for j in 0..m {
-                    let s = (p0[j] + p5[j]) + 5 * (p1[j] + p4[j]) + 10 * (p2[j] + p3[j]);
-                    f[j] = ((s + half) >> shift) as i16;
-                }
-                for i in 0..n.saturating_sub(1) {
-                    out[3 * i..3 * i + 4].copy_from_slice(&f16[6 * i..6 * i + 4]);
-                }
-                if n > 0 {
-                    let i = n - 1;
-                    out[3 * i..3 * i + 3].copy_from_slice(&f16[6 * i..6 * i + 3]);
-                }
-            }
-            _ => {
-                let n = out.len() / ch;
-                for i in 0..n {
-                    for c in 0..ch {
-                        let s: i32 = (0..6).map(|k| B5[k] * pad[(2 * i + k) * ch + c]).sum();
-                        out[i * ch + c] = ((s + half) >> shift) as i16;
-                    }
-                }
-            }
+    /// Vertical step of the decimation after [`hdec_q6`]: `out[i] = (sum_k B5[k] rows[k][i] +
+    /// 512) >> 10` (units q * 1024 to Q6).
+    fn vdec_q6(out: &mut [i16], r0: &[i32], r1: &[i32], r2: &[i32], r3: &[i32], r4: &[i32], r5: &[i32]) {
+        let n = out.len();
+        let (r0, r1, r2, r3, r4, r5) = (&r0[..n], &r1[..n], &r2[..n], &r3[..n], &r4[..n], &r5[..n]);
+        for i in 0..n {
+            let s = (r0[i] + r5[i]) + 5 * (r1[i] + r4[i]) + 10 * (r2[i] + r3[i]);
+            out[i] = ((s + 512) >> 10) as i16;
         }
     }
 }
@@ -683,28 +684,29 @@ fn decimate_u8(
 
 /// The next level from a Q6 plane (margin `inp.m >= 2 m + 3`): as [`decimate_u8`] on the
 /// plane's own samples (its margins are real samples, no mirroring).
-fn decimate_q6(inp: &Plane, m: usize, out: &mut Plane, f16: &mut Vec<i16>, pad32: &mut Vec<i32>) {
-    let (wl, hl, ch) = (inp.w.div_ceil(2), inp.h.div_ceil(2), inp.ch);
-    assert!(inp.m >= 2 * m + 3);
-    out.set(wl, hl, m, ch);
-    let np = 2 * (wl + 2 * m) + 4;
-    pad32.resize(np * ch, 0);
-    // Input column -2m-2 is at index (inp.m - 2m - 2) of each input row.
-    let off = (inp.m - 2 * m - 2) * ch;
+fn decimate_q6(inp: &Plane, m: usize, out: &mut Plane, h32: &mut Vec<i32>) {
+    let (wl, hl) = (inp.w.div_ceil(2), inp.h.div_ceil(2));
+    assert!(inp.m >= 2 * m + 3 && inp.ch == 1);
+    out.set(wl, hl, m, 1);
+    let n = wl + 2 * m;
+    h32.resize(H_RING * n, 0);
+    // Input column -2m-2 is at index (inp.m - 2m - 2) of each input row; output row jj reads
+    // input rows (counted from the top margin row) 2 jj + s .. 2 jj + s + 5, s = inp.m - 2m - 2.
+    let off = inp.m - 2 * m - 2;
+    let mut made = off;
     for (jj, orow) in out.rows_mut().enumerate() {
-        let j = jj as isize - m as isize;
-        let r = |k: isize| &inp.row(2 * j - 2 + k)[off..off + np * ch];
-        decimate_q6_row(orow, [r(0), r(1), r(2), r(3), r(4), r(5)], ch, f16, pad32);
+        let i0 = 2 * jj + off;
+        while made < i0 + 6 {
+            hdec_q6(&mut h32[(made % H_RING) * n..(made % H_RING + 1) * n], &inp.row_at(made)[off..]);
+            made += 1;
+        }
+        let r = |k: usize| &h32[((i0 + k) % H_RING) * n..((i0 + k) % H_RING + 1) * n];
+        vdec_q6(orow, r(0), r(1), r(2), r(3), r(4), r(5));
     }
 }
 
-/// One row of [`decimate_q6`]: from the six input rows 2j - 2 ..= 2j + 3 (each from input column
-/// -2m - 2, `pad32.len()` samples).
-fn decimate_q6_row(orow: &mut [i16], r: [&[i16]; 6], ch: usize, f16: &mut Vec<i16>, pad32: &mut [i32]) {
-    vsum_q6(pad32, r[0], r[1], r[2], r[3], r[4], r[5]);
-    // Units q * 1024 -> q: / 1024.
-    hdec(orow, pad32, ch, 10, f16);
-}
+/// Rows of the ring of horizontal decimation sums (six read per output row).
+const H_RING: usize = 8;
 
 /// Separable discrete-Gaussian FIR (`fir16::sym_fir`, Q15 half kernel `q`) on a plane; the
 /// margin shrinks by the radius (`out` gets margin `inp.m - r`). Returns nothing; `t` scratch.
@@ -990,7 +992,7 @@ pub(crate) fn pyr_blur_u8(
 ) {
     assert!(ch == 1 || ch == 3, "pyramid: one or three channels");
     let r = q.map_or(0, |q| q.len() - 1);
-    let PyrScratch { dec, fin, l2, l3, t, row32, pad32, pad16, split16, msrc, f16, v16, eo8 } = s;
+    let PyrScratch { dec, fin, l2, l3, t, row32, h32, pad16, split16, msrc, f16, v16, eo8 } = s;
     // Margins: the coarsest plane r + 2 (the FIR leaves 2 for the upsampler), each finer one
     // what the next decimation reads (2 m + 3); one level: r + 1 (the final upsampler reads 1).
     let mc = r + 2;
@@ -1019,18 +1021,25 @@ pub(crate) fn pyr_blur_u8(
         for p in l2[..ch].iter_mut() {
             p.set(w2, h2, m2, 1);
         }
-        let np = 2 * (w2 + 2 * m2) + 4;
-        pad32.resize(np, 0);
+        let n2 = w2 + 2 * m2;
+        for h in h32[..ch].iter_mut() {
+            h.resize(H_RING * n2, 0);
+        }
         // Second-level row jj2 reads first-level rows 2 jj2 + 1 ..= 2 jj2 + 6 (m1 = 2 m2 + 3), from
-        // first-level column -2 m2 - 2 (index m1 - 2 m2 - 2 = 1).
+        // first-level column -2 m2 - 2 (index m1 - 2 m2 - 2 = 1): each first-level row's
+        // horizontal sums as it comes, the vertical step once its six rows are there.
         let off = m1 - 2 * m2 - 2;
         let rows2 = h2 + 2 * m2;
         let mut next = 0usize;
         decimate_u8(d, stride, w, h, ch, m1, &mut dec[..ch], Some(L1_RING), pad16, split16, msrc, &mut |jj1, l1| {
+            let slot = jj1 % H_RING;
+            for (p, h) in l1.iter().zip(h32.iter_mut()) {
+                hdec_q6(&mut h[slot * n2..(slot + 1) * n2], &p.row_at(jj1 % L1_RING)[off..]);
+            }
             while next < rows2 && 2 * next + 6 <= jj1 {
-                for (p, o) in l1.iter().zip(l2.iter_mut()) {
-                    let r = |k: usize| &p.row_at((2 * next + 1 + k) % L1_RING)[off..off + np];
-                    decimate_q6_row(o.row_mut(next), [r(0), r(1), r(2), r(3), r(4), r(5)], 1, f16, pad32);
+                for (h, o) in h32[..ch].iter().zip(l2.iter_mut()) {
+                    let r = |k: usize| &h[((2 * next + 1 + k) % H_RING) * n2..((2 * next + 1 + k) % H_RING + 1) * n2];
+                    vdec_q6(o.row_mut(next), r(0), r(1), r(2), r(3), r(4), r(5));
                 }
                 next += 1;
             }
@@ -1039,7 +1048,7 @@ pub(crate) fn pyr_blur_u8(
         // Per channel down to the coarsest level and up to the second (on `dec[c]` or `l2[c]`).
         for (dc, l2) in dec.iter_mut().zip(l2.iter_mut()).take(ch) {
             if levels == 3 {
-                decimate_q6(l2, mc, l3, f16, pad32);
+                decimate_q6(l2, mc, l3, &mut h32[0]);
                 let c = if let Some(q) = q {
                     fir_plane(l3, q, t, dc);
                     &*dc
