@@ -1285,6 +1285,117 @@ mod tests {
         }
     }
 
+    /// [`decimate_q6`] as the plain double sum per output sample (no rings, no vectors).
+    fn decimate_plain(inp: &Plane, m: usize, out: &mut Plane) {
+        out.set(inp.w.div_ceil(2), inp.h.div_ceil(2), m, 1);
+        let off = inp.m - 2 * m - 2;
+        let n = out.rl();
+        for jj in 0..out.h + 2 * m {
+            for i in 0..n {
+                let mut sum = 0i32;
+                for (k, bk) in B5.iter().enumerate() {
+                    let row = inp.row_at(2 * jj + off + k);
+                    sum += bk * (0..6).map(|k2| B5[k2] * row[off + 2 * i + k2] as i32).sum::<i32>();
+                }
+                out.row_mut(jj)[i] = ((sum + 512) >> 10) as i16;
+            }
+        }
+    }
+
+    /// The pyramid of whole planes (every level written out and read back, the stages one after
+    /// the other: the structure before the rings; the decimation of levels 2 and 3 as plain
+    /// sums, the other stages from the same row kernels).
+    fn pyr_whole_planes(d: &mut [u8], stride: usize, w: usize, h: usize, ch: usize, sigma: f64) {
+        let (levels, sc) = pyr_split(sigma);
+        let q = (sc > 0.05).then(|| fir16::q15_half_kernel(&truncated(&discrete_gaussian_f64(sc), sc)));
+        let q = q.as_deref();
+        let mc = q.map_or(0, |q| q.len() - 1) + 2;
+        // Margin of level k (1-based): the coarsest mc (mc - 1 alone: the final upsampler reads
+        // one), each finer one what the next decimation reads.
+        let mut ms = vec![mc; levels];
+        if levels == 1 {
+            ms[0] = mc - 1;
+        }
+        for k in (0..levels - 1).rev() {
+            ms[k] = 2 * ms[k + 1] + 3;
+        }
+        let mut s = PyrScratch::default();
+        let PyrScratch { dec, fin, l2, t, row32, pad16, split16, msrc, f16, v16, eo8, .. } = &mut s;
+        decimate_u8(d, stride, w, h, ch, ms[0], &mut dec[..ch], None, pad16, split16, msrc, &mut |_, _| {});
+        let (w1, h1) = (w.div_ceil(2), h.div_ceil(2));
+        for c in 0..ch {
+            let mut top = std::mem::take(&mut dec[c]);
+            let mut sizes = vec![(w1, h1)];
+            for l in 1..levels {
+                let mut next = Plane::default();
+                decimate_plain(&top, ms[l], &mut next);
+                sizes.push((next.w, next.h));
+                top = next;
+            }
+            if let Some(q) = q {
+                let mut out = Plane::default();
+                fir_plane(&top, q, t, &mut out);
+                top = out;
+            }
+            for &(wl, hl) in sizes[..levels - 1].iter().rev() {
+                upsample_q6(&top, wl, hl, &mut l2[0], row32, f16);
+                std::mem::swap(&mut top, &mut l2[0]);
+            }
+            plane_to_q4(&mut top);
+            fin[c] = top;
+        }
+        upsample_u8(&mut fin[..ch], d, stride, w, h, v16, eo8, None, &mut |_, _| {});
+    }
+
+    /// The streamed pyramid (rings of rows through the levels) gives the bytes of the pyramid
+    /// of whole planes: one, two and three levels, rgb8 and mono8, even, odd and tiny frames.
+    #[test]
+    fn streamed_pyramid_equals_the_whole_planes() {
+        for format in [PixelFormat::Rgb8, PixelFormat::Mono8] {
+            for (w, h) in [(150u32, 130u32), (151, 131), (67, 9), (5, 40), (1, 1), (2, 3)] {
+                let orig = crate::faults::kit::bench_scene(w, h, format, 11).unwrap();
+                for sigma in [1.85, 3.0, 4.5, 6.0, 9.5, 13.0, 20.0] {
+                    let mut a = orig.clone();
+                    let mut p = Params::defaults(&INFO);
+                    p.set("sigma_px", sigma).unwrap();
+                    Defocus::default().apply(&mut a, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
+                    let mut b = orig.clone();
+                    let (stride, ch) = (b.stride, b.channels());
+                    let FrameData::U8(d) = &mut b.data else { panic!("8-bit") };
+                    pyr_whole_planes(d, stride, w as usize, h as usize, ch, sigma);
+                    assert_eq!(a, b, "{format} {w}x{h} sigma {sigma}");
+                }
+            }
+        }
+    }
+
+    /// The AVX2 row kernels of the decimation (pixel pairs through `vpmaddwd`) against the
+    /// plain B5 sums, every length up to 70 (the vector steps and their tails).
+    #[test]
+    fn decimation_kernels_equal_the_plain_sums() {
+        let mut x = 12345u32;
+        let mut next = |max: u32| {
+            x = x.wrapping_mul(1664525).wrapping_add(1013904223);
+            (x >> 8) % (max + 1)
+        };
+        for n in 0..70 {
+            let pad: Vec<u16> = (0..2 * n + 4).map(|_| next(2040) as u16).collect();
+            for rnd in [1u16, 2] {
+                let mut got = vec![0i16; n];
+                hdec16(&mut got, &pad, rnd);
+                let want: Vec<i16> = (0..n)
+                    .map(|i| (((0..6).map(|k| B5[k] * pad[2 * i + k] as i32).sum::<i32>() + rnd as i32) >> 2) as i16)
+                    .collect();
+                assert_eq!(got, want, "hdec16 n {n}");
+            }
+            let row: Vec<i16> = (0..2 * n + 4).map(|_| next(16320) as i16).collect();
+            let mut got = vec![0i32; n];
+            hdec_q6(&mut got, &row);
+            let want: Vec<i32> = (0..n).map(|i| (0..6).map(|k| B5[k] * row[2 * i + k] as i32).sum()).collect();
+            assert_eq!(got, want, "hdec_q6 n {n}");
+        }
+    }
+
     #[test]
     fn mirror_folds_indices() {
         let got: Vec<usize> = (-4..8).map(|i| mirror(i, 3)).collect();

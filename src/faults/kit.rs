@@ -1002,6 +1002,26 @@ pub fn bench_scene(width: u32, height: u32, format: PixelFormat, seed: u64) -> R
 
 #[cfg(test)]
 mod tests {
+
+    /// The even/odd merge against its definition, every width up to 100 (the 32-pixel vector
+    /// steps, their tails, odd widths).
+    #[test]
+    fn merge_rgb8_eo_row_interleaves_even_and_odd_pixels() {
+        for w in 0..100usize {
+            let np = w.div_ceil(2);
+            let e: Vec<Vec<u8>> = (0..3).map(|c| (0..np).map(|i| (7 * i + 50 * c) as u8).collect()).collect();
+            let o: Vec<Vec<u8>> = (0..3).map(|c| (0..np).map(|i| (3 * i + 50 * c + 200) as u8).collect()).collect();
+            let mut got = vec![0u8; 3 * w + 5];
+            merge_rgb8_eo_row(&mut got, [&e[0], &e[1], &e[2]], [&o[0], &o[1], &o[2]], w);
+            let mut want = vec![0u8; 3 * w + 5];
+            for x in 0..w {
+                for c in 0..3 {
+                    want[3 * x + c] = if x % 2 == 0 { e[c][x / 2] } else { o[c][x / 2] };
+                }
+            }
+            assert_eq!(got, want, "w {w}");
+        }
+    }
     use super::*;
 
     #[test]
