@@ -494,6 +494,7 @@ multiversion! {
 
 /// Decimating horizontal pass of one channel in u16 lanes (units v * 8 in, at most 2040):
 /// `out[i] = (sum_k B5[k] pad[2i + k] + rnd) >> 2` (Q6; the sum is at most 65280).
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
 fn hdec16(out: &mut [i16], pad: &[u16], rnd: u16) {
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
@@ -567,6 +568,7 @@ multiversion! {
 /// row[2i + k]` in i32 (`row` holds at least 2 out.len() + 4 samples). The decimation of the
 /// second and third levels runs horizontally first (each input row once, into a ring), then
 /// vertically ([`vdec_q6`]): the same integer sums as vertical-first, in the other order.
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
 fn hdec_q6(out: &mut [i32], row: &[i16]) {
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
