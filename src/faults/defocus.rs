@@ -384,9 +384,13 @@ pub(crate) struct Plane {
 
 impl Plane {
     fn set(&mut self, w: usize, h: usize, m: usize, ch: usize) {
+        self.set_rows(w, h, m, ch, h + 2 * m);
+    }
+    /// As [`Plane::set`] with storage for `rows` rows only (a ring: row `jj` in slot `jj % rows`).
+    fn set_rows(&mut self, w: usize, h: usize, m: usize, ch: usize, rows: usize) {
         (self.w, self.h, self.m, self.ch) = (w, h, m, ch);
         // Grow only: the planes change size between stages and channels (no refill each time).
-        let need = (w + 2 * m) * (h + 2 * m) * ch + PLANE_SLACK;
+        let need = (w + 2 * m) * rows * ch + PLANE_SLACK;
         if self.d.len() < need {
             self.d.resize(need, 0);
         }
@@ -405,10 +409,20 @@ impl Plane {
         &mut self.d[jj * rl..(jj + 1) * rl]
     }
     fn row(&self, y: isize) -> &[i16] {
-        let i = (y + self.m as isize) as usize;
-        &self.d[i * self.rl()..(i + 1) * self.rl()]
+        self.row_at((y + self.m as isize) as usize)
+    }
+    /// Row `jj` of the storage (counted from the top margin row; a ring's slot).
+    fn row_at(&self, jj: usize) -> &[i16] {
+        &self.d[jj * self.rl()..(jj + 1) * self.rl()]
     }
 }
+
+/// Rows of the first level's ring when the pyramid has more levels (each second-level row reads
+/// six first-level rows; eight slots, so the rows still needed are never overwritten).
+const L1_RING: usize = 8;
+
+/// Rows of the last upsampler's ring (the final upsampler reads three consecutive rows).
+const FIN_RING: usize = 4;
 
 /// Samples after the last row of a plane: the FIR runs whole 128-sample chunks past the row ends
 /// (those outputs are not used).
@@ -420,21 +434,23 @@ pub(crate) struct PyrScratch {
     /// Per channel: the first level, and the plane the final upsampler reads.
     dec: [Plane; 3],
     fin: [Plane; 3],
-    l2: Plane,
+    /// Per channel: the second level (the first is then a ring of [`L1_RING`] rows).
+    l2: [Plane; 3],
     l3: Plane,
     t: Plane,
     row32: Vec<i32>,
-    pad32: Vec<i32>,
+    /// Per channel: a ring of horizontal decimation sums (`hdec_q6`).
+    h32: [Vec<i32>; 3],
     pad16: Vec<u16>,
     split16: Vec<u16>,
     msrc: Vec<(u32, u32)>,
     f16: Vec<i16>,
     v16: Vec<u16>,
     eo8: Vec<u8>,
-    rows8: Vec<u8>,
 }
 
 /// Binomial [1,5,10,10,5,1]: the decimating pre-filter (weights / 32).
+#[cfg(test)]
 const B5: [i32; 6] = [1, 5, 10, 10, 5, 1];
 
 macro_rules! multiversion {
@@ -476,18 +492,63 @@ multiversion! {
     }
 }
 
-multiversion! {
-    /// Decimating horizontal pass of one channel in u16 lanes (units v * 8 in, at most 2040):
-    /// `out[i] = (sum_k B5[k] pad[2i + k] + rnd) >> 2` (Q6; the sum is at most 65280).
-    fn hdec16(out: &mut [i16], pad: &[u16], rnd: u16) {
-        let n = out.len();
-        let pad = &pad[..2 * n + 4];
-        for i in 0..n {
-            let p = &pad[2 * i..2 * i + 6];
-            let s = (p[0] + p[5]) + 5 * (p[1] + p[4]) + 10 * (p[2] + p[3]);
-            out[i] = ((s + rnd) >> 2) as i16;
+/// Decimating horizontal pass of one channel in u16 lanes (units v * 8 in, at most 2040):
+/// `out[i] = (sum_k B5[k] pad[2i + k] + rnd) >> 2` (Q6; the sum is at most 65280).
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
+fn hdec16(out: &mut [i16], pad: &[u16], rnd: u16) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx2() {
+        // SAFETY: the CPU has AVX2 (checked).
+        done = unsafe { hdec16_avx2(out, pad, rnd) };
+    }
+    hdec16_plain(&mut out[done..], &pad[2 * done..], rnd);
+}
+
+/// [`hdec16`], the portable loop.
+fn hdec16_plain(out: &mut [i16], pad: &[u16], rnd: u16) {
+    let n = out.len();
+    let pad = &pad[..2 * n + 4];
+    for i in 0..n {
+        let p = &pad[2 * i..2 * i + 6];
+        let s = (p[0] + p[5]) + 5 * (p[1] + p[4]) + 10 * (p[2] + p[3]);
+        out[i] = ((s + rnd) >> 2) as i16;
+    }
+}
+
+/// [`hdec16`] on AVX2, 16 outputs per step; returns the outputs done (a multiple of 16). The
+/// samples as pixel pairs in 32-bit lanes: `vpmaddwd` with (1, 5), (10, 10) and (5, 1) on the
+/// pairs at 2i, 2i + 2 and 2i + 4 gives the six-tap sum of output i exactly (the samples are
+/// below 2^15, the sums below 2^16), the same integers as the plain loop (the compiler's code
+/// for the stride-2 loop was half as fast on AVX2).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn hdec16_avx2(out: &mut [i16], pad: &[u16], rnd: u16) -> usize {
+    use std::arch::x86_64::*;
+    let n = out.len() / 16 * 16;
+    assert!(pad.len() >= 2 * out.len() + 4);
+    // SAFETY: step i reads pad[2i ..= 2i + 35] (2i + 35 <= 2n + 3 < pad.len()) and writes
+    // out[i .. i + 16] (i + 16 <= n <= out.len()).
+    unsafe {
+        let c0 = _mm256_set1_epi32(1 | (5 << 16));
+        let c1 = _mm256_set1_epi32(10 | (10 << 16));
+        let c2 = _mm256_set1_epi32(5 | (1 << 16));
+        let r = _mm256_set1_epi32(rnd as i32);
+        let p = pad.as_ptr();
+        let sum8 = |q: *const u16| {
+            let a = _mm256_madd_epi16(_mm256_loadu_si256(q as *const __m256i), c0);
+            let b = _mm256_madd_epi16(_mm256_loadu_si256(q.add(2) as *const __m256i), c1);
+            let c = _mm256_madd_epi16(_mm256_loadu_si256(q.add(4) as *const __m256i), c2);
+            _mm256_srli_epi32::<2>(_mm256_add_epi32(_mm256_add_epi32(a, b), _mm256_add_epi32(c, r)))
+        };
+        for i in (0..n).step_by(16) {
+            let lo = sum8(p.add(2 * i));
+            let hi = sum8(p.add(2 * i + 16));
+            let v = _mm256_permute4x64_epi64::<0xD8>(_mm256_packus_epi32(lo, hi));
+            _mm256_storeu_si256(out.as_mut_ptr().add(i) as *mut __m256i, v);
         }
     }
+    n
 }
 
 multiversion! {
@@ -503,61 +564,61 @@ multiversion! {
     }
 }
 
-multiversion! {
-    /// `out[i] = sum_k B5[k] * rows[k][i]` for Q6 rows (units q * 32).
-    fn vsum_q6(out: &mut [i32], r0: &[i16], r1: &[i16], r2: &[i16], r3: &[i16], r4: &[i16], r5: &[i16]) {
-        let n = out.len();
-        let (r0, r1, r2, r3, r4, r5) = (&r0[..n], &r1[..n], &r2[..n], &r3[..n], &r4[..n], &r5[..n]);
-        for i in 0..n {
-            out[i] = (r0[i] as i32 + r5[i] as i32) + 5 * (r1[i] as i32 + r4[i] as i32) + 10 * (r2[i] as i32 + r3[i] as i32);
-        }
+/// Horizontal B5 sums at every second sample of a Q6 row (one channel): `out[i] = sum_k B5[k]
+/// row[2i + k]` in i32 (`row` holds at least 2 out.len() + 4 samples). The decimation of the
+/// second and third levels runs horizontally first (each input row once, into a ring), then
+/// vertically ([`vdec_q6`]): the same integer sums as vertical-first, in the other order.
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
+fn hdec_q6(out: &mut [i32], row: &[i16]) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx2() {
+        // SAFETY: the CPU has AVX2 (checked).
+        done = unsafe { hdec_q6_avx2(out, row) };
+    }
+    let n = out.len();
+    let row = &row[..2 * n + 4];
+    for i in done..n {
+        let p = &row[2 * i..2 * i + 6];
+        out[i] = (p[0] as i32 + p[5] as i32) + 5 * (p[1] as i32 + p[4] as i32) + 10 * (p[2] as i32 + p[3] as i32);
     }
 }
 
+/// [`hdec_q6`] on AVX2, 8 outputs per step (`vpmaddwd` on sample pairs, as [`hdec16_avx2`]; the
+/// products and sums are exact in i32); returns the outputs done (a multiple of 8).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn hdec_q6_avx2(out: &mut [i32], row: &[i16]) -> usize {
+    use std::arch::x86_64::*;
+    let n = out.len() / 8 * 8;
+    assert!(row.len() >= 2 * out.len() + 4);
+    // SAFETY: step i reads row[2i ..= 2i + 19] (2i + 19 <= 2n + 3 < row.len()) and writes
+    // out[i .. i + 8] (i + 8 <= n <= out.len()).
+    unsafe {
+        let c0 = _mm256_set1_epi32(1 | (5 << 16));
+        let c1 = _mm256_set1_epi32(10 | (10 << 16));
+        let c2 = _mm256_set1_epi32(5 | (1 << 16));
+        let p = row.as_ptr();
+        for i in (0..n).step_by(8) {
+            let q = p.add(2 * i);
+            let a = _mm256_madd_epi16(_mm256_loadu_si256(q as *const __m256i), c0);
+            let b = _mm256_madd_epi16(_mm256_loadu_si256(q.add(2) as *const __m256i), c1);
+            let c = _mm256_madd_epi16(_mm256_loadu_si256(q.add(4) as *const __m256i), c2);
+            _mm256_storeu_si256(out.as_mut_ptr().add(i) as *mut __m256i, _mm256_add_epi32(_mm256_add_epi32(a, b), c));
+        }
+    }
+    n
+}
+
 multiversion! {
-    /// Decimating horizontal pass: `out[i ch + c] = (sum_k B5[k] pad[(2i + k) ch + c] + half) >> shift`.
-    fn hdec(out: &mut [i16], pad: &[i32], ch: usize, shift: u32, f16: &mut Vec<i16>) {
-        let half = 1i32 << (shift - 1);
-        match ch {
-            1 => {
-                let n = out.len();
-                let pad = &pad[..2 * n + 4];
-                for i in 0..n {
-                    let p = &pad[2 * i..2 * i + 6];
-                    let s = (p[0] + p[5]) + 5 * (p[1] + p[4]) + 10 * (p[2] + p[3]);
-                    out[i] = ((s + half) >> shift) as i16;
-                }
-            }
-            3 => {
-                // All positions at the full rate (contiguous, so vectorised), then every other
-                // pixel kept (four-sample moves, the fourth overwritten by the next).
-                let n = out.len() / 3;
-                let m = 6 * n - 3;
-                f16.resize(m + 1, 0);
-                let (p0, p1, p2) = (&pad[..m], &pad[3..3 + m], &pad[6..6 + m]);
-                let (p3, p4, p5) = (&pad[9..9 + m], &pad[12..12 + m], &pad[15..15 + m]);
-                let f = &mut f16[..m];
-                for j in 0..m {
-                    let s = (p0[j] + p5[j]) + 5 * (p1[j] + p4[j]) + 10 * (p2[j] + p3[j]);
-                    f[j] = ((s + half) >> shift) as i16;
-                }
-                for i in 0..n.saturating_sub(1) {
-                    out[3 * i..3 * i + 4].copy_from_slice(&f16[6 * i..6 * i + 4]);
-                }
-                if n > 0 {
-                    let i = n - 1;
-                    out[3 * i..3 * i + 3].copy_from_slice(&f16[6 * i..6 * i + 3]);
-                }
-            }
-            _ => {
-                let n = out.len() / ch;
-                for i in 0..n {
-                    for c in 0..ch {
-                        let s: i32 = (0..6).map(|k| B5[k] * pad[(2 * i + k) * ch + c]).sum();
-                        out[i * ch + c] = ((s + half) >> shift) as i16;
-                    }
-                }
-            }
+    /// Vertical step of the decimation after [`hdec_q6`]: `out[i] = (sum_k B5[k] rows[k][i] +
+    /// 512) >> 10` (units q * 1024 to Q6).
+    fn vdec_q6(out: &mut [i16], r0: &[i32], r1: &[i32], r2: &[i32], r3: &[i32], r4: &[i32], r5: &[i32]) {
+        let n = out.len();
+        let (r0, r1, r2, r3, r4, r5) = (&r0[..n], &r1[..n], &r2[..n], &r3[..n], &r4[..n], &r5[..n]);
+        for i in 0..n {
+            let s = (r0[i] + r5[i]) + 5 * (r1[i] + r4[i]) + 10 * (r2[i] + r3[i]);
+            out[i] = ((s + 512) >> 10) as i16;
         }
     }
 }
@@ -575,13 +636,15 @@ fn decimate_u8(
     ch: usize,
     m: usize,
     outs: &mut [Plane],
+    ring: Option<usize>,
     pad16: &mut Vec<u16>,
     split16: &mut Vec<u16>,
     msrc: &mut Vec<(u32, u32)>,
+    after: &mut dyn FnMut(usize, &[Plane]),
 ) {
     let (wl, hl) = (w.div_ceil(2), h.div_ceil(2));
     for o in outs.iter_mut() {
-        o.set(wl, hl, m, 1);
+        o.set_rows(wl, hl, m, 1, ring.unwrap_or(hl + 2 * m));
     }
     let rl = w * ch;
     let np = 2 * (wl + 2 * m) + 4; // full-res columns -2m-2 ..= 2(wl+m-1)+3
@@ -596,6 +659,7 @@ fn decimate_u8(
     msrc.extend((0..a).chain(a + inner..np).map(|px| (px as u32, mirror(px as isize + x0, w) as u32)));
     for jj in 0..rows {
         let j = jj as isize - m as isize;
+        let slot = ring.map_or(jj, |n| jj % n);
         let r = |k: isize| {
             let y = mirror(2 * j - 2 + k, h);
             &d[y * stride..y * stride + rl]
@@ -607,36 +671,44 @@ fn decimate_u8(
             pad16.copy_within(sx..sx + ch, px);
         }
         if ch == 1 {
-            hdec16(outs[0].row_mut(jj), pad16, rnd(jj, 1));
+            hdec16(outs[0].row_mut(slot), pad16, rnd(jj, 1));
         } else {
             let (s0, rest) = split16.split_at_mut(np);
             let (s1, s2) = rest.split_at_mut(np);
             split3_u16(pad16, s0, s1, s2);
             for (o, sp) in outs.iter_mut().zip([&*s0, &*s1, &*s2]) {
-                hdec16(o.row_mut(jj), sp, rnd(jj, 1));
+                hdec16(o.row_mut(slot), sp, rnd(jj, 1));
             }
         }
+        after(jj, outs);
     }
 }
 
 /// The next level from a Q6 plane (margin `inp.m >= 2 m + 3`): as [`decimate_u8`] on the
 /// plane's own samples (its margins are real samples, no mirroring).
-fn decimate_q6(inp: &Plane, m: usize, out: &mut Plane, f16: &mut Vec<i16>, pad32: &mut Vec<i32>) {
-    let (wl, hl, ch) = (inp.w.div_ceil(2), inp.h.div_ceil(2), inp.ch);
-    assert!(inp.m >= 2 * m + 3);
-    out.set(wl, hl, m, ch);
-    let np = 2 * (wl + 2 * m) + 4;
-    pad32.resize(np * ch, 0);
-    // Input column -2m-2 is at index (inp.m - 2m - 2) of each input row.
-    let off = (inp.m - 2 * m - 2) * ch;
+fn decimate_q6(inp: &Plane, m: usize, out: &mut Plane, h32: &mut Vec<i32>) {
+    let (wl, hl) = (inp.w.div_ceil(2), inp.h.div_ceil(2));
+    assert!(inp.m >= 2 * m + 3 && inp.ch == 1);
+    out.set(wl, hl, m, 1);
+    let n = wl + 2 * m;
+    h32.resize(H_RING * n, 0);
+    // Input column -2m-2 is at index (inp.m - 2m - 2) of each input row; output row jj reads
+    // input rows (counted from the top margin row) 2 jj + s .. 2 jj + s + 5, s = inp.m - 2m - 2.
+    let off = inp.m - 2 * m - 2;
+    let mut made = off;
     for (jj, orow) in out.rows_mut().enumerate() {
-        let j = jj as isize - m as isize;
-        let r = |k: isize| &inp.row(2 * j - 2 + k)[off..off + np * ch];
-        vsum_q6(pad32, r(0), r(1), r(2), r(3), r(4), r(5));
-        // Units q * 1024 -> q: / 1024.
-        hdec(orow, pad32, ch, 10, f16);
+        let i0 = 2 * jj + off;
+        while made < i0 + 6 {
+            hdec_q6(&mut h32[(made % H_RING) * n..(made % H_RING + 1) * n], &inp.row_at(made)[off..]);
+            made += 1;
+        }
+        let r = |k: usize| &h32[((i0 + k) % H_RING) * n..((i0 + k) % H_RING + 1) * n];
+        vdec_q6(orow, r(0), r(1), r(2), r(3), r(4), r(5));
     }
 }
+
+/// Rows of the ring of horizontal decimation sums (six read per output row).
+const H_RING: usize = 8;
 
 /// Separable discrete-Gaussian FIR (`fir16::sym_fir`, Q15 half kernel `q`) on a plane; the
 /// margin shrinks by the radius (`out` gets margin `inp.m - r`). Returns nothing; `t` scratch.
@@ -756,20 +828,27 @@ fn upsample_q6(c: &Plane, w: usize, h: usize, out: &mut Plane, row32: &mut Vec<i
     let nc = (w + 2 * m).div_ceil(2) + 2; // coarse pixels -2 .. -2 + nc
     assert!(c.m >= 2 && nc <= c.w + c.m + 2);
     row32.resize(nc * ch, 0);
+    eo.resize(2 * (nc - 2) * ch, 0);
+    for (yy, orow) in out.rows_mut().enumerate() {
+        upsample_q6_row(c, yy as isize - m as isize, orow, row32, eo);
+    }
+}
+
+/// Fine row `y` of [`upsample_q6`] (margin 2) into `orow`; `row32` and `eo` sized by the caller
+/// (`nc ch` and `2 (nc - 2) ch`, nc = (w + 4).div_ceil(2) + 2).
+fn upsample_q6_row(c: &Plane, y: isize, orow: &mut [i16], row32: &mut [i32], eo: &mut [i16]) {
+    let ch = c.ch;
+    let nc = row32.len() / ch;
     let off = (c.m - 2) * ch;
     let np = (nc - 2) * ch;
-    eo.resize(2 * np, 0);
-    for (yy, orow) in out.rows_mut().enumerate() {
-        let y = yy as isize - m as isize;
-        let n = y.div_euclid(2);
-        let (a, b, d) = up_w(y);
-        let r = |k: isize| &c.row(n + k)[off..off + nc * ch];
-        vup(row32, r(-1), r(0), r(1), a, b, d);
-        // Fine x from -2 (coarse n = -1: t index 1 - 1 = 0 is coarse -2).
-        let (e, o) = eo.split_at_mut(np);
-        hup_q6(e, o, row32, ch);
-        interleave_px(orow, e, o, ch);
-    }
+    let n = y.div_euclid(2);
+    let (a, b, d) = up_w(y);
+    let r = |k: isize| &c.row(n + k)[off..off + nc * ch];
+    vup(row32, r(-1), r(0), r(1), a, b, d);
+    // Fine x from -2 (coarse n = -1: t index 1 - 1 = 0 is coarse -2).
+    let (e, o) = eo[..2 * np].split_at_mut(np);
+    hup_q6(e, o, row32, ch);
+    interleave_px(orow, e, o, ch);
 }
 
 /// Rounding offset of the 16-bit roundings of row `y`: `rnd` is 1 or 2, alternating with the row
@@ -849,41 +928,52 @@ multiversion! {
 /// Q4 coarse planes (margin >= 1, one per channel) to the 8-bit frame (`w x h`, fine pixels
 /// 0..w), per fine row and channel: the three coarse rows combined vertically (u16, rounded to
 /// Q4), then the horizontal step into bytes; rgb8: the three channel rows merged into the frame
-/// row. `v`, `eo`, `rows8` scratch.
+/// row (straight from the even and odd pixel rows, `kit::merge_rgb8_eo_row`). `v`, `eo` scratch.
 #[allow(clippy::too_many_arguments)]
 fn upsample_u8(
-    cs: &[Plane],
+    cs: &mut [Plane],
     d: &mut [u8],
     stride: usize,
     w: usize,
     h: usize,
     v: &mut Vec<u16>,
     eo: &mut Vec<u8>,
-    rows8: &mut Vec<u8>,
+    ring: Option<usize>,
+    produce: &mut dyn FnMut(usize, &mut [Plane]),
 ) {
     let ch = cs.len();
+    // Rows of `cs` (counted from the top margin row) made so far: all of them, or, with a ring,
+    // made by `produce` just before they are first read.
+    let mut made = if ring.is_some() { 0 } else { usize::MAX };
     let np = w.div_ceil(2); // coarse pixels 0..np give the fine pixels 0..w
     v.resize(np + 2, 0);
-    eo.resize(2 * np, 0);
-    rows8.resize(3 * w, 0);
+    eo.resize(2 * np * ch, 0);
     for y in 0..h {
         let n = (y / 2) as isize;
         let (a, b, e) = up_w(y as isize);
         let drow = &mut d[y * stride..y * stride + w * ch];
+        while made <= (n + 1) as usize + cs[0].m {
+            produce(made, cs);
+            made += 1;
+        }
         for (k, c) in cs.iter().enumerate() {
             assert!(c.m >= 1 && c.ch == 1);
             let off = c.m - 1;
-            let r = |k: isize| &c.row(n + k)[off..off + np + 2];
+            let r = |k: isize| {
+                let jj = (n + k + c.m as isize) as usize;
+                &c.row_at(ring.map_or(jj, |r| jj % r))[off..off + np + 2]
+            };
             vup16(v, r(-1), r(0), r(1), a as u16, b as u16, e as u16, rnd(y, 0));
-            let (ev, od) = eo.split_at_mut(np);
+            let (ev, od) = eo[2 * k * np..2 * (k + 1) * np].split_at_mut(np);
             hup16(ev, od, v, rnd(y, 1));
-            let out = if ch == 1 { &mut *drow } else { &mut rows8[k * w..(k + 1) * w] };
-            zip_u8(out, ev, od);
+            if ch == 1 {
+                zip_u8(drow, ev, od);
+            }
         }
         if ch == 3 {
-            let (r0, rest) = rows8.split_at(w);
-            let (r1, r2) = rest.split_at(w);
-            super::kit::merge_rgb8_row(drow, r0, r1, &r2[..w]);
+            // The even and odd pixels of the three channels straight into the frame row.
+            let s = |k: usize, p: usize| &eo[(2 * k + p) * np..(2 * k + p + 1) * np];
+            super::kit::merge_rgb8_eo_row(drow, [s(0, 0), s(1, 0), s(2, 0)], [s(0, 1), s(1, 1), s(2, 1)], w);
         }
     }
 }
@@ -904,7 +994,7 @@ pub(crate) fn pyr_blur_u8(
 ) {
     assert!(ch == 1 || ch == 3, "pyramid: one or three channels");
     let r = q.map_or(0, |q| q.len() - 1);
-    let PyrScratch { dec, fin, l2, l3, t, row32, pad32, pad16, split16, msrc, f16, v16, eo8, rows8 } = s;
+    let PyrScratch { dec, fin, l2, l3, t, row32, h32, pad16, split16, msrc, f16, v16, eo8 } = s;
     // Margins: the coarsest plane r + 2 (the FIR leaves 2 for the upsampler), each finer one
     // what the next decimation reads (2 m + 3); one level: r + 1 (the final upsampler reads 1).
     let mc = r + 2;
@@ -913,28 +1003,54 @@ pub(crate) fn pyr_blur_u8(
         2 => 2 * mc + 3,
         _ => 2 * (2 * mc + 3) + 3,
     };
-    decimate_u8(d, stride, w, h, ch, m1, &mut dec[..ch], pad16, split16, msrc);
-    for (dc, fc) in dec.iter_mut().zip(fin.iter_mut()).take(ch) {
-        let (w1, h1) = (dc.w, dc.h);
-        match levels {
-            1 => match q {
+    if levels == 1 {
+        decimate_u8(d, stride, w, h, ch, m1, &mut dec[..ch], None, pad16, split16, msrc, &mut |_, _| {});
+        for (dc, fc) in dec.iter_mut().zip(fin.iter_mut()).take(ch) {
+            match q {
                 Some(q) => fir_plane(dc, q, t, fc),
                 None => std::mem::swap(dc, fc),
-            },
-            2 => {
-                decimate_q6(dc, mc, l2, f16, pad32);
-                let c = if let Some(q) = q {
-                    fir_plane(l2, q, t, dc);
-                    &*dc
-                } else {
-                    &*l2
-                };
-                upsample_q6(c, w1, h1, fc, row32, f16);
             }
-            _ => {
-                decimate_q6(dc, 2 * mc + 3, l2, f16, pad32);
-                decimate_q6(l2, mc, l3, f16, pad32);
-                let (w2, h2) = (l2.w, l2.h);
+            plane_to_q4(fc);
+        }
+        upsample_u8(&mut fin[..ch], d, stride, w, h, v16, eo8, None, &mut |_, _| {});
+    } else {
+        // The first level streams through a ring of rows: each second-level row is decimated as
+        // soon as its six first-level rows are there (the same values as from the whole plane,
+        // without writing the first level out to memory and reading it back).
+        let (w1, h1) = (w.div_ceil(2), h.div_ceil(2));
+        let (w2, h2) = (w1.div_ceil(2), h1.div_ceil(2));
+        let m2 = if levels == 2 { mc } else { 2 * mc + 3 };
+        for p in l2[..ch].iter_mut() {
+            p.set(w2, h2, m2, 1);
+        }
+        let n2 = w2 + 2 * m2;
+        for h in h32[..ch].iter_mut() {
+            h.resize(H_RING * n2, 0);
+        }
+        // Second-level row jj2 reads first-level rows 2 jj2 + 1 ..= 2 jj2 + 6 (m1 = 2 m2 + 3), from
+        // first-level column -2 m2 - 2 (index m1 - 2 m2 - 2 = 1): each first-level row's
+        // horizontal sums as it comes, the vertical step once its six rows are there.
+        let off = m1 - 2 * m2 - 2;
+        let rows2 = h2 + 2 * m2;
+        let mut next = 0usize;
+        decimate_u8(d, stride, w, h, ch, m1, &mut dec[..ch], Some(L1_RING), pad16, split16, msrc, &mut |jj1, l1| {
+            let slot = jj1 % H_RING;
+            for (p, h) in l1.iter().zip(h32.iter_mut()) {
+                hdec_q6(&mut h[slot * n2..(slot + 1) * n2], &p.row_at(jj1 % L1_RING)[off..]);
+            }
+            while next < rows2 && 2 * next + 6 <= jj1 {
+                for (h, o) in h32[..ch].iter().zip(l2.iter_mut()) {
+                    let r = |k: usize| &h[((2 * next + 1 + k) % H_RING) * n2..((2 * next + 1 + k) % H_RING + 1) * n2];
+                    vdec_q6(o.row_mut(next), r(0), r(1), r(2), r(3), r(4), r(5));
+                }
+                next += 1;
+            }
+        });
+        debug_assert_eq!(next, rows2);
+        // Per channel down to the coarsest level and up to the second (on `dec[c]` or `l2[c]`).
+        for (dc, l2) in dec.iter_mut().zip(l2.iter_mut()).take(ch) {
+            if levels == 3 {
+                decimate_q6(l2, mc, l3, &mut h32[0]);
                 let c = if let Some(q) = q {
                     fir_plane(l3, q, t, dc);
                     &*dc
@@ -942,12 +1058,31 @@ pub(crate) fn pyr_blur_u8(
                     &*l3
                 };
                 upsample_q6(c, w2, h2, l2, row32, f16);
-                upsample_q6(l2, w1, h1, fc, row32, f16);
+            } else if let Some(q) = q {
+                fir_plane(l2, q, t, dc);
+                std::mem::swap(dc, l2);
             }
         }
-        plane_to_q4(fc);
+        // The second level to the first (Q6, margin 2, rounded to Q4) streams through a ring of
+        // rows, made just before the final upsampler reads them (the same values as the whole
+        // planes, which are never written out).
+        let m = 2;
+        for fc in fin[..ch].iter_mut() {
+            fc.set_rows(w1, h1, m, 1, FIN_RING);
+        }
+        let nc = (w1 + 2 * m).div_ceil(2) + 2;
+        row32.resize(nc, 0);
+        f16.resize(2 * (nc - 2), 0);
+        let rl = w1 + 2 * m;
+        let l2 = &l2[..ch];
+        upsample_u8(&mut fin[..ch], d, stride, w, h, v16, eo8, Some(FIN_RING), &mut |jj, fc| {
+            for (c, p) in l2.iter().zip(fc.iter_mut()) {
+                let row = p.row_mut(jj % FIN_RING);
+                upsample_q6_row(c, jj as isize - m as isize, row, row32, f16);
+                q6_to_q4(row, rnd(jj, rl.max(1)) as i16);
+            }
+        });
     }
-    upsample_u8(&fin[..ch], d, stride, w, h, v16, eo8, rows8);
 }
 
 impl Effect for Defocus {
@@ -1149,6 +1284,117 @@ mod tests {
                     assert!((total - 255.0).abs() <= 0.5 * n + 1e-9, "{format} {w}x{h} sigma {sigma}: total {total}");
                 }
             }
+        }
+    }
+
+    /// [`decimate_q6`] as the plain double sum per output sample (no rings, no vectors).
+    fn decimate_plain(inp: &Plane, m: usize, out: &mut Plane) {
+        out.set(inp.w.div_ceil(2), inp.h.div_ceil(2), m, 1);
+        let off = inp.m - 2 * m - 2;
+        let n = out.rl();
+        for jj in 0..out.h + 2 * m {
+            for i in 0..n {
+                let mut sum = 0i32;
+                for (k, bk) in B5.iter().enumerate() {
+                    let row = inp.row_at(2 * jj + off + k);
+                    sum += bk * (0..6).map(|k2| B5[k2] * row[off + 2 * i + k2] as i32).sum::<i32>();
+                }
+                out.row_mut(jj)[i] = ((sum + 512) >> 10) as i16;
+            }
+        }
+    }
+
+    /// The pyramid of whole planes (every level written out and read back, the stages one after
+    /// the other: the structure before the rings; the decimation of levels 2 and 3 as plain
+    /// sums, the other stages from the same row kernels).
+    fn pyr_whole_planes(d: &mut [u8], stride: usize, w: usize, h: usize, ch: usize, sigma: f64) {
+        let (levels, sc) = pyr_split(sigma);
+        let q = (sc > 0.05).then(|| fir16::q15_half_kernel(&truncated(&discrete_gaussian_f64(sc), sc)));
+        let q = q.as_deref();
+        let mc = q.map_or(0, |q| q.len() - 1) + 2;
+        // Margin of level k (1-based): the coarsest mc (mc - 1 alone: the final upsampler reads
+        // one), each finer one what the next decimation reads.
+        let mut ms = vec![mc; levels];
+        if levels == 1 {
+            ms[0] = mc - 1;
+        }
+        for k in (0..levels - 1).rev() {
+            ms[k] = 2 * ms[k + 1] + 3;
+        }
+        let mut s = PyrScratch::default();
+        let PyrScratch { dec, fin, l2, t, row32, pad16, split16, msrc, f16, v16, eo8, .. } = &mut s;
+        decimate_u8(d, stride, w, h, ch, ms[0], &mut dec[..ch], None, pad16, split16, msrc, &mut |_, _| {});
+        let (w1, h1) = (w.div_ceil(2), h.div_ceil(2));
+        for c in 0..ch {
+            let mut top = std::mem::take(&mut dec[c]);
+            let mut sizes = vec![(w1, h1)];
+            for l in 1..levels {
+                let mut next = Plane::default();
+                decimate_plain(&top, ms[l], &mut next);
+                sizes.push((next.w, next.h));
+                top = next;
+            }
+            if let Some(q) = q {
+                let mut out = Plane::default();
+                fir_plane(&top, q, t, &mut out);
+                top = out;
+            }
+            for &(wl, hl) in sizes[..levels - 1].iter().rev() {
+                upsample_q6(&top, wl, hl, &mut l2[0], row32, f16);
+                std::mem::swap(&mut top, &mut l2[0]);
+            }
+            plane_to_q4(&mut top);
+            fin[c] = top;
+        }
+        upsample_u8(&mut fin[..ch], d, stride, w, h, v16, eo8, None, &mut |_, _| {});
+    }
+
+    /// The streamed pyramid (rings of rows through the levels) gives the bytes of the pyramid
+    /// of whole planes: one, two and three levels, rgb8 and mono8, even, odd and tiny frames.
+    #[test]
+    fn streamed_pyramid_equals_the_whole_planes() {
+        for format in [PixelFormat::Rgb8, PixelFormat::Mono8] {
+            for (w, h) in [(150u32, 130u32), (151, 131), (67, 9), (5, 40), (1, 1), (2, 3)] {
+                let orig = crate::faults::kit::bench_scene(w, h, format, 11).unwrap();
+                for sigma in [1.85, 3.0, 4.5, 6.0, 9.5, 13.0, 20.0] {
+                    let mut a = orig.clone();
+                    let mut p = Params::defaults(&INFO);
+                    p.set("sigma_px", sigma).unwrap();
+                    Defocus::default().apply(&mut a, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
+                    let mut b = orig.clone();
+                    let (stride, ch) = (b.stride, b.channels());
+                    let FrameData::U8(d) = &mut b.data else { panic!("8-bit") };
+                    pyr_whole_planes(d, stride, w as usize, h as usize, ch, sigma);
+                    assert_eq!(a, b, "{format} {w}x{h} sigma {sigma}");
+                }
+            }
+        }
+    }
+
+    /// The AVX2 row kernels of the decimation (pixel pairs through `vpmaddwd`) against the
+    /// plain B5 sums, every length up to 70 (the vector steps and their tails).
+    #[test]
+    fn decimation_kernels_equal_the_plain_sums() {
+        let mut x = 12345u32;
+        let mut next = |max: u32| {
+            x = x.wrapping_mul(1664525).wrapping_add(1013904223);
+            (x >> 8) % (max + 1)
+        };
+        for n in 0..70 {
+            let pad: Vec<u16> = (0..2 * n + 4).map(|_| next(2040) as u16).collect();
+            for rnd in [1u16, 2] {
+                let mut got = vec![0i16; n];
+                hdec16(&mut got, &pad, rnd);
+                let want: Vec<i16> = (0..n)
+                    .map(|i| (((0..6).map(|k| B5[k] * pad[2 * i + k] as i32).sum::<i32>() + rnd as i32) >> 2) as i16)
+                    .collect();
+                assert_eq!(got, want, "hdec16 n {n}");
+            }
+            let row: Vec<i16> = (0..2 * n + 4).map(|_| next(16320) as i16).collect();
+            let mut got = vec![0i32; n];
+            hdec_q6(&mut got, &row);
+            let want: Vec<i32> = (0..n).map(|i| (0..6).map(|k| B5[k] * row[2 * i + k] as i32).sum()).collect();
+            assert_eq!(got, want, "hdec_q6 n {n}");
         }
     }
 
