@@ -170,11 +170,14 @@ impl StreakPlan {
 /// Per-thread scratch of one band of lines.
 #[derive(Default)]
 struct Slot {
-    // running sums R(k) and the lines A(j, k) at j = i - n - 2 .. i - n and i + n + 1, i + n + 2,
-    // over the band's range of k (16-bit, `ch` per position); the B row; a padded source line
+    // running sums R(k) over the block's range of k (16-bit, `ch` per position); the B row; a
+    // padded source line
     r: Vec<u16>,
-    a: [Vec<u16>; 5],
     b: Vec<u16>,
+    // allocation: per streak length: a ring of the 2n + 5 lines A(j, k) of the window, j = i - n - 2
+    // ..= i + n + 2, line j in slot j mod (2n + 5), each `line` values apart (every source line is
+    // interpolated once per block, when it enters the window)
+    ring: Vec<u16>,
     pad: Vec<u8>,
     // mostly horizontal streaks: the last output lines (up to `TILE`), a chunk's positions each
     tile: Vec<u8>,
@@ -363,8 +366,8 @@ fn unshear_d(lv: u8, out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u1
 }
 
 /// Output positions (pixels along a line) per column block of `ch`-sample pixels: the block's
-/// running sums and held lines (about 14 bytes per sample) stay in the L1/L2 caches while it
-/// runs down the band, and the per-line overhead is spread over many positions (on the Zen 3
+/// running sums and its ring of the window's `2n + 5` lines (2 bytes per sample each: 207 KB
+/// rgb8 at 100 px, 30 deg) stay in the L2 cache while it runs down the band, and the per-line overhead is spread over many positions (on the Zen 3
 /// 384 rgb8 / 512 mono8 positions ran faster than 256; BENCHMARKS.md).
 fn chunk(ch: usize) -> isize {
     if ch == 1 { 512 } else { 384 }
@@ -525,11 +528,17 @@ fn band(lv: u8, plan: &StreakPlan, src: Lines, i0: usize, rows: usize, mut dst: 
     };
     let chunk = chunk(ch);
     let len = (chunk as usize + 3) * ch;
-    for v in [&mut slot.r, &mut slot.b].into_iter().chain(slot.a.iter_mut()) {
+    for v in [&mut slot.r, &mut slot.b] {
         if v.len() < len {
             v.resize(len, 0);
         }
     }
+    // The ring's slots: line j at `(j mod nr) len`.
+    let nr = 2 * n + 5;
+    if slot.ring.len() < nr as usize * len {
+        slot.ring.resize(nr as usize * len, 0);
+    }
+    let at = |j: isize| j.rem_euclid(nr) as usize * len;
     let tl = chunk as usize * ch;
     if matches!(dst, Dst::Cols(_)) && slot.tile.len() < TILE * tl {
         slot.tile.resize(TILE * tl, 0);
@@ -561,7 +570,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Lines, i0: usize, rows: usize, mut dst: 
             }
         }
     };
-    // Lines held in `a`: slot t holds j = i + off[t].
+    // The held lines the step reads: j = i + off[t].
     let off = [-n - 2, -n - 1, -n, n + 1, n + 2];
     let (ka, kb) = (klo(i0).0, klo(i0 + rows - 1).0);
     let mut c0 = ka.min(kb);
@@ -588,17 +597,18 @@ fn band(lv: u8, plan: &StreakPlan, src: Lines, i0: usize, rows: usize, mut dst: 
                 continue;
             }
             let (n0, n1) = (o0 - 1, o1 + 2);
-            let Slot { r, a, b, pad, tile } = &mut *slot;
-            // Running sums and held lines at line i over [g0, g1).
+            let Slot { r, b, pad, tile, ring } = &mut *slot;
+            // Running sums and the window's lines at line i over [g0, g1).
             let mut init = |g0: isize, g1: isize| {
                 let (x0, x1) = ((g0 - base) as usize * ch, (g1 - base) as usize * ch);
                 r[x0..x1].fill(0);
-                for d in -n..=n {
-                    fill(b, pad, base, i as isize + d, g0, g1);
-                    add_d(lv, &mut r[x0..x1], &b[x0..x1]);
-                }
-                for (t, &o) in off.iter().enumerate() {
-                    fill(&mut a[t], pad, base, i as isize + o, g0, g1);
+                for d in -n - 2..=n + 2 {
+                    let j = i as isize + d;
+                    let line = &mut ring[at(j)..at(j) + len];
+                    fill(line, pad, base, j, g0, g1);
+                    if d.abs() <= n {
+                        add_d(lv, &mut r[x0..x1], &line[x0..x1]);
+                    }
                 }
             };
             let (mut v0, mut v1) = match valid {
@@ -634,8 +644,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Lines, i0: usize, rows: usize, mut dst: 
             let (y0, y1) = ((v0 - base) as usize * ch, (v1 - base) as usize * ch);
             // B over [v0, v1) (used over [o0 - 1, o1 + 2)) and the running sums of line i + 1,
             // then unshear and cross filter into pixels o0 - k.. o1 - k.
-            let [a0, a1, a2, a3, a4] = &*a;
-            let (a0, a1, a2, a3, a4) = (&a0[y0..y1], &a1[y0..y1], &a2[y0..y1], &a3[y0..y1], &a4[y0..y1]);
+            let [a0, a1, a2, a3, a4] = off.map(|o| &ring[at(i as isize + o) + y0..at(i as isize + o) + y1]);
             step_d(lv, &mut b[y0..y1], &mut r[y0..y1], a0, a1, a2, a3, a4, plan.eq[0], plan.eq[1]);
             let (x0, x1) = ((n0 - base) as usize * ch, (n1 - base) as usize * ch);
             let bx = &b[x0..x1];
@@ -658,14 +667,12 @@ fn band(lv: u8, plan: &StreakPlan, src: Lines, i0: usize, rows: usize, mut dst: 
             if row + 1 == rows {
                 break;
             }
-            let Slot { a, pad, .. } = &mut *slot;
-            // Advance to line i + 1.
-            // Trail: t2 <- t1 <- t0 <- A(i + 1 - n); lead: l1 <- l2 <- A(i + 1 + n + 2).
-            a.swap(0, 1);
-            a.swap(1, 2);
-            fill(&mut a[2], pad, base, i as isize + 1 - n, v0, v1);
-            a.swap(3, 4);
-            fill(&mut a[4], pad, base, i as isize + 1 + n + 2, v0, v1);
+            let Slot { ring, pad, .. } = &mut *slot;
+            // Advance to line i + 1: A(i + 1 + n + 2) enters the window in the slot of A(i - n - 2),
+            // which leaves it (the other lines are valid over [v0, v1): every line entered over
+            // the range then valid, `init` extends all of them, and the range only grows there).
+            let j = i as isize + 1 + n + 2;
+            fill(&mut ring[at(j)..at(j) + len], pad, base, j, v0, v1);
             prefetch(plan, src, i as isize + 1 + n + 2 + AHEAD, v0, v1);
         }
         if let Dst::Cols(cols) = &dst {
