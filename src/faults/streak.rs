@@ -284,10 +284,10 @@ fn step_k(b: &mut [u16], r: &mut [u16], a0: &[u16], a1: &[u16], a2: &[u16], a3: 
 }
 dispatch!(step_v, step_k, (b: &mut [u16], r: &mut [u16], a0: &[u16], a1: &[u16], a2: &[u16], a3: &[u16], a4: &[u16], e0: u16, e1: u16));
 
-/// [`step_k`] in AVX2 registers on AVX2 CPUs (16 positions at a time, written out because LLVM
-/// widens the multiply-highs of this loop to 32-bit lanes; AVX-512 CPUs keep [`step_v`]'s
-/// AVX-512 copy, untested here), the rest through [`step_v`]; the same 16-bit operations, so the
-/// same bytes.
+/// [`step_k`] in AVX-512 registers on AVX-512 CPUs (level `lv` >= 2, 32 positions at a time),
+/// then in AVX2 registers (level >= 1, 16 at a time), the rest through [`step_v`]: written out
+/// because LLVM widens the multiply-highs of this loop to 32-bit lanes (`vpmovzxwd`, seen in
+/// [`step_v`]'s AVX-512 copy on the Zen 4); the same 16-bit operations, so the same bytes.
 #[allow(clippy::too_many_arguments)]
 #[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
 fn step_d(
@@ -304,9 +304,18 @@ fn step_d(
 ) {
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
-    if lv >= 1 && super::kit::has_avx2() && !(lv >= 2 && super::kit::has_avx512()) {
-        // SAFETY: AVX2 present (checked).
-        done = unsafe { simd::step(b, r, [a0, a1, a2, a3, a4], e0, e1) };
+    {
+        if lv >= 2 && super::kit::has_avx512() {
+            // SAFETY: AVX-512 F/BW present (checked).
+            done = unsafe { simd::step512(b, r, [a0, a1, a2, a3, a4], e0, e1) };
+        }
+        if lv >= 1 && super::kit::has_avx2() {
+            let t = done;
+            // SAFETY: AVX2 present (checked).
+            done += unsafe {
+                simd::step(&mut b[t..], &mut r[t..], [&a0[t..], &a1[t..], &a2[t..], &a3[t..], &a4[t..]], e0, e1)
+            };
+        }
     }
     let t = done;
     step_v(lv, &mut b[t..], &mut r[t..], &a0[t..], &a1[t..], &a2[t..], &a3[t..], &a4[t..], e0, e1);
@@ -798,6 +807,49 @@ mod simd {
                 _mm256_storeu_si256(b.as_mut_ptr().add(i).cast::<__m256i>(), bv);
                 let rn = _mm256_sub_epi16(_mm256_add_epi16(rv, x3), x2);
                 _mm256_storeu_si256(r.as_mut_ptr().add(i).cast::<__m256i>(), rn);
+            }
+        }
+        n
+    }
+
+    /// `_mm512_mulhi_epu16` pinned as one `vpmulhuw` (see [`mulhi`]).
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512bw")]
+    fn mulhi512(a: __m512i, b: __m512i) -> __m512i {
+        let r: __m512i;
+        // SAFETY: AVX-512 BW (this function's feature); a register-only instruction without
+        // memory access or flags.
+        unsafe {
+            std::arch::asm!("vpmulhuw {r}, {a}, {b}", r = lateout(zmm_reg) r, a = in(zmm_reg) a, b = in(zmm_reg) b,
+                options(pure, nomem, nostack, preserves_flags));
+        }
+        r
+    }
+
+    /// [`super::step_k`] over the first `b.len() / 32 * 32` positions (returned), 32 at a time.
+    ///
+    /// # Safety
+    /// AVX-512 F/BW.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub unsafe fn step512(b: &mut [u16], r: &mut [u16], a: [&[u16]; 5], e0: u16, e1: u16) -> usize {
+        let n = b.len() / 32 * 32;
+        assert!(r.len() >= n && a.iter().all(|v| v.len() >= n));
+        let (e0v, e1v, one) = (_mm512_set1_epi16(e0 as i16), _mm512_set1_epi16(e1 as i16), _mm512_set1_epi16(1));
+        for i in (0..n).step_by(32) {
+            // SAFETY: AVX-512 F/BW (the caller's contract); every load and store covers 32
+            // values below n of its slice (asserted).
+            unsafe {
+                let l = |v: &[u16]| _mm512_loadu_si512(v.as_ptr().add(i).cast::<__m512i>());
+                let rv = l(r);
+                let (x0, x1, x2, x3, x4) = (l(a[0]), l(a[1]), l(a[2]), l(a[3]), l(a[4]));
+                let t = _mm512_add_epi16(
+                    _mm512_add_epi16(rv, mulhi512(_mm512_add_epi16(x1, x3), e0v)),
+                    mulhi512(_mm512_add_epi16(x0, x4), e1v),
+                );
+                let bv = _mm512_srli_epi16::<1>(_mm512_add_epi16(t, one));
+                _mm512_storeu_si512(b.as_mut_ptr().add(i).cast::<__m512i>(), bv);
+                let rn = _mm512_sub_epi16(_mm512_add_epi16(rv, x3), x2);
+                _mm512_storeu_si512(r.as_mut_ptr().add(i).cast::<__m512i>(), rn);
             }
         }
         n
