@@ -357,17 +357,24 @@ fn unshear_k(out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u
         }
     }
 }
-/// [`unshear_k`] in AVX2 registers (16 outputs at a time; level `lv` >= 1, also on AVX-512 CPUs:
-/// written out because LLVM widens the sums of multiply-highs to 32 bits), the rest scalar; the
-/// same 16-bit operations, so the same bytes.
+/// [`unshear_k`] in AVX-512 registers (32 outputs at a time, level `lv` >= 2), then AVX2 (16 at a
+/// time, level >= 1; written out because LLVM widens the sums of multiply-highs to 32 bits), the
+/// rest scalar; the same 16-bit operations, so the same bytes.
 #[allow(clippy::too_many_arguments)]
 #[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
 fn unshear_d(lv: u8, out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u32) {
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
-    if lv >= 1 && super::kit::has_avx2() {
-        // SAFETY: AVX2 present (checked).
-        done = unsafe { simd::unshear(out, b, ch, g, a, dm, ds) };
+    {
+        if lv >= 2 && super::kit::has_avx512() {
+            // SAFETY: AVX-512 F/BW present (checked).
+            done = unsafe { simd::unshear512(out, b, ch, g, a, dm, ds) };
+        }
+        if lv >= 1 && super::kit::has_avx2() {
+            let t = done;
+            // SAFETY: AVX2 present (checked).
+            done += unsafe { simd::unshear(&mut out[t..], &b[t..], ch, g, a, dm, ds) };
+        }
     }
     #[cfg(not(target_arch = "x86_64"))]
     let _ = lv;
@@ -888,6 +895,46 @@ mod simd {
                 let q = _mm256_min_epu16(_mm256_srli_epi16(_mm256_add_epi16(_mm256_srl_epi16(q, cnt), one), 1), top);
                 let r = _mm_packus_epi16(_mm256_castsi256_si128(q), _mm256_extracti128_si256(q, 1));
                 _mm_storeu_si128(out.as_mut_ptr().add(i).cast::<__m128i>(), r);
+            }
+        }
+        n
+    }
+
+    /// [`super::unshear_k`] over the first `out.len() / 32 * 32` outputs (returned), 32 at a time
+    /// (as [`unshear`]).
+    ///
+    /// # Safety
+    /// AVX-512 F/BW.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub unsafe fn unshear512(out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u32) -> usize {
+        let n = out.len() / 32 * 32;
+        assert!(b.len() >= n + 3 * ch && ds >= 1);
+        let set = |v: u16| _mm512_set1_epi16(v as i16);
+        let (w0, w1) = (set((64 - g as u16) << 10), set((g as u16) << 10));
+        let aa = a.unsigned_abs() as u16;
+        let (aa1, aa2, sm) = (set(aa), set(aa << 1), set(if a < 0 { u16::MAX } else { 0 }));
+        let (off, offv, dmv, one, top) =
+            (set(super::OFF), set(super::mulhi(super::OFF, dm)), set(dm), set(1), set(255));
+        let cnt = _mm_cvtsi32_si128(ds as i32 - 1);
+        for i in (0..n).step_by(32) {
+            // SAFETY: AVX-512 F/BW (the caller's contract); every load reads 32 values of `b`
+            // below `i + 32 + 3 ch <= b.len()` and the store writes 32 bytes of `out` below n
+            // (asserted).
+            unsafe {
+                let l = |o: usize| _mm512_loadu_si512(b.as_ptr().add(i + o).cast::<__m512i>());
+                let (x0, x1, x2, x3) = (l(0), l(ch), l(2 * ch), l(3 * ch));
+                let (ul, uc, ur) = if g == 0 {
+                    (x0, x1, x2)
+                } else {
+                    let u = |p, q| _mm512_add_epi16(mulhi512(p, w0), mulhi512(q, w1));
+                    (u(x0, x1), u(x1, x2), u(x2, x3))
+                };
+                let t = _mm512_sub_epi16(_mm512_add_epi16(mulhi512(ul, aa1), mulhi512(ur, aa1)), mulhi512(uc, aa2));
+                let v = _mm512_add_epi16(_mm512_add_epi16(off, uc), _mm512_sub_epi16(_mm512_xor_si512(t, sm), sm));
+                let q = _mm512_subs_epu16(mulhi512(v, dmv), offv);
+                let q = _mm512_min_epu16(_mm512_srli_epi16::<1>(_mm512_add_epi16(_mm512_srl_epi16(q, cnt), one)), top);
+                // Every value is at most 255: the narrowing keeps it.
+                _mm256_storeu_si256(out.as_mut_ptr().add(i).cast::<__m256i>(), _mm512_cvtepi16_epi8(q));
             }
         }
         n
