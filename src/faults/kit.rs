@@ -264,6 +264,37 @@ macro_rules! multiversion {
 
 pub(crate) use multiversion;
 
+/// `fn $name(lv: u8, args..)` calling the kernel `$body(args..)` (`#[inline(always)]`) compiled
+/// with AVX-512 F/BW/VL when `lv >= 2` and the CPU has them, with AVX2 when `lv >= 1` and the CPU
+/// has it, else as is (`lv`: `boxblur::cpu_level()`, lowered by `FAULTCAM_NO_AVX512` /
+/// `FAULTCAM_NO_SIMD`). The copies run the same integer operations, so they give the same bytes.
+macro_rules! dispatch_levels {
+    ($name:ident, $body:ident, ($($a:ident: $t:ty),*)) => {
+        #[inline]
+        #[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
+        fn $name(lv: u8, $($a: $t),*) {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2")]
+                unsafe fn v512($($a: $t),*) { $body($($a),*) }
+                #[target_feature(enable = "avx2")]
+                unsafe fn v256($($a: $t),*) { $body($($a),*) }
+                if lv >= 2 && $crate::faults::kit::has_avx512() {
+                    // SAFETY: AVX-512 F/BW/VL present (checked).
+                    return unsafe { v512($($a),*) };
+                }
+                if lv >= 1 && $crate::faults::kit::has_avx2() {
+                    // SAFETY: AVX2 present (checked).
+                    return unsafe { v256($($a),*) };
+                }
+            }
+            $body($($a),*)
+        }
+    };
+}
+
+pub(crate) use dispatch_levels;
+
 /// Whether `FAULTCAM_NO_SIMD` is set: every kernel then runs its portable scalar reference (to
 /// time it, or to test that it gives the SIMD versions' bytes on the same machine).
 pub fn no_simd() -> bool {

@@ -569,29 +569,7 @@ fn row_box_seg(out: &mut [u8], p: &[u16], ch: usize, plan: RowBox, c0: &mut [u16
     }
 }
 
-#[cfg_attr(not(target_arch = "x86_64"), allow(unused_variables))]
-fn row_box_row(lv: u8, row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut [u16]) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2")]
-        unsafe fn v512(row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut [u16]) {
-            row_box_k(row, w, ch, plan, s)
-        }
-        #[target_feature(enable = "avx2")]
-        unsafe fn v256(row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut [u16]) {
-            row_box_k(row, w, ch, plan, s)
-        }
-        if lv >= 2 && super::kit::has_avx512() {
-            // SAFETY: AVX-512 F/BW/VL present (checked).
-            return unsafe { v512(row, w, ch, plan, s) };
-        }
-        if lv >= 1 && super::kit::has_avx2() {
-            // SAFETY: AVX2 present (checked).
-            return unsafe { v256(row, w, ch, plan, s) };
-        }
-    }
-    row_box_k(row, w, ch, plan, s)
-}
+super::kit::dispatch_levels!(row_box_row, row_box_k, (row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut [u16]));
 
 /// [`RowBox`] streaks of 8-bit frames in place, row by row (each row reads only itself: the
 /// bytes do not depend on the band split). `scratch` grows only.

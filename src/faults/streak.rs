@@ -214,30 +214,7 @@ impl Lines<'_> {
     }
 }
 
-macro_rules! dispatch {
-    ($name:ident, $body:ident, ($($a:ident: $t:ty),*)) => {
-        #[inline]
-        #[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
-        fn $name(lv: u8, $($a: $t),*) {
-            #[cfg(target_arch = "x86_64")]
-            {
-                #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2")]
-                unsafe fn v512($($a: $t),*) { $body($($a),*) }
-                #[target_feature(enable = "avx2")]
-                unsafe fn v256($($a: $t),*) { $body($($a),*) }
-                if lv >= 2 && super::kit::has_avx512() {
-                    // SAFETY: AVX-512 F/BW/VL present (checked).
-                    return unsafe { v512($($a),*) };
-                }
-                if lv >= 1 && super::kit::has_avx2() {
-                    // SAFETY: AVX2 present (checked).
-                    return unsafe { v256($($a),*) };
-                }
-            }
-            $body($($a),*)
-        }
-    };
-}
+use super::kit::dispatch_levels as dispatch;
 
 /// `a[t] = (p[t] (64 - f) + p[t + ch] f + 2^(5 - q)) >> (6 - q)` for `t < a.len()` (`q <= 6`:
 /// the line interpolated at phase `f / 64`, times `2^q`, rounded half up).
