@@ -295,6 +295,43 @@ macro_rules! dispatch_levels {
 
 pub(crate) use dispatch_levels;
 
+/// `_mm256_mulhi_epu16` pinned as one `vpmulhuw` (LLVM otherwise rewrites some multiply-highs
+/// into a widening 32-bit sequence, about 2x slower).
+///
+/// # Safety
+/// AVX2 (a safe function in `#[target_feature]` code that has it).
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx2")]
+pub fn mulhi_epu16_256(a: std::arch::x86_64::__m256i, b: std::arch::x86_64::__m256i) -> std::arch::x86_64::__m256i {
+    let r: std::arch::x86_64::__m256i;
+    // SAFETY: AVX2 (this function's feature); a register-only instruction without memory access
+    // or flags.
+    unsafe {
+        std::arch::asm!("vpmulhuw {r}, {a}, {b}", r = lateout(ymm_reg) r, a = in(ymm_reg) a, b = in(ymm_reg) b,
+            options(pure, nomem, nostack, preserves_flags));
+    }
+    r
+}
+
+/// `_mm512_mulhi_epu16` pinned as one `vpmulhuw` (see [`mulhi_epu16_256`]).
+///
+/// # Safety
+/// AVX-512 BW (a safe function in `#[target_feature]` code that has it).
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx512f,avx512bw")]
+pub fn mulhi_epu16_512(a: std::arch::x86_64::__m512i, b: std::arch::x86_64::__m512i) -> std::arch::x86_64::__m512i {
+    let r: std::arch::x86_64::__m512i;
+    // SAFETY: AVX-512 BW (this function's feature); a register-only instruction without memory
+    // access or flags.
+    unsafe {
+        std::arch::asm!("vpmulhuw {r}, {a}, {b}", r = lateout(zmm_reg) r, a = in(zmm_reg) a, b = in(zmm_reg) b,
+            options(pure, nomem, nostack, preserves_flags));
+    }
+    r
+}
+
 /// Whether `FAULTCAM_NO_SIMD` is set: every kernel then runs its portable scalar reference (to
 /// time it, or to test that it gives the SIMD versions' bytes on the same machine).
 pub fn no_simd() -> bool {

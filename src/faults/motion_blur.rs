@@ -469,7 +469,7 @@ fn mulhi(x: u16, e: u16) -> u16 {
 /// + mulhi(e2 << 7, w2)` (`e1`, `e2` the sums of the two end-tap pairs) and the division by `D`
 /// (see [`RowBox`]). Integer operations only: the same bytes on every path and segment split.
 #[inline(always)]
-fn row_box_k(row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut [u16]) {
+fn row_box_k(lv: u8, row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut [u16]) {
     let rr = plan.n + 2;
     let np = (w + 2 * rr) * ch;
     let (p, s) = s.split_at_mut(np);
@@ -499,7 +499,7 @@ fn row_box_k(row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut [u16]) {
     let mut s0 = 0;
     while s0 < wc {
         let s1 = (s0 + ROW_BOX_SEG).min(wc);
-        row_box_seg(&mut row[s0..s1], &p[s0..s1 + halo], ch, plan, c0, c1, acc);
+        row_box_seg(lv, &mut row[s0..s1], &p[s0..s1 + halo], ch, plan, c0, c1, acc);
         s0 = s1;
     }
 }
@@ -507,7 +507,17 @@ fn row_box_k(row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut [u16]) {
 /// The outputs `out` of [`row_box_k`] from the padded samples `p` (`out.len() + (2n + 4) ch`
 /// of them); `c0`, `c1`, `acc` scratch of at least `p.len()`.
 #[inline(always)]
-fn row_box_seg(out: &mut [u8], p: &[u16], ch: usize, plan: RowBox, c0: &mut [u16], c1: &mut [u16], acc: &mut [u16]) {
+#[allow(clippy::too_many_arguments)]
+fn row_box_seg(
+    lv: u8,
+    out: &mut [u8],
+    p: &[u16],
+    ch: usize,
+    plan: RowBox,
+    c0: &mut [u16],
+    c1: &mut [u16],
+    acc: &mut [u16],
+) {
     let np = p.len();
     let k = 2 * plan.n + 1;
     let top = usize::BITS - 1 - k.leading_zeros();
@@ -558,32 +568,123 @@ fn row_box_seg(out: &mut [u8], p: &[u16], ch: usize, plan: RowBox, c0: &mut [u16
         let b = sum * sq + mulhi(e1 << 7, w1) + mulhi(e2 << 7, w2);
         ((mulhi(mulhi(b, dm), sd) + 1) >> 1).min(255) as u8
     };
-    if aw == 0 {
-        for t in 0..wc {
-            out[t] = body(bt[t], l1[t] + r1[t], l2[t] + r2[t]);
+    let at = (aw != 0).then_some(at);
+    let k = [sq, w1, w2, dm, sd];
+    #[allow(unused_mut)]
+    let mut done = 0;
+    // The same integer operations in registers (the compiler's own vectorisation of `body`
+    // widens the multiply-highs to 32-bit lanes).
+    #[cfg(target_arch = "x86_64")]
+    if lv >= 2 && super::kit::has_avx512() {
+        // SAFETY: AVX-512 F/BW present (checked).
+        done = unsafe { rb_simd::body512(out, at, bt, [l1, r1, l2, r2], k) };
+    } else if lv >= 1 && super::kit::has_avx2() {
+        // SAFETY: AVX2 present (checked).
+        done = unsafe { rb_simd::body256(out, at, bt, [l1, r1, l2, r2], k) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (lv, k);
+    match at {
+        None => {
+            for t in done..wc {
+                out[t] = body(bt[t], l1[t] + r1[t], l2[t] + r2[t]);
+            }
         }
-    } else {
-        for t in 0..wc {
-            out[t] = body(at[t] + bt[t], l1[t] + r1[t], l2[t] + r2[t]);
+        Some(at) => {
+            for t in done..wc {
+                out[t] = body(at[t] + bt[t], l1[t] + r1[t], l2[t] + r2[t]);
+            }
         }
     }
 }
 
-super::kit::dispatch_levels!(row_box_row, row_box_k, (row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut [u16]));
+/// The last stage of [`row_box_seg`] in AVX2 / AVX-512 registers: the same wrapping 16-bit
+/// operations as its `body`, `vpmulhuw` pinned.
+#[cfg(target_arch = "x86_64")]
+mod rb_simd {
+    use super::super::kit::{mulhi_epu16_256 as mulhi, mulhi_epu16_512 as mulhi512};
+    use std::arch::x86_64::*;
+
+    /// `out[t] = body(at[t] + bt[t], l1[t] + r1[t], l2[t] + r2[t])` (`at` absent: `bt[t]`) for
+    /// `t < out.len() / 16 * 16` (returned), `k = [sq, w1, w2, dm, sd]`.
+    ///
+    /// # Safety
+    /// AVX2.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn body256(out: &mut [u8], at: Option<&[u16]>, bt: &[u16], e: [&[u16]; 4], k: [u16; 5]) -> usize {
+        let n = out.len() / 16 * 16;
+        assert!(bt.len() >= n && at.is_none_or(|a| a.len() >= n) && e.iter().all(|v| v.len() >= n));
+        let [sq, w1, w2, dm, sd] = k.map(|v| _mm256_set1_epi16(v as i16));
+        let (one, max) = (_mm256_set1_epi16(1), _mm256_set1_epi16(255));
+        for i in (0..n).step_by(16) {
+            // SAFETY: AVX2 (the caller's contract); every load covers 16 values below n of its
+            // slice and the store 16 bytes below n of `out` (asserted).
+            unsafe {
+                let l = |v: &[u16]| _mm256_loadu_si256(v.as_ptr().add(i).cast::<__m256i>());
+                let mut sum = l(bt);
+                if let Some(a) = at {
+                    sum = _mm256_add_epi16(sum, l(a));
+                }
+                let e1 = _mm256_slli_epi16::<7>(_mm256_add_epi16(l(e[0]), l(e[1])));
+                let e2 = _mm256_slli_epi16::<7>(_mm256_add_epi16(l(e[2]), l(e[3])));
+                let b = _mm256_add_epi16(_mm256_add_epi16(_mm256_mullo_epi16(sum, sq), mulhi(e1, w1)), mulhi(e2, w2));
+                let o = _mm256_srli_epi16::<1>(_mm256_add_epi16(mulhi(mulhi(b, dm), sd), one));
+                let o = _mm256_min_epu16(o, max);
+                let p = _mm256_packus_epi16(o, o);
+                let p = _mm256_permute4x64_epi64::<0b1000>(p);
+                _mm_storeu_si128(out.as_mut_ptr().add(i).cast::<__m128i>(), _mm256_castsi256_si128(p));
+            }
+        }
+        n
+    }
+
+    /// [`body256`] 32 at a time (returns `out.len() / 32 * 32`).
+    ///
+    /// # Safety
+    /// AVX-512 F/BW.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub unsafe fn body512(out: &mut [u8], at: Option<&[u16]>, bt: &[u16], e: [&[u16]; 4], k: [u16; 5]) -> usize {
+        let n = out.len() / 32 * 32;
+        assert!(bt.len() >= n && at.is_none_or(|a| a.len() >= n) && e.iter().all(|v| v.len() >= n));
+        let [sq, w1, w2, dm, sd] = k.map(|v| _mm512_set1_epi16(v as i16));
+        let one = _mm512_set1_epi16(1);
+        for i in (0..n).step_by(32) {
+            // SAFETY: AVX-512 F/BW (the caller's contract); every load covers 32 values below n
+            // of its slice and the store 32 bytes below n of `out` (asserted).
+            unsafe {
+                let l = |v: &[u16]| _mm512_loadu_si512(v.as_ptr().add(i).cast::<__m512i>());
+                let mut sum = l(bt);
+                if let Some(a) = at {
+                    sum = _mm512_add_epi16(sum, l(a));
+                }
+                let e1 = _mm512_slli_epi16::<7>(_mm512_add_epi16(l(e[0]), l(e[1])));
+                let e2 = _mm512_slli_epi16::<7>(_mm512_add_epi16(l(e[2]), l(e[3])));
+                let b =
+                    _mm512_add_epi16(_mm512_add_epi16(_mm512_mullo_epi16(sum, sq), mulhi512(e1, w1)), mulhi512(e2, w2));
+                let o = _mm512_srli_epi16::<1>(_mm512_add_epi16(mulhi512(mulhi512(b, dm), sd), one));
+                // Unsigned saturation to bytes: `min(o, 255)`.
+                _mm256_storeu_si256(out.as_mut_ptr().add(i).cast::<__m256i>(), _mm512_cvtusepi16_epi8(o));
+            }
+        }
+        n
+    }
+}
+
+super::kit::dispatch_levels!(row_box_row, row_box_k, (lvk: u8, row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut [u16]));
 
 /// [`RowBox`] streaks of 8-bit frames in place, row by row (each row reads only itself: the
-/// bytes do not depend on the band split). `scratch` grows only.
+/// bytes do not depend on the band split), with the kernels of level `lv` at most (2 AVX-512, 1
+/// AVX2, 0 scalar: the same bytes). `scratch` grows only.
 #[allow(clippy::too_many_arguments)]
-fn row_box(d: &mut [u8], stride: usize, w: usize, h: usize, ch: usize, plan: RowBox, scratch: &mut Vec<u16>) {
+fn row_box(lv: u8, d: &mut [u8], stride: usize, w: usize, h: usize, ch: usize, plan: RowBox, scratch: &mut Vec<u16>) {
     let per = row_box_scratch(w, ch, plan.n);
     if scratch.len() < per * bands(h) {
         scratch.resize(per * bands(h), 0);
     }
-    let lv = super::boxblur::cpu_level();
     let rl = w * ch;
     par_bands_with(d, stride, h, &mut scratch[..per * bands(h)], per, |_, _, band, s| {
         for row in band_rows(band, stride, rl) {
-            row_box_row(lv, row, w, ch, plan, s);
+            row_box_row(lv, lv, row, w, ch, plan, s);
         }
     });
 }
@@ -619,7 +720,7 @@ impl Effect for MotionBlur {
         match &mut frame.data {
             FrameData::U8(d) if self.row_box.is_some() => {
                 let plan = self.row_box.expect("checked");
-                row_box(d, stride, w, h, ch, plan, &mut self.row_box_scratch);
+                row_box(super::boxblur::cpu_level(), d, stride, w, h, ch, plan, &mut self.row_box_scratch);
             }
             // 8-bit: Q6 fixed point in 16-bit lanes (see `fir16`).
             FrameData::U8(d) if self.streak.is_some() => {
@@ -973,6 +1074,34 @@ mod streak_tests {
             }
         }
         eprintln!("{}", report.join("\n"));
+    }
+
+    /// The row box's AVX-512, AVX2 and scalar kernels give the same bytes (segments with and
+    /// without the odd window `acc`, rows shorter than a register and than the streak).
+    #[test]
+    fn row_box_kernels_give_the_same_bytes() {
+        let mut frames = scenes();
+        frames.push(crate::faults::kit::bench_scene(37, 9, PixelFormat::Rgb8, 4).unwrap());
+        frames.push(crate::faults::kit::bench_scene(2111, 5, PixelFormat::Mono8, 4).unwrap());
+        for f in frames {
+            let (w, h, ch) = (f.width as usize, f.height as usize, f.channels());
+            for len in [28.5, 30.0, 37.3, 66.0, 100.0] {
+                let taps = line_taps(len, 0.0);
+                let plan = RowBox::new(len, 0.0, &taps).expect("a row box");
+                let outs: Vec<Frame> = [0u8, 1, 2]
+                    .iter()
+                    .map(|&lv| {
+                        let mut g = f.clone();
+                        let stride = g.stride;
+                        let FrameData::U8(d) = &mut g.data else { panic!("8-bit") };
+                        row_box(lv, d, stride, w, h, ch, plan, &mut Vec::new());
+                        g
+                    })
+                    .collect();
+                assert!(outs[1] == outs[0] && outs[2] == outs[0], "{} {w}x{h}: {len} px", f.format);
+                assert!(outs[0] != f, "{} {w}x{h}: {len} px blurs", f.format);
+            }
+        }
     }
 
     #[test]
