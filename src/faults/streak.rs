@@ -181,21 +181,34 @@ struct Slot {
     pad: Vec<u8>,
     // mostly horizontal streaks: the last output lines (up to `TILE`), a chunk's positions each
     tile: Vec<u8>,
+    // mostly horizontal streaks: the band's own source lines read from the frame (see `Strips`)
+    strips: Strips,
 }
 
 /// Scratch of [`blur_u8`]; grows only (allocation when the frame size or the streak grows).
 #[derive(Default)]
 pub struct Scratch {
-    // allocation: per frame size: the source (rows, or columns transposed; mostly horizontal
-    // streaks write their output lines straight into the frame's columns, see `flush_cols`)
+    // allocation: per frame size: the source rows (mostly vertical streaks; mostly horizontal
+    // ones read the frame's columns through `Strips` and write their output lines straight into
+    // them, see `flush_cols`)
     src: Vec<u8>,
+    // allocation: per frame size, streak and thread count: mostly horizontal streaks: each band's
+    // side lines (transposed copies of the columns of the other bands and the mirrored edges it
+    // reads), then the frame's last rows (see `ColSrc`)
+    side: Vec<u8>,
     // allocation: per frame size, streak and thread count: one slot per band
     slots: Vec<Slot>,
     // allocation: per frame size and streak: the cross-filter tap of every line, and the
     // (streak, line count) they are for
     taps: Vec<i32>,
     taps_for: Option<(StreakPlan, usize)>,
+    // per band (mostly horizontal streaks): the column ranges of its side lines and their offset
+    // in `side`
+    sides: Vec<(Span, Span, usize)>,
 }
+
+/// A range of columns `[start, end)`.
+type Span = (usize, usize);
 
 /// Line access: `nl` pixels of `ch` samples per line, lines `stride` bytes apart.
 #[derive(Clone, Copy)]
@@ -207,10 +220,256 @@ struct Lines<'a> {
     ch: usize,
 }
 
-impl Lines<'_> {
-    fn line(&self, j: isize) -> &[u8] {
+impl<'a> Lines<'a> {
+    fn line(&self, j: isize) -> &'a [u8] {
         let j = mirror(j, self.count);
         &self.data[j * self.stride..j * self.stride + self.nl * self.ch]
+    }
+}
+
+/// Mostly horizontal streaks: the source lines (image columns) of one band, read from the frame
+/// itself while the bands write their output lines into it (no transposed copy of the frame).
+/// A line of the band's own columns `[i0, i0 + rows)` is read from the frame (8 columns at a
+/// time, see [`Strips`]) before the band writes its column in the current block of positions;
+/// every other line (the neighbour bands' columns and the mirrored lines beyond the frame edges,
+/// which other bands or this one overwrite at any time) from `side`, copies taken before any
+/// band writes; the frame's last `e` rows from `bottom`, a copy as well (the lines' mirrored
+/// tails read back up to `n + 5` rows from the bottom edge, rows a block may already have
+/// written).
+#[derive(Clone, Copy)]
+struct ColSrc<'a> {
+    cols: Cols,
+    ch: usize,
+    i0: usize,
+    rows: usize,
+    // the columns [l0, l1) then [r0, r1), transposed: `rows * ch` (`Cols::rows`) bytes each
+    side: &'a [u8],
+    l: (usize, usize),
+    r: (usize, usize),
+    // rows [cols.rows - e, cols.rows) of the frame, `cols.cols * ch` bytes each
+    bottom: &'a [u8],
+    e: usize,
+}
+
+/// Where [`band`] reads its source lines.
+#[derive(Clone, Copy)]
+enum Src<'a> {
+    /// A copy of the frame's rows (mostly vertical streaks).
+    Rows(Lines<'a>),
+    /// The frame's columns (mostly horizontal streaks).
+    Cols(ColSrc<'a>),
+}
+
+impl Src<'_> {
+    /// Pixels per line and samples per pixel.
+    fn dims(&self) -> (usize, usize) {
+        match self {
+            Src::Rows(l) => (l.nl, l.ch),
+            Src::Cols(c) => (c.cols.rows, c.ch),
+        }
+    }
+}
+
+/// Rows of a group's carry (see [`Strips`]): at least the spread of the 8 lines' whole shifts
+/// (at most 8) plus 4.
+const CARRY: usize = 16;
+
+/// The band's own source lines of the current block, 8 columns (a group, lines `i0 + 8 g ..`) at
+/// a time, transposed from the frame into a small cache when a line of the group is first read
+/// in the block: over the rows the block's positions read (`[c0 - 1 + s, c1 + 3 + s)` for
+/// shifts `s`, mirrored). Within a block a line is read only before its column is written (the
+/// window runs ahead of the output line) and once the window has passed it never again, so the
+/// cache holds the window's groups. The rows a block reads that earlier blocks have already
+/// written (output line `j` writes rows `[c0 + ceil(shift), c1 + ceil(shift))`, the next block
+/// reads from `c1 - 1 + floor(shift)`: at most two rows, and the mirror of those at the top
+/// edge) come from the group's carry, the rows `[c1 - 1 + smin, c1 + 3 + smax)` saved from the
+/// group's load in the block before.
+#[derive(Default)]
+struct Strips {
+    // allocation: per frame size and streak: `slots` groups of 8 lines of the frame's height
+    buf: Vec<u8>,
+    // per cache slot: the (group, block) it holds
+    tag: Vec<(usize, usize)>,
+    // allocation: per frame size and thread count: per group, 8 lines of CARRY pixels
+    carry: Vec<u8>,
+    // per group: 1 + the block of its last load (0: none this frame)
+    carry_b: Vec<usize>,
+    slots: usize,
+}
+
+impl Strips {
+    /// Sizes the cache for a band of `rows` lines of `ls` bytes and a streak of `n` full taps;
+    /// forgets every load (a new frame).
+    fn reset(&mut self, n: usize, rows: usize, ls: usize, ch: usize) {
+        // The window spans 2n + 5 lines: a group is evicted only once all its lines are behind
+        // it (`line` asserts that no group is loaded twice in a block).
+        self.slots = (2 * n + 12) / 8 + 2;
+        if self.buf.len() < self.slots * 8 * ls {
+            self.buf.resize(self.slots * 8 * ls, 0);
+        }
+        self.tag.clear();
+        self.tag.resize(self.slots, (usize::MAX, 0));
+        let groups = rows.div_ceil(8);
+        if self.carry.len() < groups * 8 * CARRY * ch {
+            self.carry.resize(groups * 8 * CARRY * ch, 0);
+        }
+        self.carry_b.clear();
+        self.carry_b.resize(groups, 0);
+    }
+
+    /// Source line `j` for block `bi` (positions `[c0, c1)`).
+    #[allow(clippy::too_many_arguments)]
+    fn line<'s, 'a: 's>(
+        &'s mut self,
+        lv: u8,
+        plan: &StreakPlan,
+        src: &Src<'a>,
+        j: isize,
+        bi: usize,
+        c0: isize,
+        c1: isize,
+    ) -> &'s [u8] {
+        let cs = match src {
+            Src::Rows(l) => return l.line(j),
+            Src::Cols(cs) => cs,
+        };
+        let (h, ch, w) = (cs.cols.rows, cs.ch, cs.cols.cols);
+        let ls = h * ch;
+        if j < cs.i0 as isize || j >= (cs.i0 + cs.rows) as isize {
+            let c = mirror(j, w);
+            let t = if (cs.l.0..cs.l.1).contains(&c) {
+                c - cs.l.0
+            } else {
+                assert!((cs.r.0..cs.r.1).contains(&c), "side line {j} (column {c}) not copied");
+                cs.l.1 - cs.l.0 + c - cs.r.0
+            };
+            return &cs.side[t * ls..(t + 1) * ls];
+        }
+        let jj = j as usize - cs.i0;
+        let g = jj / 8;
+        let slot = g % self.slots;
+        if self.tag[slot] != (g, bi) {
+            assert!(self.carry_b[g] != bi + 1, "group {g} loaded twice in block {bi}");
+            let carry_valid = bi > 0 && self.carry_b[g] == bi;
+            let strip = &mut self.buf[slot * 8 * ls..(slot + 1) * 8 * ls];
+            let carry = &mut self.carry[g * 8 * CARRY * ch..(g + 1) * 8 * CARRY * ch];
+            load_group(lv, plan, cs, g, c0, c1, strip, carry, carry_valid);
+            self.tag[slot] = (g, bi);
+            self.carry_b[g] = bi + 1;
+        }
+        let at = (slot * 8 + jj % 8) * ls;
+        &self.buf[at..at + ls]
+    }
+}
+
+/// Loads group `g` of the band's own lines for the block of positions `[c0, c1)` into `strip`
+/// (line `t` at `t ls`, pixel `x` at `x ch`, the rows the block reads; see [`Strips`]), the rows
+/// earlier blocks wrote from `carry` (when `carry_valid`: saved by this group's load in the block
+/// before), then saves the carry for the next block.
+#[allow(clippy::too_many_arguments)]
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_variables, unused_mut))]
+fn load_group(
+    lv: u8,
+    plan: &StreakPlan,
+    cs: &ColSrc,
+    g: usize,
+    c0: isize,
+    c1: isize,
+    strip: &mut [u8],
+    carry: &mut [u8],
+    carry_valid: bool,
+) {
+    let (h, ch, w, stride) = (cs.cols.rows, cs.ch, cs.cols.cols, cs.cols.stride);
+    let ls = h * ch;
+    let j0 = cs.i0 + 8 * g;
+    let nc = 8.min(cs.i0 + cs.rows - j0);
+    let s = |j: usize| (plan.shift_q(j as isize) >> 6) as isize;
+    let (smin, smax) = (j0..j0 + nc).fold((isize::MAX, isize::MIN), |(a, b), j| (a.min(s(j)), b.max(s(j))));
+    assert!(smax - smin + 4 <= CARRY as isize);
+    // Virtual rows [lo, hi) (before mirroring), the rows [amin, amax) that holds.
+    let hh = h as isize;
+    let (lo, hi) = (c0 - 1 + smin, c1 + 3 + smax);
+    let (amin, amax) = if lo <= -hh || hi >= 2 * hh {
+        (0, hh)
+    } else {
+        let amin = if lo < 0 {
+            0
+        } else if hi > hh {
+            lo.min(2 * hh - hi)
+        } else {
+            lo
+        };
+        let amax = if hi > hh {
+            hh
+        } else if lo < 0 {
+            hi.max(-lo)
+        } else {
+            hi
+        };
+        (amin.clamp(0, hh), amax.clamp(0, hh))
+    };
+    let (amin, amax) = (amin as usize, amax as usize);
+    assert!(j0 + nc <= w && cs.cols.len >= (h - 1) * stride + w * ch && cs.bottom.len() >= cs.e * w * ch);
+    // Rows below h - e from the frame, the others from the copy of the last rows.
+    let hb = h - cs.e;
+    for (r0, r1, base, ss) in [
+        (amin, amax.min(hb), cs.cols.ptr as *const u8, stride),
+        (amin.max(hb), amax, cs.bottom.as_ptr().wrapping_sub(hb * w * ch), w * ch),
+    ] {
+        if r1 <= r0 {
+            continue;
+        }
+        let mut r = r0;
+        #[cfg(target_arch = "x86_64")]
+        if nc == 8 && lv >= 1 && super::kit::has_avx2() {
+            while r + 8 <= r1 {
+                // SAFETY: AVX2 present (checked); rows r..r + 8 < h of columns j0..j0 + 8 <= w:
+                // inside the frame resp. the copy of its rows from hb (asserted above), and 8
+                // strip lines of ls = h ch bytes from pixel r. The frame's columns j0.. are this
+                // band's, which only this thread writes, and not meanwhile.
+                unsafe {
+                    let p = base.wrapping_add(r * ss + j0 * ch);
+                    let d = strip.as_mut_ptr().add(r * ch);
+                    match ch {
+                        1 => simd::t8x8_px::<1>(p, ss, d, ls),
+                        _ => simd::t8x8_px::<3>(p, ss, d, ls),
+                    }
+                }
+                r += 8;
+            }
+        }
+        for y in r..r1 {
+            for t in 0..nc {
+                let d = &mut strip[t * ls + y * ch..t * ls + (y + 1) * ch];
+                // SAFETY: pixel (y, j0 + t) inside the frame resp. the copy (asserted above);
+                // `d` is in `strip`, which does not overlap either.
+                unsafe { std::ptr::copy_nonoverlapping(base.wrapping_add(y * ss + (j0 + t) * ch), d.as_mut_ptr(), ch) };
+            }
+        }
+    }
+    let k = (smax - smin + 4) as usize;
+    // Virtual rows from v0 inside the frame: one contiguous run per line.
+    let inside = |v0: isize| v0 >= 0 && v0 + k as isize <= hh;
+    for t in 0..nc {
+        let (line, cy) = (&mut strip[t * ls..(t + 1) * ls], &mut carry[t * CARRY * ch..(t + 1) * CARRY * ch]);
+        let v0 = c0 - 1 + smin;
+        if carry_valid && inside(v0) {
+            line[v0 as usize * ch..(v0 as usize + k) * ch].copy_from_slice(&cy[..k * ch]);
+        } else if carry_valid {
+            for (u, v) in (v0..).take(k).enumerate() {
+                let a = mirror(v, h) * ch;
+                line[a..a + ch].copy_from_slice(&cy[u * ch..(u + 1) * ch]);
+            }
+        }
+        let v0 = c1 - 1 + smin;
+        if inside(v0) {
+            cy[..k * ch].copy_from_slice(&line[v0 as usize * ch..(v0 as usize + k) * ch]);
+        } else {
+            for (u, v) in (v0..).take(k).enumerate() {
+                let a = mirror(v, h) * ch;
+                cy[u * ch..(u + 1) * ch].copy_from_slice(&line[a..a + ch]);
+            }
+        }
     }
 }
 
@@ -377,7 +636,10 @@ const GROUP: isize = 64;
 /// Hints the cache to load the bytes of source line `j` that `A(j, k)`, `k` in `[k0, k1)`, reads
 /// (no effect on the values).
 #[inline]
-fn prefetch(plan: &StreakPlan, src: Lines, j: isize, k0: isize, k1: isize) {
+fn prefetch(plan: &StreakPlan, src: Src, j: isize, k0: isize, k1: isize) {
+    // Mostly horizontal streaks read the frame's columns 8 at a time (a stride the prefetchers
+    // follow).
+    let Src::Rows(src) = src else { return };
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
@@ -510,8 +772,8 @@ fn flush_cols(lv: u8, cols: Cols, ch: usize, tile: &[u8], tl: usize, c0: isize, 
 /// through the slot's tile), block by block of output positions `k` (line `i` writes pixel
 /// `x = k - klo(i)`).
 #[allow(clippy::too_many_arguments)]
-fn band(lv: u8, plan: &StreakPlan, src: Lines, i0: usize, rows: usize, mut dst: Dst, taps: &[i32], slot: &mut Slot) {
-    let (nl, ch) = (src.nl, src.ch);
+fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Dst, taps: &[i32], slot: &mut Slot) {
+    let (nl, ch) = src.dims();
     let n = plan.n as isize;
     // Line i's output pixel x reads B at k = x + klo(i) and k + 1 (phase g); the cross filter
     // needs one position more on each side.
@@ -536,11 +798,13 @@ fn band(lv: u8, plan: &StreakPlan, src: Lines, i0: usize, rows: usize, mut dst: 
     if matches!(dst, Dst::Cols(_)) && slot.tile.len() < TILE * tl {
         slot.tile.resize(TILE * tl, 0);
     }
+    if let Src::Cols(_) = src {
+        slot.strips.reset(plan.n, rows, nl * ch, ch);
+    }
     // A(j, k) for k in [k0, k1) into `a` (index (k - base) ch).
-    let fill = |a: &mut [u16], pad: &mut Vec<u8>, base: isize, j: isize, k0: isize, k1: isize| {
+    let fill = |a: &mut [u16], pad: &mut Vec<u8>, base: isize, j: isize, k0: isize, k1: isize, line: &[u8]| {
         let q = plan.shift_q(j);
         let (s, f) = ((q >> 6) as isize, (q & 63) as u8);
-        let line = src.line(j);
         let x = |k: isize| (k - base) as usize * ch;
         // Positions whose two pixels are inside the line read it directly; the others go
         // through a mirrored copy.
@@ -567,6 +831,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Lines, i0: usize, rows: usize, mut dst: 
     let off = [-n - 2, -n - 1, -n, n + 1, n + 2];
     let (ka, kb) = (klo(i0).0, klo(i0 + rows - 1).0);
     let mut c0 = ka.min(kb);
+    let mut bi = 0;
     while c0 < ka.max(kb) + nl as isize {
         let c1 = c0 + chunk;
         // State over k in [c0 - 1, c1 + 2), local index (k - base) ch.
@@ -590,7 +855,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Lines, i0: usize, rows: usize, mut dst: 
                 continue;
             }
             let (n0, n1) = (o0 - 1, o1 + 2);
-            let Slot { r, b, pad, tile, ring } = &mut *slot;
+            let Slot { r, b, pad, tile, ring, strips } = &mut *slot;
             // Running sums and the window's lines at line i over [g0, g1).
             let mut init = |g0: isize, g1: isize| {
                 let (x0, x1) = ((g0 - base) as usize * ch, (g1 - base) as usize * ch);
@@ -598,7 +863,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Lines, i0: usize, rows: usize, mut dst: 
                 for d in -n - 2..=n + 2 {
                     let j = i as isize + d;
                     let line = &mut ring[at(j)..at(j) + len];
-                    fill(line, pad, base, j, g0, g1);
+                    fill(line, pad, base, j, g0, g1, strips.line(lv, plan, &src, j, bi, c0, c1));
                     if d.abs() <= n {
                         add_d(lv, &mut r[x0..x1], &line[x0..x1]);
                     }
@@ -660,18 +925,19 @@ fn band(lv: u8, plan: &StreakPlan, src: Lines, i0: usize, rows: usize, mut dst: 
             if row + 1 == rows {
                 break;
             }
-            let Slot { ring, pad, .. } = &mut *slot;
+            let Slot { ring, pad, strips, .. } = &mut *slot;
             // Advance to line i + 1: A(i + 1 + n + 2) enters the window in the slot of A(i - n - 2),
             // which leaves it (the other lines are valid over [v0, v1): every line entered over
             // the range then valid, `init` extends all of them, and the range only grows there).
             let j = i as isize + 1 + n + 2;
-            fill(&mut ring[at(j)..at(j) + len], pad, base, j, v0, v1);
+            fill(&mut ring[at(j)..at(j) + len], pad, base, j, v0, v1, strips.line(lv, plan, &src, j, bi, c0, c1));
             prefetch(plan, src, i as isize + 1 + n + 2 + AHEAD, v0, v1);
         }
         if let Dst::Cols(cols) = &dst {
             flush_cols(lv, *cols, ch, &slot.tile, tl, c0, &grp[..glen]);
         }
         c0 = c1;
+        bi += 1;
     }
 }
 
@@ -1002,34 +1268,6 @@ pub fn blur_u8_at(
 ) {
     let (count, nl) = if plan.vertical { (h, w) } else { (w, h) };
     let ls = nl * ch;
-    if sc.src.len() < count * ls {
-        if sc.src.capacity() < count * ls {
-            // A fresh buffer asks for transparent huge pages before its first touch: the
-            // transposes and the line walk stride across the frame (one 4 KiB page per line),
-            // fewer TLB misses with 2 MiB pages (4-9 % on the Zen 3, BENCHMARKS.md).
-            let mut v: Vec<u8> = Vec::with_capacity(count * ls);
-            #[cfg(target_os = "linux")]
-            {
-                let (p, huge) = (v.as_mut_ptr() as usize, 1usize << 21);
-                let (a0, a1) = ((p + huge - 1) & !(huge - 1), (p + count * ls) & !(huge - 1));
-                if a1 > a0 {
-                    // SAFETY: advice on whole pages inside the buffer's own allocation (not yet
-                    // touched); it changes how the kernel backs them, never their contents.
-                    unsafe { libc::madvise(a0 as *mut libc::c_void, a1 - a0, libc::MADV_HUGEPAGE) };
-                }
-            }
-            sc.src = v;
-        }
-        sc.src.resize(count * ls, 0);
-    }
-    if plan.vertical {
-        sc.src[..count * ls]
-            .par_chunks_mut(ls)
-            .enumerate()
-            .for_each(|(y, l)| l.copy_from_slice(&d[y * stride..y * stride + ls]));
-    } else {
-        transpose(lv, d, stride, w, h, ch, &mut sc.src[..count * ls], ls);
-    }
     let threads = rayon::current_num_threads().max(1);
     let per = count.div_ceil(threads).max(64);
     let nb = count.div_ceil(per);
@@ -1041,9 +1279,34 @@ pub fn blur_u8_at(
         sc.taps.extend((0..count).map(|i| plan.cross_tap(i as isize)));
         sc.taps_for = Some((plan.clone(), count));
     }
-    let src = Lines { data: &sc.src, stride: ls, count, nl, ch };
     let taps = &sc.taps;
     if plan.vertical {
+        if sc.src.len() < count * ls {
+            if sc.src.capacity() < count * ls {
+                // A fresh buffer asks for transparent huge pages before its first touch: the
+                // line walk strides across the frame (one 4 KiB page per line), fewer TLB misses
+                // with 2 MiB pages (4-9 % on the Zen 3, BENCHMARKS.md).
+                let mut v: Vec<u8> = Vec::with_capacity(count * ls);
+                #[cfg(target_os = "linux")]
+                {
+                    let (p, huge) = (v.as_mut_ptr() as usize, 1usize << 21);
+                    let (a0, a1) = ((p + huge - 1) & !(huge - 1), (p + count * ls) & !(huge - 1));
+                    if a1 > a0 {
+                        // SAFETY: advice on whole pages inside the buffer's own allocation (not
+                        // yet touched); it changes how the kernel backs them, never their
+                        // contents.
+                        unsafe { libc::madvise(a0 as *mut libc::c_void, a1 - a0, libc::MADV_HUGEPAGE) };
+                    }
+                }
+                sc.src = v;
+            }
+            sc.src.resize(count * ls, 0);
+        }
+        sc.src[..count * ls]
+            .par_chunks_mut(ls)
+            .enumerate()
+            .for_each(|(y, l)| l.copy_from_slice(&d[y * stride..y * stride + ls]));
+        let src = Src::Rows(Lines { data: &sc.src, stride: ls, count, nl, ch });
         let used = d.len().min(stride * count);
         d[..used].par_chunks_mut(stride * per).zip(sc.slots.par_iter_mut()).enumerate().for_each(|(b, (out, slot))| {
             let i0 = b * per;
@@ -1051,12 +1314,50 @@ pub fn blur_u8_at(
             band(lv, plan, src, i0, rows, Dst::Rows(out, stride), &taps[i0..i0 + rows], slot);
         });
     } else {
-        // Output lines are the frame's columns, written by each band (disjoint columns).
+        // Output lines are the frame's columns, written by each band (disjoint columns); each
+        // band reads its own columns from the frame (see `ColSrc`), the columns of its window
+        // beyond them from copies taken first: per band the columns its virtual lines
+        // [i0 - n - 2, i0) and [i0 + rows, i0 + rows + n + 2) mirror to (two ranges).
         assert!(d.len() >= (h - 1) * stride + w * ch && w * ch <= stride);
+        let n = plan.n as isize;
+        let span = |j0: isize, j1: isize| {
+            (j0..j1).map(|j| mirror(j, w)).fold((usize::MAX, 0), |(a, b), c| (a.min(c), b.max(c + 1)))
+        };
+        let mut lines = 0;
+        sc.sides.clear();
+        for b in 0..nb {
+            let (i0, i1) = ((b * per) as isize, ((b + 1) * per).min(count) as isize);
+            let (l, r) = (span(i0 - n - 2, i0), span(i1, i1 + n + 2));
+            sc.sides.push((l, r, lines * ls));
+            lines += l.1 - l.0 + r.1 - r.0;
+        }
+        let sides = &sc.sides;
+        let e = h.min(plan.n + 8);
+        let need = lines * ls + e * w * ch;
+        if sc.side.len() < need {
+            sc.side.resize(need, 0);
+        }
+        let (side, bottom) = sc.side[..need].split_at_mut(lines * ls);
+        let mut rest = &mut *side;
+        for &(l, r, _) in sides {
+            for (c0, c1) in [l, r] {
+                let (dst, tail) = std::mem::take(&mut rest).split_at_mut((c1 - c0) * ls);
+                transpose(lv, &d[c0 * ch..], stride, c1 - c0, h, ch, dst, ls);
+                rest = tail;
+            }
+        }
+        for (y, row) in bottom.chunks_exact_mut(w * ch).enumerate() {
+            let at = (h - e + y) * stride;
+            row.copy_from_slice(&d[at..at + w * ch]);
+        }
+        let (side, bottom) = (&*side, &*bottom);
         let cols = Cols { ptr: d.as_mut_ptr(), len: d.len(), stride, rows: h, cols: w };
         sc.slots[..nb].par_iter_mut().enumerate().for_each(|(b, slot)| {
             let i0 = b * per;
             let rows = per.min(count - i0);
+            let (l, r, o) = sides[b];
+            let side = &side[o..o + (l.1 - l.0 + r.1 - r.0) * ls];
+            let src = Src::Cols(ColSrc { cols, ch, i0, rows, side, l, r, bottom, e });
             band(lv, plan, src, i0, rows, Dst::Cols(cols), &taps[i0..i0 + rows], slot);
         });
     }
@@ -1065,6 +1366,80 @@ pub fn blur_u8_at(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The mostly horizontal path as it was: the whole frame transposed into a copy first, the
+    /// lines read from it.
+    fn blur_transposed(lv: u8, d: &mut [u8], stride: usize, w: usize, h: usize, ch: usize, plan: &StreakPlan) {
+        assert!(!plan.vertical);
+        let (count, nl) = (w, h);
+        let ls = nl * ch;
+        let mut t = vec![0u8; count * ls];
+        transpose(lv, d, stride, w, h, ch, &mut t, ls);
+        let taps: Vec<i32> = (0..count).map(|i| plan.cross_tap(i as isize)).collect();
+        let src = Src::Rows(Lines { data: &t, stride: ls, count, nl, ch });
+        let cols = Cols { ptr: d.as_mut_ptr(), len: d.len(), stride, rows: h, cols: w };
+        let threads = rayon::current_num_threads().max(1);
+        let per = count.div_ceil(threads).max(64);
+        let mut slots: Vec<Slot> = (0..count.div_ceil(per)).map(|_| Slot::default()).collect();
+        slots.par_iter_mut().enumerate().for_each(|(b, slot)| {
+            let i0 = b * per;
+            let rows = per.min(count - i0);
+            band(lv, plan, src, i0, rows, Dst::Cols(cols), &taps[i0..i0 + rows], slot);
+        });
+    }
+
+    #[test]
+    fn frame_columns_read_in_place_equal_the_transposed_copy() {
+        use crate::frame::{FrameData, PixelFormat};
+        for (w, h, format) in [
+            (203u32, 131u32, PixelFormat::Rgb8),
+            (150, 190, PixelFormat::Mono8),
+            (700, 300, PixelFormat::Rgb8),
+            (600, 650, PixelFormat::Mono8),
+            (64, 7, PixelFormat::Rgb8),
+            (7, 64, PixelFormat::Mono8),
+            (130, 20, PixelFormat::Rgb8),
+        ] {
+            let f = crate::faults::kit::bench_scene(w, h, format, 3).unwrap();
+            let ch = format.channels();
+            for (len, ang) in [
+                (30.0, 30.0),
+                (40.0, 30.0),
+                (40.0, 45.0),
+                (100.0, 30.0),
+                (60.0, 10.0),
+                (100.0, 170.0),
+                (25.0, 20.0),
+                (66.0, 0.0),
+                (100.0, 200.0),
+                (50.0, 340.0),
+            ] {
+                let plan = StreakPlan::new(len, ang);
+                if plan.vertical {
+                    continue;
+                }
+                for threads in [1, 2, 3] {
+                    for lv in [0, 1, 2] {
+                        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+                        let (mut a, mut b) = (f.clone(), f.clone());
+                        let stride = a.stride;
+                        let (FrameData::U8(da), FrameData::U8(db)) = (&mut a.data, &mut b.data) else { unreachable!() };
+                        pool.install(|| {
+                            blur_u8_at(lv, da, stride, w as usize, h as usize, ch, &plan, &mut Scratch::default());
+                            blur_transposed(lv, db, stride, w as usize, h as usize, ch, &plan);
+                        });
+                        if let Some(p) = da.iter().zip(db.iter()).position(|(x, y)| x != y) {
+                            panic!(
+                                "{format} {w}x{h} {len}@{ang} lv {lv} {threads} threads: first difference at row {} byte {}",
+                                p / stride,
+                                p % stride
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
 
     #[test]
     fn weights_are_the_box_convolved_with_the_tent() {
