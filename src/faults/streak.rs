@@ -1016,22 +1016,8 @@ fn transpose_px<const C: usize>(
 
 #[cfg(target_arch = "x86_64")]
 mod simd {
+    use super::super::kit::{mulhi_epu16_256 as mulhi, mulhi_epu16_512 as mulhi512};
     use std::arch::x86_64::*;
-
-    /// `_mm256_mulhi_epu16` pinned as one `vpmulhuw` (LLVM otherwise rewrites some of these
-    /// multiply-highs into a widening 32-bit sequence, about 2x slower).
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    fn mulhi(a: __m256i, b: __m256i) -> __m256i {
-        let r: __m256i;
-        // SAFETY: AVX2 (this function's feature); a register-only instruction without memory
-        // access or flags.
-        unsafe {
-            std::arch::asm!("vpmulhuw {r}, {a}, {b}", r = lateout(ymm_reg) r, a = in(ymm_reg) a, b = in(ymm_reg) b,
-                options(pure, nomem, nostack, preserves_flags));
-        }
-        r
-    }
 
     /// [`super::step_k`] over the first `b.len() / 16 * 16` positions (returned), 16 at a time.
     ///
@@ -1060,20 +1046,6 @@ mod simd {
             }
         }
         n
-    }
-
-    /// `_mm512_mulhi_epu16` pinned as one `vpmulhuw` (see [`mulhi`]).
-    #[inline]
-    #[target_feature(enable = "avx512f,avx512bw")]
-    fn mulhi512(a: __m512i, b: __m512i) -> __m512i {
-        let r: __m512i;
-        // SAFETY: AVX-512 BW (this function's feature); a register-only instruction without
-        // memory access or flags.
-        unsafe {
-            std::arch::asm!("vpmulhuw {r}, {a}, {b}", r = lateout(zmm_reg) r, a = in(zmm_reg) a, b = in(zmm_reg) b,
-                options(pure, nomem, nostack, preserves_flags));
-        }
-        r
     }
 
     /// [`super::step_k`] over the first `b.len() / 32 * 32` positions (returned), 32 at a time.
