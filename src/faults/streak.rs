@@ -5,7 +5,8 @@
 //! quadrature, `P(d) = (1/L) integral over s in [-L/2, L/2] of tent(dx - s ux) tent(dy - s uy)`
 //! (the line spread bilinearly). Call the axis along which `u` has its larger component the
 //! *major* axis, and lines the image lines across it (rows for a mostly vertical streak, columns
-//! for a mostly horizontal one: those are transposed first). Along the major axis the streak moves
+//! for a mostly horizontal one: read from the frame 8 columns at a time through 8 x 8 register
+//! transposes). Along the major axis the streak moves
 //! `m` (|m| <= 1) pixels within a line per line step and spans `2T = L |u_major|` lines. Output
 //! line `i` at position `x` is
 //!
