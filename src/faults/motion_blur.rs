@@ -42,8 +42,9 @@ pub static INFO: EffectInfo = EffectInfo {
             px, 3.5 DN at 100 px, 0.55 DN for axis-aligned streaks (the final rounding plus the 16-bit \
             truncations), mean within 0.05 DN (tested). 8-bit frames, streaks exactly along x (0 or \
             180 deg) longer than 28 px: the model's PSF is then one row, 2n + 1 equal weights (n = \
-            floor(length_px / 2 - 1)) and two end-tap pairs; an exact 16-bit box sum (windows of \
-            1, 2, 4, .. px added by doubling: cost independent of the length) plus the end taps \
+            floor(length_px / 2 - 1)) and two end-tap pairs; an exact 16-bit box sum (the difference of two \
+            prefix sums of the row, or windows of 1, 2, 4, .. px added by doubling on the scalar \
+            path: the same values, cost about independent of the length) plus the end taps \
             and the normalisation as 16-bit multiply-highs, the same integer operations on every \
             CPU path: within 0.55 DN of the model (tested). 16-bit frames in f32 with \
             the model's taps, rounded and clipped (cost grows with length_px). length_px = 0 is the \
@@ -450,9 +451,10 @@ impl RowBox {
 /// (plus the padded row) stay in the L1 cache (about 26 KB at 100 px rgb8).
 const ROW_BOX_SEG: usize = 2048;
 
-/// Per-band scratch of [`row_box`] (u16s): the padded row and three segments of window sums.
+/// Per-band scratch of [`row_box`] (u16s): the padded row, its prefix sums and three segments of
+/// window sums.
 fn row_box_scratch(w: usize, ch: usize, n: usize) -> usize {
-    (w + 2 * (n + 2)) * ch + 3 * (ROW_BOX_SEG + (2 * n + 4) * ch)
+    2 * (w + 2 * (n + 2)) * ch + 3 * (ROW_BOX_SEG + (2 * n + 4) * ch)
 }
 
 /// `(x e) >> 16` (the high half of the 16-bit product: one `vpmulhuw`).
@@ -467,12 +469,17 @@ fn mulhi(x: u16, e: u16) -> u16 {
 /// 1, 2, 4, .. pixels (`cur[i] + cur[i + width]`), the ones in `k`'s binary digits added up on
 /// the way (exact 16-bit sums: `k 255 < 2^16`); then per sample `B = S 2^q + mulhi(e1 << 7, w1)
 /// + mulhi(e2 << 7, w2)` (`e1`, `e2` the sums of the two end-tap pairs) and the division by `D`
-/// (see [`RowBox`]). Integer operations only: the same bytes on every path and segment split.
+/// (see [`RowBox`]). With AVX2 / AVX-512 (level `lv` >= 1) `S` is instead the difference of
+/// two prefix sums of the padded row (`pre[t] = p[t] + pre[t - ch]`, wrapping 16-bit: the
+/// difference is exact because `S` fits), scanned in registers, and the last stage runs there too
+/// ([`rb_simd`]). Integer operations only: the same bytes on every path and segment split.
 #[inline(always)]
 fn row_box_k(lv: u8, row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut [u16]) {
     let rr = plan.n + 2;
     let np = (w + 2 * rr) * ch;
     let (p, s) = s.split_at_mut(np);
+    #[cfg_attr(not(target_arch = "x86_64"), allow(unused_variables))]
+    let (pre, s) = s.split_at_mut(np);
     let halo = (2 * rr) * ch;
     let sl = ROW_BOX_SEG + halo;
     let (c0, s) = s.split_at_mut(sl);
@@ -496,10 +503,45 @@ fn row_box_k(lv: u8, row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut 
         }
     }
     let wc = w * ch;
+    // With AVX2 / AVX-512: `S` as the difference of two prefix sums of the row (wrapping 16-bit:
+    // exact, as `S` itself fits), the prefix sum computed in registers; the same values as the
+    // doubling windows below.
+    #[cfg(target_arch = "x86_64")]
+    if lv >= 1 && super::kit::has_avx2() {
+        let k = [1u16 << plan.q, plan.w[0], plan.w[1], plan.dm, 1u16 << (17 - plan.ds)];
+        let avx512 = lv >= 2 && super::kit::has_avx512();
+        // SAFETY: AVX-512 F/BW resp. AVX2 present (checked).
+        let done = unsafe { if avx512 { rb_simd::prefix512(pre, p, ch) } else { rb_simd::prefix256(pre, p, ch) } };
+        for t in done..np {
+            pre[t] = p[t].wrapping_add(if t >= ch { pre[t - ch] } else { 0 });
+        }
+        let n2 = 2 * plan.n;
+        let (s1, s0) = (&pre[(n2 + 2) * ch..(n2 + 2) * ch + wc], &pre[ch..ch + wc]);
+        let (l2, l1) = (&p[..wc], &p[ch..ch + wc]);
+        let (r1, r2) = (&p[(n2 + 3) * ch..(n2 + 3) * ch + wc], &p[(n2 + 4) * ch..(n2 + 4) * ch + wc]);
+        let out = &mut row[..wc];
+        // SAFETY: as above.
+        let done = unsafe {
+            if avx512 {
+                rb_simd::body512(out, s0, s1, [l1, r1, l2, r2], k)
+            } else {
+                rb_simd::body256(out, s0, s1, [l1, r1, l2, r2], k)
+            }
+        };
+        let [sq, w1, w2, dm, sd] = k;
+        for t in done..wc {
+            let (e1, e2) = (l1[t] + r1[t], l2[t] + r2[t]);
+            let b = s1[t].wrapping_sub(s0[t]) * sq + mulhi(e1 << 7, w1) + mulhi(e2 << 7, w2);
+            out[t] = ((mulhi(mulhi(b, dm), sd) + 1) >> 1).min(255) as u8;
+        }
+        return;
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = lv;
     let mut s0 = 0;
     while s0 < wc {
         let s1 = (s0 + ROW_BOX_SEG).min(wc);
-        row_box_seg(lv, &mut row[s0..s1], &p[s0..s1 + halo], ch, plan, c0, c1, acc);
+        row_box_seg(&mut row[s0..s1], &p[s0..s1 + halo], ch, plan, c0, c1, acc);
         s0 = s1;
     }
 }
@@ -507,17 +549,7 @@ fn row_box_k(lv: u8, row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut 
 /// The outputs `out` of [`row_box_k`] from the padded samples `p` (`out.len() + (2n + 4) ch`
 /// of them); `c0`, `c1`, `acc` scratch of at least `p.len()`.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn row_box_seg(
-    lv: u8,
-    out: &mut [u8],
-    p: &[u16],
-    ch: usize,
-    plan: RowBox,
-    c0: &mut [u16],
-    c1: &mut [u16],
-    acc: &mut [u16],
-) {
+fn row_box_seg(out: &mut [u8], p: &[u16], ch: usize, plan: RowBox, c0: &mut [u16], c1: &mut [u16], acc: &mut [u16]) {
     let np = p.len();
     let k = 2 * plan.n + 1;
     let top = usize::BITS - 1 - k.leading_zeros();
@@ -568,52 +600,152 @@ fn row_box_seg(
         let b = sum * sq + mulhi(e1 << 7, w1) + mulhi(e2 << 7, w2);
         ((mulhi(mulhi(b, dm), sd) + 1) >> 1).min(255) as u8
     };
-    let at = (aw != 0).then_some(at);
-    let k = [sq, w1, w2, dm, sd];
-    #[allow(unused_mut)]
-    let mut done = 0;
-    // The same integer operations in registers (the compiler's own vectorisation of `body`
-    // widens the multiply-highs to 32-bit lanes).
-    #[cfg(target_arch = "x86_64")]
-    if lv >= 2 && super::kit::has_avx512() {
-        // SAFETY: AVX-512 F/BW present (checked).
-        done = unsafe { rb_simd::body512(out, at, bt, [l1, r1, l2, r2], k) };
-    } else if lv >= 1 && super::kit::has_avx2() {
-        // SAFETY: AVX2 present (checked).
-        done = unsafe { rb_simd::body256(out, at, bt, [l1, r1, l2, r2], k) };
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (lv, k);
-    match at {
+    match (aw != 0).then_some(at) {
         None => {
-            for t in done..wc {
+            for t in 0..wc {
                 out[t] = body(bt[t], l1[t] + r1[t], l2[t] + r2[t]);
             }
         }
         Some(at) => {
-            for t in done..wc {
+            for t in 0..wc {
                 out[t] = body(at[t] + bt[t], l1[t] + r1[t], l2[t] + r2[t]);
             }
         }
     }
 }
 
-/// The last stage of [`row_box_seg`] in AVX2 / AVX-512 registers: the same wrapping 16-bit
-/// operations as its `body`, `vpmulhuw` pinned.
+/// [`row_box_k`] in AVX2 / AVX-512 registers: the row's prefix sums, and the last stage (end taps,
+/// division, bytes) with `vpmulhuw` pinned (the compiler's own vectorisation of that stage widens
+/// the multiply-highs to 32-bit lanes). The same wrapping 16-bit operations as the scalar code.
 #[cfg(target_arch = "x86_64")]
 mod rb_simd {
     use super::super::kit::{mulhi_epu16_256 as mulhi, mulhi_epu16_512 as mulhi512};
     use std::arch::x86_64::*;
 
-    /// `out[t] = body(at[t] + bt[t], l1[t] + r1[t], l2[t] + r2[t])` (`at` absent: `bt[t]`) for
-    /// `t < out.len() / 16 * 16` (returned), `k = [sq, w1, w2, dm, sd]`.
+    /// `pre[t] = p[t] + pre[t - ch]` (wrapping; `pre[t] = p[t]` for `t < ch`) for `t <
+    /// p.len() / 32 * 32` (returned), `ch` 1 or 3: each vector scanned in registers (lanes
+    /// shifted by `ch`, `2 ch`, `4 ch`, .. and added), then the previous vector's last sum of
+    /// each channel added.
+    ///
+    /// # Safety
+    /// AVX-512 F/BW.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub unsafe fn prefix512(pre: &mut [u16], p: &[u16], ch: usize) -> usize {
+        let n = p.len() / 32 * 32;
+        assert!(pre.len() >= n && (ch == 1 || ch == 3));
+        let lane = |f: &dyn Fn(i16) -> i16| {
+            let v: [i16; 32] = std::array::from_fn(|i| f(i as i16));
+            // SAFETY: 32 i16s are 64 bytes.
+            unsafe { _mm512_loadu_si512(v.as_ptr().cast::<__m512i>()) }
+        };
+        let shifts: &[i16] = if ch == 1 { &[1, 2, 4, 8, 16] } else { &[3, 6, 12, 24] };
+        let steps: Vec<(__mmask32, __m512i)> =
+            shifts.iter().map(|&s| ((u32::MAX << s) as __mmask32, lane(&|i| (i - s).max(0)))).collect();
+        let cidx = if ch == 1 { lane(&|_| 31) } else { lane(&|i| 29 + i % 3) };
+        let mut carry = _mm512_setzero_si512();
+        for i in (0..n).step_by(32) {
+            // SAFETY: AVX-512 F/BW (the caller's contract); the load and the store cover 32
+            // values below n of their slices (asserted).
+            unsafe {
+                let mut x = _mm512_loadu_si512(p.as_ptr().add(i).cast::<__m512i>());
+                for &(m, idx) in &steps {
+                    x = _mm512_add_epi16(x, _mm512_maskz_permutexvar_epi16(m, idx, x));
+                }
+                x = _mm512_add_epi16(x, carry);
+                _mm512_storeu_si512(pre.as_mut_ptr().add(i).cast::<__m512i>(), x);
+                carry = _mm512_permutexvar_epi16(cidx, x);
+            }
+        }
+        n
+    }
+
+    /// [`prefix512`] 16 lanes at a time (returns `p.len() / 16 * 16`).
     ///
     /// # Safety
     /// AVX2.
     #[target_feature(enable = "avx2")]
-    pub unsafe fn body256(out: &mut [u8], at: Option<&[u16]>, bt: &[u16], e: [&[u16]; 4], k: [u16; 5]) -> usize {
+    pub unsafe fn prefix256(pre: &mut [u16], p: &[u16], ch: usize) -> usize {
+        let n = p.len() / 16 * 16;
+        assert!(pre.len() >= n && (ch == 1 || ch == 3));
+        // x shifted up by S lanes (zeros in), S < 16: `lo` = [0, low half of x].
+        macro_rules! up {
+            ($x:expr, 1) => {{
+                let x = $x;
+                _mm256_alignr_epi8::<14>(x, _mm256_permute2x128_si256::<0x08>(x, x))
+            }};
+            ($x:expr, 2) => {{
+                let x = $x;
+                _mm256_alignr_epi8::<12>(x, _mm256_permute2x128_si256::<0x08>(x, x))
+            }};
+            ($x:expr, 3) => {{
+                let x = $x;
+                _mm256_alignr_epi8::<10>(x, _mm256_permute2x128_si256::<0x08>(x, x))
+            }};
+            ($x:expr, 4) => {{
+                let x = $x;
+                _mm256_alignr_epi8::<8>(x, _mm256_permute2x128_si256::<0x08>(x, x))
+            }};
+            ($x:expr, 6) => {{
+                let x = $x;
+                _mm256_alignr_epi8::<4>(x, _mm256_permute2x128_si256::<0x08>(x, x))
+            }};
+            ($x:expr, 8) => {{
+                let x = $x;
+                _mm256_permute2x128_si256::<0x08>(x, x)
+            }};
+            ($x:expr, 12) => {{
+                let x = $x;
+                _mm256_slli_si256::<8>(_mm256_permute2x128_si256::<0x08>(x, x))
+            }};
+        }
+        // The previous vector's last sum per channel into every lane of that channel: lane i
+        // takes lane 15 (ch 1) or 13 + i mod 3 (ch 3), all in the high half.
+        let word = |w: [i8; 16]| -> __m256i {
+            let b: [i8; 32] = std::array::from_fn(|i| 2 * w[i / 2] + (i % 2) as i8);
+            // SAFETY: 32 bytes.
+            unsafe { _mm256_loadu_si256(b.as_ptr().cast::<__m256i>()) }
+        };
+        let cpat = if ch == 1 {
+            word([7; 16])
+        } else {
+            // High-half words (lane - 8) per 128-bit half: lanes 0-7 then 8-15.
+            word(std::array::from_fn(|i| 5 + (i % 3) as i8))
+        };
+        let mut carry = _mm256_setzero_si256();
+        for i in (0..n).step_by(16) {
+            // SAFETY: AVX2 (the caller's contract); the load and the store cover 16 values
+            // below n of their slices (asserted).
+            unsafe {
+                let mut x = _mm256_loadu_si256(p.as_ptr().add(i).cast::<__m256i>());
+                if ch == 1 {
+                    x = _mm256_add_epi16(x, up!(x, 1));
+                    x = _mm256_add_epi16(x, up!(x, 2));
+                    x = _mm256_add_epi16(x, up!(x, 4));
+                    x = _mm256_add_epi16(x, up!(x, 8));
+                } else {
+                    x = _mm256_add_epi16(x, up!(x, 3));
+                    x = _mm256_add_epi16(x, up!(x, 6));
+                    x = _mm256_add_epi16(x, up!(x, 12));
+                }
+                x = _mm256_add_epi16(x, carry);
+                _mm256_storeu_si256(pre.as_mut_ptr().add(i).cast::<__m256i>(), x);
+                let hi = _mm256_permute2x128_si256::<0x11>(x, x);
+                carry = _mm256_shuffle_epi8(hi, cpat);
+            }
+        }
+        n
+    }
+
+    /// `out[t] = body(s1[t] - s0[t], l1[t] + r1[t], l2[t] + r2[t])` with `e = [l1, r1, l2, r2]`,
+    /// `k = [sq, w1, w2, dm, sd]`: `b = sum sq + mulhi(e1 << 7, w1) + mulhi(e2 << 7, w2)`, `out =
+    /// min((mulhi(mulhi(b, dm), sd) + 1) >> 1, 255)`, for `t < out.len() / 16 * 16` (returned).
+    ///
+    /// # Safety
+    /// AVX2.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn body256(out: &mut [u8], s0: &[u16], s1: &[u16], e: [&[u16]; 4], k: [u16; 5]) -> usize {
         let n = out.len() / 16 * 16;
-        assert!(bt.len() >= n && at.is_none_or(|a| a.len() >= n) && e.iter().all(|v| v.len() >= n));
+        assert!(s0.len() >= n && s1.len() >= n && e.iter().all(|v| v.len() >= n));
         let [sq, w1, w2, dm, sd] = k.map(|v| _mm256_set1_epi16(v as i16));
         let (one, max) = (_mm256_set1_epi16(1), _mm256_set1_epi16(255));
         for i in (0..n).step_by(16) {
@@ -621,17 +753,13 @@ mod rb_simd {
             // slice and the store 16 bytes below n of `out` (asserted).
             unsafe {
                 let l = |v: &[u16]| _mm256_loadu_si256(v.as_ptr().add(i).cast::<__m256i>());
-                let mut sum = l(bt);
-                if let Some(a) = at {
-                    sum = _mm256_add_epi16(sum, l(a));
-                }
+                let sum = _mm256_sub_epi16(l(s1), l(s0));
                 let e1 = _mm256_slli_epi16::<7>(_mm256_add_epi16(l(e[0]), l(e[1])));
                 let e2 = _mm256_slli_epi16::<7>(_mm256_add_epi16(l(e[2]), l(e[3])));
                 let b = _mm256_add_epi16(_mm256_add_epi16(_mm256_mullo_epi16(sum, sq), mulhi(e1, w1)), mulhi(e2, w2));
                 let o = _mm256_srli_epi16::<1>(_mm256_add_epi16(mulhi(mulhi(b, dm), sd), one));
                 let o = _mm256_min_epu16(o, max);
-                let p = _mm256_packus_epi16(o, o);
-                let p = _mm256_permute4x64_epi64::<0b1000>(p);
+                let p = _mm256_permute4x64_epi64::<0b1000>(_mm256_packus_epi16(o, o));
                 _mm_storeu_si128(out.as_mut_ptr().add(i).cast::<__m128i>(), _mm256_castsi256_si128(p));
             }
         }
@@ -643,9 +771,9 @@ mod rb_simd {
     /// # Safety
     /// AVX-512 F/BW.
     #[target_feature(enable = "avx512f,avx512bw")]
-    pub unsafe fn body512(out: &mut [u8], at: Option<&[u16]>, bt: &[u16], e: [&[u16]; 4], k: [u16; 5]) -> usize {
+    pub unsafe fn body512(out: &mut [u8], s0: &[u16], s1: &[u16], e: [&[u16]; 4], k: [u16; 5]) -> usize {
         let n = out.len() / 32 * 32;
-        assert!(bt.len() >= n && at.is_none_or(|a| a.len() >= n) && e.iter().all(|v| v.len() >= n));
+        assert!(s0.len() >= n && s1.len() >= n && e.iter().all(|v| v.len() >= n));
         let [sq, w1, w2, dm, sd] = k.map(|v| _mm512_set1_epi16(v as i16));
         let one = _mm512_set1_epi16(1);
         for i in (0..n).step_by(32) {
@@ -653,10 +781,7 @@ mod rb_simd {
             // of its slice and the store 32 bytes below n of `out` (asserted).
             unsafe {
                 let l = |v: &[u16]| _mm512_loadu_si512(v.as_ptr().add(i).cast::<__m512i>());
-                let mut sum = l(bt);
-                if let Some(a) = at {
-                    sum = _mm512_add_epi16(sum, l(a));
-                }
+                let sum = _mm512_sub_epi16(l(s1), l(s0));
                 let e1 = _mm512_slli_epi16::<7>(_mm512_add_epi16(l(e[0]), l(e[1])));
                 let e2 = _mm512_slli_epi16::<7>(_mm512_add_epi16(l(e[2]), l(e[3])));
                 let b =
