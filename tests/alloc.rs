@@ -133,6 +133,39 @@ fn main() {
             }
         }
     }
+    // The blurs' other 8-bit paths (the chain above runs motion_blur's FIR at 10 px 30 deg and
+    // defocus at its bench sigma): motion_blur's row box (along x), its running sums on rows (mostly
+    // vertical) and on frame columns (mostly horizontal), defocus's pyramid, at a frame size whose
+    // rows are not a whole number of registers.
+    for threads in [1usize, 2] {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
+        for format in [PixelFormat::Mono8, PixelFormat::Rgb8] {
+            let input = bench_scene(333, 203, format, 3).expect("scene");
+            let cases: [(&str, &[(&str, f64)]); 4] = [
+                ("motion_blur", &[("length_px", 66.0), ("angle_deg", 0.0)]),
+                ("motion_blur", &[("length_px", 40.0), ("angle_deg", 80.0)]),
+                ("motion_blur", &[("length_px", 40.0), ("angle_deg", 30.0)]),
+                ("defocus", &[("sigma_px", 9.5)]),
+            ];
+            for (effect, set) in cases {
+                let got = pool.install(|| {
+                    let mut chain = Chain::new(7);
+                    let mut p = bench_params(effect).expect("bench params");
+                    for &(k, v) in set {
+                        p.set(k, v).expect("in range");
+                    }
+                    chain.push(effect, p).expect("push");
+                    run(&mut chain, &input, None, 0)
+                });
+                println!(
+                    "alloc: {effect} {set:?}, {format}, {threads} thread(s): {got} allocations in {MEASURED} frames"
+                );
+                if got != 0 {
+                    failures.push(format!("{effect} {set:?} {format}/{threads} threads: {got}"));
+                }
+            }
+        }
+    }
     // Informational: the same chain driven from a thread outside any rayon pool.
     let input = bench_scene(320, 240, PixelFormat::Rgb8, 3).expect("scene");
     let mut chain = full_chain();

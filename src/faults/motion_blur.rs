@@ -638,9 +638,10 @@ mod rb_simd {
             // SAFETY: 32 i16s are 64 bytes.
             unsafe { _mm512_loadu_si512(v.as_ptr().cast::<__m512i>()) }
         };
-        let shifts: &[i16] = if ch == 1 { &[1, 2, 4, 8, 16] } else { &[3, 6, 12, 24] };
-        let steps: Vec<(__mmask32, __m512i)> =
-            shifts.iter().map(|&s| ((u32::MAX << s) as __mmask32, lane(&|i| (i - s).max(0)))).collect();
+        // No allocation (this runs per row): a fixed array of the shift steps, 5 for ch 1, 4 for ch 3.
+        let shifts: [i16; 5] = if ch == 1 { [1, 2, 4, 8, 16] } else { [3, 6, 12, 24, 0] };
+        let steps = shifts.map(|s| ((u32::MAX << s) as __mmask32, lane(&|i| (i - s).max(0))));
+        let steps = &steps[..if ch == 1 { 5 } else { 4 }];
         let cidx = if ch == 1 { lane(&|_| 31) } else { lane(&|i| 29 + i % 3) };
         let mut carry = _mm512_setzero_si512();
         for i in (0..n).step_by(32) {
@@ -648,7 +649,7 @@ mod rb_simd {
             // values below n of their slices (asserted).
             unsafe {
                 let mut x = _mm512_loadu_si512(p.as_ptr().add(i).cast::<__m512i>());
-                for &(m, idx) in &steps {
+                for &(m, idx) in steps {
                     x = _mm512_add_epi16(x, _mm512_maskz_permutexvar_epi16(m, idx, x));
                 }
                 x = _mm512_add_epi16(x, carry);
