@@ -100,6 +100,14 @@ impl faultcam::faults::chain::ChainObserver for PerEffect {
     }
 }
 
+/// A rayon pool of `threads` workers, every one of them started and idle: a worker's start-up
+/// allocates (its stack, thread-locals), which must not land in a short case's measured frames.
+fn started_pool(threads: usize) -> rayon::ThreadPool {
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
+    pool.broadcast(|_| ());
+    pool
+}
+
 fn main() {
     // The counter sees allocations (so a zero below means something).
     let before = ALLOCATIONS.load(Relaxed);
@@ -113,7 +121,7 @@ fn main() {
     let names: Vec<&str> = registry::all().iter().map(|r| r.info.name).collect();
     println!("alloc: {} effects in the chain: {}", names.len(), names.join(", "));
     for threads in [1usize, 2] {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
+        let pool = started_pool(threads);
         for format in [PixelFormat::Mono8, PixelFormat::Rgb8, PixelFormat::Mono16] {
             let input = bench_scene(320, 240, format, 3).expect("scene");
             let (plain, recorded) = pool.install(|| {
@@ -138,7 +146,7 @@ fn main() {
     // vertical) and on frame columns (mostly horizontal), defocus's pyramid, at a frame size whose
     // rows are not a whole number of registers.
     for threads in [1usize, 2] {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
+        let pool = started_pool(threads);
         for format in [PixelFormat::Mono8, PixelFormat::Rgb8] {
             let input = bench_scene(333, 203, format, 3).expect("scene");
             let cases: [(&str, &[(&str, f64)]); 4] = [
