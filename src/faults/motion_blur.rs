@@ -463,6 +463,33 @@ fn mulhi(x: u16, e: u16) -> u16 {
     ((x as u32 * e as u32) >> 16) as u16
 }
 
+/// The last stage's constants of a [`RowBox`], `[sq, w1, w2, dm, sd]`: the shifts by `q` and
+/// `ds - 1` as multiplications (vpmullw, vpmulhuw: the compiler keeps them in 16-bit lanes),
+/// `x << q = x sq`, `x >> (ds - 1) = mulhi(x, sd)` (`sd = 2^(17 - ds)`, 2 <= ds <= 16), and the
+/// end-tap weights and the division's multiplier.
+fn row_box_consts(plan: RowBox) -> [u16; 5] {
+    debug_assert!((2..=16).contains(&plan.ds));
+    [1u16 << plan.q, plan.w[0], plan.w[1], plan.dm, 1u16 << (17 - plan.ds)]
+}
+
+/// The last stage of [`row_box_k`] for one sample: the box sum `sum` and the end-tap pairs' sums
+/// `e1`, `e2` to a byte (`k` = [`row_box_consts`]); [`rb_simd`]'s `body256` / `body512` run the
+/// same operations.
+#[inline(always)]
+fn row_box_out(sum: u16, e1: u16, e2: u16, k: [u16; 5]) -> u8 {
+    let [sq, w1, w2, dm, sd] = k;
+    let b = sum * sq + mulhi(e1 << 7, w1) + mulhi(e2 << 7, w2);
+    ((mulhi(mulhi(b, dm), sd) + 1) >> 1).min(255) as u8
+}
+
+/// The end taps of the row box's `wc` outputs in the padded row `p`: `[l1, r1, l2, r2]`, the pixels
+/// at `|dx| = n + 1` (left, right) and `n + 2` (output x: padded pixels x + 1, x + 2n + 3 and x,
+/// x + 2n + 4).
+fn row_box_end_taps(p: &[u16], n: usize, ch: usize, wc: usize) -> [&[u16]; 4] {
+    let at = |px: usize| &p[px * ch..px * ch + wc];
+    [at(1), at(2 * n + 3), at(0), at(2 * n + 4)]
+}
+
 /// One row of [`row_box`] in place (`row`, `w` pixels of `ch` samples, copied whole into the
 /// padded row first); `s` is the scratch of [`row_box_scratch`] u16s. Segment by segment of
 /// [`ROW_BOX_SEG`] output samples: the box sum `S` of `k = 2n + 1` pixels by doubling, windows of
@@ -508,7 +535,7 @@ fn row_box_k(lv: u8, row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut 
     // doubling windows below.
     #[cfg(target_arch = "x86_64")]
     if lv >= 1 && super::kit::has_avx2() {
-        let k = [1u16 << plan.q, plan.w[0], plan.w[1], plan.dm, 1u16 << (17 - plan.ds)];
+        let k = row_box_consts(plan);
         let avx512 = lv >= 2 && super::kit::has_avx512();
         // SAFETY: AVX-512 F/BW resp. AVX2 present (checked).
         let done = unsafe { if avx512 { rb_simd::prefix512(pre, p, ch) } else { rb_simd::prefix256(pre, p, ch) } };
@@ -517,22 +544,14 @@ fn row_box_k(lv: u8, row: &mut [u8], w: usize, ch: usize, plan: RowBox, s: &mut 
         }
         let n2 = 2 * plan.n;
         let (s1, s0) = (&pre[(n2 + 2) * ch..(n2 + 2) * ch + wc], &pre[ch..ch + wc]);
-        let (l2, l1) = (&p[..wc], &p[ch..ch + wc]);
-        let (r1, r2) = (&p[(n2 + 3) * ch..(n2 + 3) * ch + wc], &p[(n2 + 4) * ch..(n2 + 4) * ch + wc]);
+        let e = row_box_end_taps(p, plan.n, ch, wc);
+        let [l1, r1, l2, r2] = e;
         let out = &mut row[..wc];
         // SAFETY: as above.
-        let done = unsafe {
-            if avx512 {
-                rb_simd::body512(out, s0, s1, [l1, r1, l2, r2], k)
-            } else {
-                rb_simd::body256(out, s0, s1, [l1, r1, l2, r2], k)
-            }
-        };
-        let [sq, w1, w2, dm, sd] = k;
+        let done =
+            unsafe { if avx512 { rb_simd::body512(out, s0, s1, e, k) } else { rb_simd::body256(out, s0, s1, e, k) } };
         for t in done..wc {
-            let (e1, e2) = (l1[t] + r1[t], l2[t] + r2[t]);
-            let b = s1[t].wrapping_sub(s0[t]) * sq + mulhi(e1 << 7, w1) + mulhi(e2 << 7, w2);
-            out[t] = ((mulhi(mulhi(b, dm), sd) + 1) >> 1).min(255) as u8;
+            out[t] = row_box_out(s1[t].wrapping_sub(s0[t]), l1[t] + r1[t], l2[t] + r2[t], k);
         }
         return;
     }
@@ -588,28 +607,16 @@ fn row_box_seg(out: &mut [u8], p: &[u16], ch: usize, plan: RowBox, c0: &mut [u16
     // Output x: centre at padded x + rr, box from x + 2, end taps at x + 1, x + 2n + 3 (|dx| =
     // n + 1) and x, x + 2n + 4 (|dx| = n + 2), in pixels.
     let wc = out.len();
-    let n2 = 2 * plan.n;
     let (at, bt) = (&acc[2 * ch..2 * ch + wc], &cur[(2 + aw) * ch..(2 + aw) * ch + wc]);
-    let (l2, l1) = (&p[..wc], &p[ch..ch + wc]);
-    let (r1, r2) = (&p[(n2 + 3) * ch..(n2 + 3) * ch + wc], &p[(n2 + 4) * ch..(n2 + 4) * ch + wc]);
-    // The shifts by q and ds - 1 as multiplications (vpmullw, vpmulhuw: the compiler keeps them
-    // in 16-bit lanes): `x << q = x 2^q`, `x >> (ds - 1) = mulhi(x, 2^(17 - ds))` (2 <= ds <= 16).
-    debug_assert!((2..=16).contains(&plan.ds));
-    let (sq, [w1, w2], dm, sd) = (1u16 << plan.q, plan.w, plan.dm, 1u16 << (17 - plan.ds));
-    let body = |sum: u16, e1: u16, e2: u16| -> u8 {
-        let b = sum * sq + mulhi(e1 << 7, w1) + mulhi(e2 << 7, w2);
-        ((mulhi(mulhi(b, dm), sd) + 1) >> 1).min(255) as u8
-    };
-    match (aw != 0).then_some(at) {
-        None => {
-            for t in 0..wc {
-                out[t] = body(bt[t], l1[t] + r1[t], l2[t] + r2[t]);
-            }
+    let [l1, r1, l2, r2] = row_box_end_taps(p, plan.n, ch, wc);
+    let k = row_box_consts(plan);
+    if aw == 0 {
+        for t in 0..wc {
+            out[t] = row_box_out(bt[t], l1[t] + r1[t], l2[t] + r2[t], k);
         }
-        Some(at) => {
-            for t in 0..wc {
-                out[t] = body(at[t] + bt[t], l1[t] + r1[t], l2[t] + r2[t]);
-            }
+    } else {
+        for t in 0..wc {
+            out[t] = row_box_out(at[t] + bt[t], l1[t] + r1[t], l2[t] + r2[t], k);
         }
     }
 }
@@ -737,9 +744,10 @@ mod rb_simd {
         n
     }
 
-    /// `out[t] = body(s1[t] - s0[t], l1[t] + r1[t], l2[t] + r2[t])` with `e = [l1, r1, l2, r2]`,
-    /// `k = [sq, w1, w2, dm, sd]`: `b = sum sq + mulhi(e1 << 7, w1) + mulhi(e2 << 7, w2)`, `out =
-    /// min((mulhi(mulhi(b, dm), sd) + 1) >> 1, 255)`, for `t < out.len() / 16 * 16` (returned).
+    /// `out[t] = row_box_out(s1[t] - s0[t], l1[t] + r1[t], l2[t] + r2[t], k)` with `e = [l1, r1,
+    /// l2, r2]` ([`super::row_box_out`]: `b = sum sq + mulhi(e1 << 7, w1) + mulhi(e2 << 7, w2)`,
+    /// `out = min((mulhi(mulhi(b, dm), sd) + 1) >> 1, 255)`), for `t < out.len() / 16 * 16`
+    /// (returned).
     ///
     /// # Safety
     /// AVX2.
