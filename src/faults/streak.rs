@@ -175,6 +175,8 @@ struct Slot {
     // padded source line
     r: Vec<u16>,
     b: Vec<u16>,
+    // the unshear's interpolated `B` of a line (see `simd::unshear`)
+    u: Vec<u16>,
     // allocation: per streak length: a ring of the 2n + 5 lines A(j, k) of the window, j = i - n - 2
     // ..= i + n + 2, line j in slot j mod (2n + 5), each `line` values apart (every source line is
     // interpolated once per block, when it enters the window)
@@ -614,21 +616,22 @@ fn unshear_k(out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u
 }
 /// [`unshear_k`] in AVX-512 registers (32 outputs at a time, level `lv` >= 2), then AVX2 (16 at a
 /// time, level >= 1; written out because LLVM widens the sums of multiply-highs to 32 bits), the
-/// rest scalar; the same 16-bit operations, so the same bytes.
+/// rest scalar; the same 16-bit operations, so the same bytes. `u`: scratch of `b.len()` values
+/// (the SIMD versions interpolate each `B` once, see [`simd::unshear`]).
 #[allow(clippy::too_many_arguments)]
 #[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut, unused_variables))]
-fn unshear_d(lv: u8, out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u32) {
+fn unshear_d(lv: u8, out: &mut [u8], b: &[u16], u: &mut [u16], ch: usize, g: u8, a: i32, dm: u16, ds: u32) {
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
     {
         if lv >= 2 && super::kit::has_avx512() {
             // SAFETY: AVX-512 F/BW present (checked).
-            done = unsafe { simd::unshear512(out, b, ch, g, a, dm, ds) };
+            done = unsafe { simd::unshear512(out, b, u, ch, g, a, dm, ds) };
         }
         if lv >= 1 && super::kit::has_avx2() {
             let t = done;
             // SAFETY: AVX2 present (checked).
-            done += unsafe { simd::unshear(&mut out[t..], &b[t..], ch, g, a, dm, ds) };
+            done += unsafe { simd::unshear(&mut out[t..], &b[t..], &mut u[t..], ch, g, a, dm, ds) };
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
@@ -847,7 +850,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
     // The block's positions, then room for the last whole vector of `step_d` and `unshear_d`
     // (see `whole`).
     let len = (chunk as usize + 3) * ch + VPAD;
-    for v in [&mut slot.r, &mut slot.b] {
+    for v in [&mut slot.r, &mut slot.b, &mut slot.u] {
         if v.len() < len {
             v.resize(len, 0);
         }
@@ -920,7 +923,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
                 continue;
             }
             let (n0, n1) = (o0 - 1, o1 + 2);
-            let Slot { r, b, pad, tile, ring, strips } = &mut *slot;
+            let Slot { r, b, u, pad, tile, ring, strips } = &mut *slot;
             // Running sums and the window's lines at line i over [g0, g1).
             let mut init = |g0: isize, g1: isize| {
                 let (x0, x1) = ((g0 - base) as usize * ch, (g1 - base) as usize * ch);
@@ -977,7 +980,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
             match &mut dst {
                 Dst::Rows(d, stride) => {
                     let p0 = row * *stride + (o0 - k) as usize * ch;
-                    unshear_d(lv, &mut d[p0..p0 + (o1 - o0) as usize * ch], bx, ch, g, taps[row], plan.dm, plan.ds);
+                    unshear_d(lv, &mut d[p0..p0 + (o1 - o0) as usize * ch], bx, u, ch, g, taps[row], plan.dm, plan.ds);
                 }
                 Dst::Cols(cols) => {
                     // Whole vectors, up to VPAD bytes beyond the line's pixels into the tile's
@@ -986,7 +989,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
                     let p0 = glen * tl + (o0 - c0) as usize * ch;
                     let no = whole((o1 - o0) as usize * ch);
                     let bx = &b[x0..x0 + no + 3 * ch];
-                    unshear_d(lv, &mut tile[p0..p0 + no], bx, ch, g, taps[row], plan.dm, plan.ds);
+                    unshear_d(lv, &mut tile[p0..p0 + no], bx, u, ch, g, taps[row], plan.dm, plan.ds);
                     grp[glen] = (i, k, o0, o1);
                     glen += 1;
                     if glen == TILE {
@@ -1150,33 +1153,61 @@ mod simd {
         n
     }
 
-    /// [`super::unshear_k`] over the first `out.len() / 16 * 16` outputs (returned), 16 at a time.
+    /// [`super::unshear_k`] over the first `out.len() / 16 * 16` outputs (returned), 16 at a time:
+    /// first `u[t] = mulhi(b[t], w0) + mulhi(b[t + ch], w1)` for `t < n + 2 ch` (the unshear, each
+    /// value once: the scalar loop's `ul`, `uc`, `ur` are `u[t]`, `u[t + ch]`, `u[t + 2 ch]`;
+    /// the multiply-highs are the loop's bottleneck), then the cross filter and the division
+    /// (`b` itself when `g = 0`).
     ///
     /// # Safety
     /// AVX2.
     #[target_feature(enable = "avx2")]
-    pub unsafe fn unshear(out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u32) -> usize {
+    #[allow(clippy::too_many_arguments)]
+    pub unsafe fn unshear(
+        out: &mut [u8],
+        b: &[u16],
+        u: &mut [u16],
+        ch: usize,
+        g: u8,
+        a: i32,
+        dm: u16,
+        ds: u32,
+    ) -> usize {
         let n = out.len() / 16 * 16;
-        assert!(b.len() >= n + 3 * ch && ds >= 1);
+        assert!(b.len() >= n + 3 * ch && u.len() >= n + 2 * ch && ds >= 1);
+        if n == 0 {
+            return 0;
+        }
         let set = |v: u16| _mm256_set1_epi16(v as i16);
         let (w0, w1) = (set((64 - g as u16) << 10), set((g as u16) << 10));
+        let m = n + 2 * ch;
+        if g != 0 {
+            // Whole vectors, the last one ending at m (n >= 16: it overlaps the one before and
+            // writes the same values again).
+            for i in (0..m).step_by(16).map(|i| i.min(m - 16)) {
+                // SAFETY: AVX2 (the caller's contract); loads of 16 values of `b` below
+                // `m + ch <= b.len()`, a store of 16 values of `u` below `m <= u.len()`
+                // (asserted).
+                unsafe {
+                    let l = |o: usize| _mm256_loadu_si256(b.as_ptr().add(i + o).cast::<__m256i>());
+                    let v = _mm256_add_epi16(mulhi(l(0), w0), mulhi(l(ch), w1));
+                    _mm256_storeu_si256(u.as_mut_ptr().add(i).cast::<__m256i>(), v);
+                }
+            }
+        }
+        let src: &[u16] = if g == 0 { b } else { u };
         let aa = a.unsigned_abs() as u16;
         let (aa1, aa2, sm) = (set(aa), set(aa << 1), set(if a < 0 { u16::MAX } else { 0 }));
         let (off, offv, dmv, one, top) =
             (set(super::OFF), set(super::mulhi(super::OFF, dm)), set(dm), set(1), set(255));
         let cnt = _mm_cvtsi32_si128(ds as i32 - 1);
         for i in (0..n).step_by(16) {
-            // SAFETY: AVX2 (the caller's contract); every load reads 16 values of `b` below
-            // `i + 16 + 3 ch <= b.len()` and the store writes 16 bytes of `out` below n (asserted).
+            // SAFETY: AVX2 (the caller's contract); every load reads 16 values of `src` below
+            // `i + 16 + 2 ch <= m` (`b` or `u`, both at least m long) and the store writes 16
+            // bytes of `out` below n (asserted).
             unsafe {
-                let l = |o: usize| _mm256_loadu_si256(b.as_ptr().add(i + o).cast::<__m256i>());
-                let (x0, x1, x2, x3) = (l(0), l(ch), l(2 * ch), l(3 * ch));
-                let (ul, uc, ur) = if g == 0 {
-                    (x0, x1, x2)
-                } else {
-                    let u = |p, q| _mm256_add_epi16(mulhi(p, w0), mulhi(q, w1));
-                    (u(x0, x1), u(x1, x2), u(x2, x3))
-                };
+                let l = |o: usize| _mm256_loadu_si256(src.as_ptr().add(i + o).cast::<__m256i>());
+                let (ul, uc, ur) = (l(0), l(ch), l(2 * ch));
                 let t = _mm256_sub_epi16(_mm256_add_epi16(mulhi(ul, aa1), mulhi(ur, aa1)), mulhi(uc, aa2));
                 let v = _mm256_add_epi16(_mm256_add_epi16(off, uc), _mm256_sub_epi16(_mm256_xor_si256(t, sm), sm));
                 let q = _mm256_subs_epu16(mulhi(v, dmv), offv);
@@ -1189,34 +1220,56 @@ mod simd {
     }
 
     /// [`super::unshear_k`] over the first `out.len() / 32 * 32` outputs (returned), 32 at a time
-    /// (as [`unshear`]).
+    /// (as [`unshear`]: `u` first).
     ///
     /// # Safety
     /// AVX-512 F/BW.
     #[target_feature(enable = "avx512f,avx512bw")]
-    pub unsafe fn unshear512(out: &mut [u8], b: &[u16], ch: usize, g: u8, a: i32, dm: u16, ds: u32) -> usize {
+    #[allow(clippy::too_many_arguments)]
+    pub unsafe fn unshear512(
+        out: &mut [u8],
+        b: &[u16],
+        u: &mut [u16],
+        ch: usize,
+        g: u8,
+        a: i32,
+        dm: u16,
+        ds: u32,
+    ) -> usize {
         let n = out.len() / 32 * 32;
-        assert!(b.len() >= n + 3 * ch && ds >= 1);
+        assert!(b.len() >= n + 3 * ch && u.len() >= n + 2 * ch && ds >= 1);
+        if n == 0 {
+            return 0;
+        }
         let set = |v: u16| _mm512_set1_epi16(v as i16);
         let (w0, w1) = (set((64 - g as u16) << 10), set((g as u16) << 10));
+        let m = n + 2 * ch;
+        if g != 0 {
+            // Whole vectors, the last one ending at m (n >= 32).
+            for i in (0..m).step_by(32).map(|i| i.min(m - 32)) {
+                // SAFETY: AVX-512 F/BW (the caller's contract); loads of 32 values of `b` below
+                // `m + ch <= b.len()`, a store of 32 values of `u` below `m <= u.len()`
+                // (asserted).
+                unsafe {
+                    let l = |o: usize| _mm512_loadu_si512(b.as_ptr().add(i + o).cast::<__m512i>());
+                    let v = _mm512_add_epi16(mulhi512(l(0), w0), mulhi512(l(ch), w1));
+                    _mm512_storeu_si512(u.as_mut_ptr().add(i).cast::<__m512i>(), v);
+                }
+            }
+        }
+        let src: &[u16] = if g == 0 { b } else { u };
         let aa = a.unsigned_abs() as u16;
         let (aa1, aa2, sm) = (set(aa), set(aa << 1), set(if a < 0 { u16::MAX } else { 0 }));
         let (off, offv, dmv, one, top) =
             (set(super::OFF), set(super::mulhi(super::OFF, dm)), set(dm), set(1), set(255));
         let cnt = _mm_cvtsi32_si128(ds as i32 - 1);
         for i in (0..n).step_by(32) {
-            // SAFETY: AVX-512 F/BW (the caller's contract); every load reads 32 values of `b`
-            // below `i + 32 + 3 ch <= b.len()` and the store writes 32 bytes of `out` below n
-            // (asserted).
+            // SAFETY: AVX-512 F/BW (the caller's contract); every load reads 32 values of `src`
+            // below `i + 32 + 2 ch <= m` (`b` or `u`, both at least m long) and the store writes
+            // 32 bytes of `out` below n (asserted).
             unsafe {
-                let l = |o: usize| _mm512_loadu_si512(b.as_ptr().add(i + o).cast::<__m512i>());
-                let (x0, x1, x2, x3) = (l(0), l(ch), l(2 * ch), l(3 * ch));
-                let (ul, uc, ur) = if g == 0 {
-                    (x0, x1, x2)
-                } else {
-                    let u = |p, q| _mm512_add_epi16(mulhi512(p, w0), mulhi512(q, w1));
-                    (u(x0, x1), u(x1, x2), u(x2, x3))
-                };
+                let l = |o: usize| _mm512_loadu_si512(src.as_ptr().add(i + o).cast::<__m512i>());
+                let (ul, uc, ur) = (l(0), l(ch), l(2 * ch));
                 let t = _mm512_sub_epi16(_mm512_add_epi16(mulhi512(ul, aa1), mulhi512(ur, aa1)), mulhi512(uc, aa2));
                 let v = _mm512_add_epi16(_mm512_add_epi16(off, uc), _mm512_sub_epi16(_mm512_xor_si512(t, sm), sm));
                 let q = _mm512_subs_epu16(mulhi512(v, dmv), offv);
