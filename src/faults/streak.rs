@@ -162,9 +162,21 @@ impl StreakPlan {
             .collect()
     }
 
-    /// Shift of line `j` (in 1/64 px): `round(64 j m)`.
+    /// Shift of line `j` (in 1/64 px): `round(64 j m)` (half away from zero, as `f64::round`,
+    /// without its library call: the band loops ask for it per line and block).
+    #[inline]
     fn shift_q(&self, j: isize) -> i64 {
-        (64.0 * j as f64 * self.m).round() as i64
+        let x = 64.0 * j as f64 * self.m;
+        // |x| <= 64 |j| < 2^52: the truncation and the fraction `x - t` are exact.
+        let t = x as i64;
+        let fr = x - t as f64;
+        if fr >= 0.5 {
+            t + 1
+        } else if fr <= -0.5 {
+            t - 1
+        } else {
+            t
+        }
     }
 }
 
@@ -434,15 +446,12 @@ fn load_group(
                 // `stride` >= 4 KiB apart at 1920 px rgb8), which the hardware prefetchers do
                 // not cross.
                 for y in (r + LOAD_AHEAD).min(r1)..(r + LOAD_AHEAD + 8).min(r1) {
-                    let p = base.wrapping_add(y * ss + j0 * ch);
-                    // SAFETY: prefetch hints (no effect on values) of the first and last byte
-                    // of row y < r1 of columns j0..j0 + 8 (inside the frame resp. the copy,
-                    // asserted above).
-                    unsafe {
-                        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-                        _mm_prefetch::<_MM_HINT_T0>(p.cast::<i8>());
-                        _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(8 * ch - 1).cast::<i8>());
-                    }
+                    // The cache line of the row's last byte of the 8 columns (its first byte's
+                    // line is the last byte's of the group before, loaded 8 lines earlier).
+                    let p = base.wrapping_add(y * ss + (j0 + 8) * ch - 1);
+                    // SAFETY: a prefetch hint (no effect on values) of a byte of row y < r1 of
+                    // columns j0..j0 + 8 (inside the frame resp. the copy, asserted above).
+                    unsafe { std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p.cast::<i8>()) };
                 }
                 // SAFETY: AVX2 present (checked); rows r..r + 8 < h of columns j0..j0 + 8 <= w:
                 // inside the frame resp. the copy of its rows from hb (asserted above), and 8
@@ -973,7 +982,21 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
             // The step over whole vectors, up to VPAD values beyond y1 (values nobody reads: B
             // beyond v1, and running sums beyond v1, which `init` restarts before they are used).
             let y1 = y0 + whole(y1 - y0);
-            let [a0, a1, a2, a3, a4] = off.map(|o| &ring[at(i as isize + o) + y0..at(i as isize + o) + y1]);
+            // Ring slots of lines i - n - 2, .., i - n, i + n + 1, i + n + 2: s0, s0 + 1, s0 + 2,
+            // s0 - 2, s0 - 1 modulo 2n + 5 (one division).
+            let s0 = (i as isize + off[0]).rem_euclid(nr);
+            let [a0, a1, a2, a3, a4] = [0, 1, 2, -2, -1].map(|d| {
+                let sl = s0 + d;
+                let sl = if sl >= nr {
+                    sl - nr
+                } else if sl < 0 {
+                    sl + nr
+                } else {
+                    sl
+                };
+                let o = sl as usize * len;
+                &ring[o + y0..o + y1]
+            });
             step_d(lv, &mut b[y0..y1], &mut r[y0..y1], a0, a1, a2, a3, a4, plan.eq[0], plan.eq[1]);
             let (x0, x1) = ((n0 - base) as usize * ch, (n1 - base) as usize * ch);
             let bx = &b[x0..x1];
@@ -1537,6 +1560,19 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn line_shifts_round_as_f64_round() {
+        for (len, ang) in [(30.0, 30.0), (40.0, 45.0), (100.0, 170.0), (66.0, 5.0), (40.0, 80.0), (37.5, 135.0)] {
+            let p = StreakPlan::new(len, ang);
+            for j in -5000isize..5000 {
+                assert_eq!(p.shift_q(j), (64.0 * j as f64 * p.m).round() as i64, "{len}@{ang} line {j}");
+            }
+        }
+        // Halves round away from zero.
+        let p = StreakPlan { m: 1.0 / 128.0, ..StreakPlan::new(30.0, 30.0) };
+        assert_eq!((p.shift_q(1), p.shift_q(-1), p.shift_q(3), p.shift_q(-3)), (1, -1, 2, -2));
     }
 
     #[test]
