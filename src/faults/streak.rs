@@ -455,13 +455,18 @@ fn load_group(
                 }
                 // SAFETY: AVX2 present (checked); rows r..r + 8 < h of columns j0..j0 + 8 <= w:
                 // inside the frame resp. the copy of its rows from hb (asserted above), and 8
-                // strip lines of ls = h ch bytes from pixel r. The frame's columns j0.. are this
+                // strip lines of ls = h ch bytes from pixel r (the wide store's 32 bytes: to
+                // pixel r + 10 < r1 <= h). The frame's columns j0.. are this
                 // band's, which only this thread writes, and not meanwhile.
                 unsafe {
                     let p = base.wrapping_add(r * ss + j0 * ch);
                     let d = strip.as_mut_ptr().add(r * ch);
                     match ch {
                         1 => simd::t8x8_px::<1>(p, ss, d, ls),
+                        // The wide store's 8 bytes after the 8 pixels (rows r + 8 ..= r + 10)
+                        // when rows below r1 that this loop or the pixel loop below writes
+                        // later.
+                        _ if r + 11 <= r1 => simd::t8x8_px_wide::<3>(p, ss, d, ls),
                         _ => simd::t8x8_px::<3>(p, ss, d, ls),
                     }
                 }
@@ -473,7 +478,7 @@ fn load_group(
                 let d = &mut strip[t * ls + y * ch..t * ls + (y + 1) * ch];
                 // SAFETY: pixel (y, j0 + t) inside the frame resp. the copy (asserted above);
                 // `d` is in `strip`, which does not overlap either.
-                unsafe { std::ptr::copy_nonoverlapping(base.wrapping_add(y * ss + (j0 + t) * ch), d.as_mut_ptr(), ch) };
+                unsafe { copy_px(base.wrapping_add(y * ss + (j0 + t) * ch), d.as_mut_ptr(), ch) };
             }
         }
     }
@@ -784,6 +789,22 @@ fn whole_vectors(lv: u8) -> impl Fn(usize) -> usize {
 /// Output lines held in a slot's tile before [`flush_cols`] transposes them into the frame.
 const TILE: usize = 8;
 
+/// Copies one pixel of `ch` (1 or 3) bytes (a fixed-size copy: no `memmove` call).
+///
+/// # Safety
+/// `ch` bytes readable at `src`, writable at `dst`, not overlapping.
+#[inline(always)]
+unsafe fn copy_px(src: *const u8, dst: *mut u8, ch: usize) {
+    // SAFETY: as documented.
+    unsafe {
+        match ch {
+            1 => *dst = *src,
+            3 => std::ptr::copy_nonoverlapping(src, dst, 3),
+            _ => std::ptr::copy_nonoverlapping(src, dst, ch),
+        }
+    }
+}
+
 /// Writes the tile's `grp.len()` (<= [`TILE`]) consecutive output lines into frame columns:
 /// tile row `t` holds line `grp[t].0` over positions `[grp[t].2, grp[t].3)` of the chunk starting
 /// at `c0` (`tl` bytes a row, `ch` per position); position `o` of the line is its pixel `o - k`,
@@ -830,14 +851,13 @@ fn flush_cols(lv: u8, cols: Cols, ch: usize, tile: &[u8], tl: usize, c0: isize, 
         }
     }
     for (t, &(i, k, o0, o1)) in grp.iter().enumerate() {
-        for x in (o0 - k..o1 - k).filter(|x| !(xs..xv).contains(x)) {
+        // The line's pixels [o0 - k, o1 - k) outside [xs, xv) (xs <= xv).
+        for x in (o0 - k..xs.min(o1 - k)).chain(xv.max(o0 - k)..o1 - k) {
             let at = t * tl + (x + k - c0) as usize * ch;
             let px = &tile[at..at + ch];
             // SAFETY: x < rows, i < cols (asserted above): inside the frame, in this band's
             // column (see `Cols`); `px` is in `tile`, which does not overlap the frame.
-            unsafe {
-                std::ptr::copy_nonoverlapping(px.as_ptr(), cols.ptr.add(x as usize * cols.stride + i * ch), ch);
-            }
+            unsafe { copy_px(px.as_ptr(), cols.ptr.add(x as usize * cols.stride + i * ch), ch) };
         }
     }
 }
@@ -1315,13 +1335,64 @@ mod simd {
         unsafe { t8x8_rows::<C>(std::array::from_fn(|r| src.add(r * ss)), dst, ds) }
     }
 
+    /// [`t8x8_px`] storing each column's 24 bytes (`C` = 3) at once as 32: the 8 bytes after
+    /// them (pixels 8, 9 and 10 from `dst + c * ds`) are overwritten with zeros.
+    ///
+    /// # Safety
+    /// AVX2; 8 rows of `8 C` bytes readable at `src + r * ss`; `max(8 C, 32)` bytes writable at
+    /// `dst + c * ds`.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn t8x8_px_wide<const C: usize>(src: *const u8, ss: usize, dst: *mut u8, ds: usize) {
+        // SAFETY: as documented (row r at src + r ss).
+        unsafe {
+            let cols = t8x8_narrow::<C>(std::array::from_fn(|r| src.add(r * ss)));
+            // Dwords 0..3 and 4..7 of each lane's 12 valid bytes, then zeros.
+            let pack = _mm256_setr_epi32(0, 1, 2, 4, 5, 6, 3, 7);
+            for (c, v) in cols.into_iter().enumerate() {
+                let d = dst.add(c * ds);
+                if C == 3 {
+                    _mm256_storeu_si256(d as *mut __m256i, _mm256_permutevar8x32_epi32(v, pack));
+                } else {
+                    let (lo, hi) = (_mm256_castsi256_si128(v), _mm256_extracti128_si256(v, 1));
+                    _mm_storel_epi64(d as *mut __m128i, _mm_unpacklo_epi32(lo, hi));
+                }
+            }
+        }
+    }
+
     /// [`t8x8_px`] with the 8 source rows at `src[r]`.
     ///
     /// # Safety
     /// AVX2; `8 C` bytes readable at each `src[r]`, writable at `dst + c * ds` for c < 8.
     #[target_feature(enable = "avx2")]
     pub unsafe fn t8x8_rows<const C: usize>(src: [*const u8; 8], dst: *mut u8, ds: usize) {
-        // SAFETY: as documented; every load and store stays within the 8 C bytes of its row.
+        // SAFETY: as documented; every store stays within the 8 C bytes of its row.
+        unsafe {
+            let cols = t8x8_narrow::<C>(src);
+            for (c, v) in cols.into_iter().enumerate() {
+                let (lo, hi) = (_mm256_castsi256_si128(v), _mm256_extracti128_si256(v, 1));
+                let d = dst.add(c * ds);
+                if C == 3 {
+                    // Bytes 0..16 (12 valid), then 12..20 and 20..24 from the second half.
+                    _mm_storeu_si128(d as *mut __m128i, lo);
+                    _mm_storel_epi64(d.add(12) as *mut __m128i, hi);
+                    (d.add(20) as *mut i32).write_unaligned(_mm_cvtsi128_si32(_mm_srli_si128(hi, 8)));
+                } else {
+                    _mm_storel_epi64(d as *mut __m128i, _mm_unpacklo_epi32(lo, hi));
+                }
+            }
+        }
+    }
+
+    /// The 8 x 8 transpose of [`t8x8_rows`] in registers: column `c` (source pixel `c` of each
+    /// row) in vector `c`, its pixel `r` at bytes `4 (r % 4) .. + C` of 128-bit lane `r / 4`
+    /// (`C` = 3: each lane's bytes 0..12, zeros after; `C` = 1: bytes 0..4 of each lane).
+    ///
+    /// # Safety
+    /// AVX2; `8 C` bytes readable at each `src[r]`.
+    #[target_feature(enable = "avx2")]
+    unsafe fn t8x8_narrow<const C: usize>(src: [*const u8; 8]) -> [__m256i; 8] {
+        // SAFETY: as documented; every load stays within the 8 C bytes of its row.
         unsafe {
             let widen = _mm256_setr_epi8(
                 0, 1, 2, -1, 3, 4, 5, -1, 6, 7, 8, -1, 9, 10, 11, -1, 4, 5, 6, -1, 7, 8, 9, -1, 10, 11, 12, -1, 13, 14,
@@ -1353,19 +1424,7 @@ mod simd {
                     -1, -1, -1, -1, -1, -1,
                 )
             };
-            for (c, v) in cols.into_iter().enumerate() {
-                let v = _mm256_shuffle_epi8(v, narrow);
-                let (lo, hi) = (_mm256_castsi256_si128(v), _mm256_extracti128_si256(v, 1));
-                let d = dst.add(c * ds);
-                if C == 3 {
-                    // Bytes 0..16 (12 valid), then 12..20 and 20..24 from the second half.
-                    _mm_storeu_si128(d as *mut __m128i, lo);
-                    _mm_storel_epi64(d.add(12) as *mut __m128i, hi);
-                    (d.add(20) as *mut i32).write_unaligned(_mm_cvtsi128_si32(_mm_srli_si128(hi, 8)));
-                } else {
-                    _mm_storel_epi64(d as *mut __m128i, _mm_unpacklo_epi32(lo, hi));
-                }
-            }
+            cols.map(|v| _mm256_shuffle_epi8(v, narrow))
         }
     }
 }
