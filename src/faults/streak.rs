@@ -379,6 +379,7 @@ impl Strips {
 
 /// Rows ahead of the 8 being transposed whose bytes [`load_group`] asks the cache for (rgb8 40 px
 /// at 30 deg: `t8x8_px` 9.3 -> 4.9 % of the bench's samples, 16 and 32 rows alike).
+#[cfg(target_arch = "x86_64")]
 const LOAD_AHEAD: usize = 32;
 
 /// Loads group `g` of the band's own lines for the block of positions `[c0, c1)` into `strip`
