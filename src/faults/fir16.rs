@@ -815,7 +815,9 @@ mod tests {
                 pairs.push(((c.dx as isize, dy as isize), wq[c.w0 + s]));
             }
         }
-        for (nrows, n) in [4usize, 8].into_iter().flat_map(|r| [0usize, 1, 15, 16, 17, 31, 32, 33, 100, 600].map(|n| (r, n))) {
+        for (nrows, n) in
+            [4usize, 8].into_iter().flat_map(|r| [0usize, 1, 15, 16, 17, 31, 32, 33, 100, 600].map(|n| (r, n)))
+        {
             let c0 = 10 * pw + 5 * ch;
             let mut rows: Vec<Vec<u8>> = vec![vec![0u8; n]; nrows];
             // Sample 0 of row y + t (t from -10), shifted by dx pixels; per column lo (row

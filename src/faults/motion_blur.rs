@@ -247,12 +247,15 @@ fn tap_cols(pairs: &[(i32, i32)], q: &[i16]) -> (Vec<fir16::TapCol>, Vec<i16>) {
             cols.push(fir16::TapCol { dx: dx as usize, dy0: a, dy1: b, w0: w0 + (a - dy0) as usize });
         }
     }
+    // Longest columns first: the kernel picks its unrolled code by the column's length, and runs
+    // of equal lengths keep that choice predictable (the sums' order does not change the bytes).
+    cols.sort_by_key(|c| std::cmp::Reverse(c.len()));
     (cols, wq)
 }
 
 /// Whether the column kernel (`fir16::sym_fir_cols_u8`) runs an 8-bit FIR: when it loads at
 /// most 3/4 of the source vectors the row kernel (`fir16::sym_fir_u8`, two loads per pair and
-/// row, four independent sums per row) does for `COL_ROWS` rows. Streaks near the horizontal have
+/// row, four independent sums per row) does for `rows` rows. Streaks near the horizontal have
 /// one pair per column (no sharing between rows) and keep the row kernel.
 fn cols_pay(npairs: usize, cols: &[fir16::TapCol], rows: usize) -> bool {
     let by_cols = rows + cols.iter().map(|c| 2 * fir16::col_run(c.len(), rows)).sum::<usize>();
