@@ -794,17 +794,22 @@ mod tests {
         }
         // The column kernel: the same bytes as sym_fir + q6_to_u8 row by row, over columns with
         // negative and positive dy, a gap (weight 0), dx = 0, at lengths around the chunk sizes.
-        // Columns of 1 to 4 pairs (one dx cut into three columns), 4 and 8 output rows.
+        // Columns of 1 to 4 pairs (one dx cut into four columns), 4 and 8 output rows.
         let (pw, ch) = (700usize, 3usize);
         let cols = [
             TapCol { dx: 0, dy0: 1, dy1: 3, w0: 0 },
             TapCol { dx: 1, dy0: -2, dy1: 1, w0: 3 },
             TapCol { dx: 4, dy0: 2, dy1: 2, w0: 7 },
-            TapCol { dx: 2, dy0: -4, dy1: -1, w0: 8 },
-            TapCol { dx: 2, dy0: 0, dy1: 3, w0: 12 },
-            TapCol { dx: 2, dy0: 4, dy1: 5, w0: 16 },
+            TapCol { dx: 2, dy0: -4, dy1: -4, w0: 8 },
+            TapCol { dx: 2, dy0: -3, dy1: -1, w0: 9 },
+            TapCol { dx: 2, dy0: 0, dy1: 2, w0: 12 },
+            TapCol { dx: 2, dy0: 3, dy1: 5, w0: 15 },
+            TapCol { dx: 3, dy0: -2, dy1: 1, w0: 18 },
         ];
-        let wq: [i16; 18] = [2100, 1300, 700, 900, 0, 2500, 1200, 400, 300, 50, 800, 0, 120, 640, 90, 1000, 20, 260];
+        let wq: [i16; 23] = [
+            2100, 1300, 700, 900, 0, 2500, 1200, 400, 300, 50, 800, 0, 120, 640, 90, 1000, 20, 260, 310, 0, 450, 700,
+            15,
+        ];
         let q0 = 32768 - 2 * wq.iter().map(|&v| v as i32).sum::<i32>();
         assert!(q0 > 0);
         let base: Vec<i16> = (0..pw * 30).map(|_| rng.below(16321) as i16).collect();

@@ -241,10 +241,15 @@ fn tap_cols(pairs: &[(i32, i32)], q: &[i16]) -> (Vec<fir16::TapCol>, Vec<i16>) {
         let (dy0, dy1) = (dys.clone().min().unwrap_or(0), dys.max().unwrap_or(0));
         let w0 = wq.len();
         wq.extend((dy0..=dy1).map(|dy| norm.iter().find(|t| t.0 == dx && t.1 == dy).map_or(0, |t| t.2)));
-        // Cut into columns of at most `fir16::MAX_COL_PAIRS` pairs (the kernel's limit).
-        for a in (dy0..=dy1).step_by(fir16::MAX_COL_PAIRS) {
-            let b = (a + fir16::MAX_COL_PAIRS as i32 - 1).min(dy1);
-            cols.push(fir16::TapCol { dx: dx as usize, dy0: a, dy1: b, w0: w0 + (a - dy0) as usize });
+        // Cut into columns of at most `fir16::MAX_COL_PAIRS` pairs (the kernel's limit), of
+        // about equal lengths (a short piece shares its loads among fewer pairs).
+        let k = (dy1 - dy0 + 1) as usize;
+        let pieces = k.div_ceil(fir16::MAX_COL_PAIRS);
+        let mut a = dy0;
+        for p in 0..pieces {
+            let len = (k * (p + 1) / pieces - k * p / pieces) as i32;
+            cols.push(fir16::TapCol { dx: dx as usize, dy0: a, dy1: a + len - 1, w0: w0 + (a - dy0) as usize });
+            a += len;
         }
     }
     // Longest columns first: the kernel picks its unrolled code by the column's length, and runs
