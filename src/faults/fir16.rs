@@ -194,7 +194,9 @@ pub fn col_rows() -> usize {
     4
 }
 
-/// Most pairs of a [`TapCol`] given to [`sym_fir_cols_u8`] (longer columns are cut into pieces).
+/// Longest [`TapCol`] [`sym_fir_cols_u8`] takes as a strided run (two offsets, fully unrolled
+/// code); longer columns take one offset per source row and a loop that rotates the source
+/// vectors through registers (two loads per pair for all `R` rows).
 pub const MAX_COL_PAIRS: usize = 4;
 
 /// Source rows a column of `k` pairs reads per side for `rows` output rows (one run of
@@ -203,20 +205,34 @@ pub fn col_run(k: usize, rows: usize) -> usize {
     k + rows - 1
 }
 
+/// Offsets [`sym_fir_cols_u8`] takes for a column of `k` pairs and `rows` output rows: 2 (the
+/// first rows of its two runs) up to [`MAX_COL_PAIRS`] pairs, else one per source row,
+/// `2 col_run(k, rows)`.
+pub fn col_offs(k: usize, rows: usize) -> usize {
+    if k <= MAX_COL_PAIRS {
+        2
+    } else {
+        2 * col_run(k, rows)
+    }
+}
+
 /// A 2D point-symmetric FIR ([`sym_fir`]'s sums: the centre `mulhrs(x, q0)` plus, per tap pair,
 /// `mulhrs(x_lo + x_hi, w)`, wrapping 16-bit adds, rounded to bytes as [`q6_to_u8`]) for
 /// `R = outs.len()` (4 or 8, see [`col_rows`]) consecutive output rows `y + j` at once, the tap
-/// pairs grouped by columns ([`TapCol`], at most [`MAX_COL_PAIRS`] pairs each): within a column
-/// the source rows of `dy` and `dy + 1` serve neighbouring output rows, so each source vector is
-/// loaded once for all of them (a column of `k` pairs costs `2 (k + R - 1)` loads instead of
-/// `2 k R`). The source rows are `stride` samples apart in `base`: `centre[j]` is the offset of
-/// output row `j`'s centre sample 0; per column `offs` holds two offsets, `lo` (sample 0 of
-/// source row `y - dy1`, shifted by `-dx` pixels) and `hi` (row `y + dy0`, shifted by `+dx`),
-/// each the first of a run of [`col_run`]`(k, R)` rows at `stride` (the caller keeps the run
-/// contiguous): pair `dy0 + s` of output row `j` is `base[lo + (k - 1 + j - s) stride] +
-/// base[hi + (j + s) stride]`. The same integer values as [`sym_fir`] and [`q6_to_u8`] per row
-/// (every pair's sum and product is the same; the sums of the products are wrapping, so their
-/// order does not matter). Panics if a read would leave `base`.
+/// pairs grouped by columns ([`TapCol`]): within a column the source rows of `dy` and `dy + 1`
+/// serve neighbouring output rows, so each source vector is loaded once for all of them (a
+/// column of `k` pairs costs `2 (k + R - 1)` loads instead of `2 k R`). `centre[j]` is the
+/// offset in `base` of output row `j`'s centre sample 0. A column of `k` pairs reads the runs of
+/// [`col_run`]`(k, R)` source rows `lo[m]` (sample 0 of row `y - dy1 + m`, shifted by `-dx`
+/// pixels) and `hi[m]` (row `y + dy0 + m`, shifted by `+dx`): pair `dy0 + s` of output row `j`
+/// is `lo[k - 1 + j - s] + hi[j + s]`. Per column, in order, `offs` holds [`col_offs`]`(k, R)`
+/// offsets: for `k <= MAX_COL_PAIRS` `lo[0]` and `hi[0]`, the runs' rows `stride` samples
+/// apart (the caller keeps each run contiguous); for longer columns every `lo[m]`, then every
+/// `hi[m]`. The same integer values as [`sym_fir`] and [`q6_to_u8`] per row (every pair's sum
+/// and product is the same; the sums of the products are wrapping, so their order does not
+/// matter). Panics if a read would leave `base`. The bytes of the (at most `R`) rows in
+/// `prefetch` are only prefetched into the cache, spread over the call (the caller's next
+/// rows: their loads then overlap this call's arithmetic instead of stalling the next fill).
 #[allow(clippy::too_many_arguments)]
 pub fn sym_fir_cols_u8(
     outs: &mut [&mut [u8]],
@@ -227,40 +243,47 @@ pub fn sym_fir_cols_u8(
     offs: &[usize],
     q0: i16,
     wq: &[i16],
+    prefetch: &[&[u8]],
 ) {
     let rows = outs.len();
     assert!(rows == 4 || rows == 8, "fir: 4 or 8 output rows");
+    assert!(prefetch.len() <= rows);
     assert_eq!(centre.len(), rows);
     let n = outs[0].len();
     assert!(outs.iter().all(|o| o.len() == n));
     assert!(centre.iter().all(|&o| o + n <= base.len()), "fir: rows inside the buffer");
-    assert_eq!(offs.len(), 2 * cols.len());
-    for (c, o) in cols.iter().zip(offs.chunks_exact(2)) {
-        assert!(c.dy0 <= c.dy1 && c.len() <= MAX_COL_PAIRS && c.w0 + c.len() <= wq.len());
-        let last = (col_run(c.len(), rows) - 1) * stride + n;
-        assert!(o[0] + last <= base.len() && o[1] + last <= base.len(), "fir: rows inside the buffer");
+    assert_eq!(offs.len(), cols.iter().map(|c| col_offs(c.len(), rows)).sum::<usize>());
+    let mut p = 0;
+    for c in cols {
+        assert!(c.dy0 <= c.dy1 && c.w0 + c.len() <= wq.len());
+        let m = col_offs(c.len(), rows);
+        let o = &offs[p..p + m];
+        let last = if m == 2 { (col_run(c.len(), rows) - 1) * stride + n } else { n };
+        assert!(o.iter().all(|&o| o + last <= base.len()), "fir: rows inside the buffer");
+        p += m;
     }
     #[allow(unused_mut)]
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
     if wq.len() <= MAX_COL_WEIGHTS {
         if super::kit::has_avx512() {
-            // SAFETY: AVX-512 F/BW present (checked); reads are in bounds, columns hold at most
-            // 4 pairs and wq fits the kernel's weight registers (asserted above).
+            // SAFETY: AVX-512 F/BW present (checked); reads are in bounds, `offs` holds
+            // col_offs(k, rows) offsets per column and wq fits the kernel's weight registers
+            // (asserted above).
             done = unsafe {
                 if rows == 8 {
-                    simd::cols_avx512::<8>(outs, base, stride, centre, cols, offs, q0, wq)
+                    simd::cols_avx512::<8>(outs, base, stride, centre, cols, offs, q0, wq, prefetch)
                 } else {
-                    simd::cols_avx512::<4>(outs, base, stride, centre, cols, offs, q0, wq)
+                    simd::cols_avx512::<4>(outs, base, stride, centre, cols, offs, q0, wq, prefetch)
                 }
             };
         } else if super::kit::has_avx2() {
             // SAFETY: AVX2 present (checked); as above.
             done = unsafe {
                 if rows == 8 {
-                    simd::cols_avx2::<8>(outs, base, stride, centre, cols, offs, q0, wq)
+                    simd::cols_avx2::<8>(outs, base, stride, centre, cols, offs, q0, wq, prefetch)
                 } else {
-                    simd::cols_avx2::<4>(outs, base, stride, centre, cols, offs, q0, wq)
+                    simd::cols_avx2::<4>(outs, base, stride, centre, cols, offs, q0, wq, prefetch)
                 }
             };
         }
@@ -281,17 +304,23 @@ fn fir_cols_scalar(
     wq: &[i16],
     skip: usize,
 ) {
+    let rows = outs.len();
     for (j, out) in outs.iter_mut().enumerate() {
         for (i, o) in out[skip..].iter_mut().enumerate() {
             let x = skip + i;
             let mut acc = mulhrs(base[centre[j] + x], q0);
-            for (c, o) in cols.iter().zip(offs.chunks_exact(2)) {
-                let k = c.len();
+            let mut p = 0;
+            for c in cols {
+                let (k, m) = (c.len(), col_offs(c.len(), rows));
+                let o = &offs[p..p + m];
+                // Row t of the column's lo and hi runs.
+                let lo = |t: usize| if m == 2 { o[0] + t * stride } else { o[t] };
+                let hi = |t: usize| if m == 2 { o[1] + t * stride } else { o[m / 2 + t] };
                 for s in 0..k {
-                    let (lo, hi) = (o[0] + (k - 1 + j - s) * stride, o[1] + (j + s) * stride);
-                    let v = base[lo + x].wrapping_add(base[hi + x]);
+                    let v = base[lo(k - 1 + j - s) + x].wrapping_add(base[hi(j + s) + x]);
                     acc = acc.wrapping_add(mulhrs(v, wq[c.w0 + s]));
                 }
+                p += m;
             }
             *o = ((acc.max(0) as i32 + 32) >> SAMPLE_Q).min(255) as u8;
         }
@@ -333,9 +362,15 @@ pub fn u8_to_q6(out: &mut [i16], src: &[u8]) {
     let (out, src) = (&mut out[..n], &src[..n]);
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
-    if super::kit::has_avx2() {
-        // SAFETY: AVX2 present (checked); both slices hold n values.
-        done = unsafe { simd::u8_to_q6_avx2(out, src) };
+    {
+        if super::kit::has_avx512() {
+            // SAFETY: AVX-512 F/BW present (checked); both slices hold n values.
+            done = unsafe { simd::u8_to_q6_avx512(out, src) };
+        }
+        if super::kit::has_avx2() {
+            // SAFETY: AVX2 present (checked); both slices hold n - done values.
+            done += unsafe { simd::u8_to_q6_avx2(&mut out[done..], &src[done..]) };
+        }
     }
     for (p, &v) in out[done..].iter_mut().zip(&src[done..]) {
         *p = (v as i16) << SAMPLE_Q;
@@ -449,6 +484,26 @@ mod simd {
                 _mm256_storeu_si256(out.as_mut_ptr().add(i) as *mut __m256i, _mm256_slli_epi16::<6>(v));
             }
             i += 16;
+        }
+        n
+    }
+
+    /// [`u8_to_q6_avx2`] with 64 samples per iteration.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub unsafe fn u8_to_q6_avx512(out: &mut [i16], src: &[u8]) -> usize {
+        let n = out.len().min(src.len()) / 64 * 64;
+        let mut i = 0;
+        while i < n {
+            // SAFETY (block): i + 64 <= n <= both lengths.
+            unsafe {
+                let s = src.as_ptr().add(i);
+                let o = out.as_mut_ptr().add(i) as *mut __m512i;
+                let a = _mm512_cvtepu8_epi16(_mm256_loadu_si256(s as *const __m256i));
+                let b = _mm512_cvtepu8_epi16(_mm256_loadu_si256(s.add(32) as *const __m256i));
+                _mm512_storeu_si512(o, _mm512_slli_epi16::<6>(a));
+                _mm512_storeu_si512(o.add(1), _mm512_slli_epi16::<6>(b));
+            }
+            i += 64;
         }
         n
     }
@@ -614,15 +669,47 @@ mod simd {
         }};
     }
 
-    /// The sums of one chunk of `R` output rows over every column (each at most 4 pairs, its
-    /// unrolled [`col_block`] picked by its length).
+    /// One column of `k > MAX_COL_PAIRS` pairs for `R` output rows from per-row offsets (`lo`,
+    /// `hi`: [`super::col_run`]`(k, R)` each): the `R` source vectors of each side rotate through
+    /// registers, one new load per side and pair.
+    macro_rules! col_rot {
+        ($a:ident, $ld:ident, $lo:expr, $hi:expr, $k:expr, $w:expr, $add:ident, $mul:ident) => {{
+            let (lo, hi, k, w) = ($lo, $hi, $k, $w);
+            let mut l: [_; R] = std::array::from_fn(|j| $ld(*lo.add(k - 1 + j)));
+            let mut h: [_; R] = std::array::from_fn(|j| $ld(*hi.add(j)));
+            let mut s = 0;
+            loop {
+                let wv = *w.add(s);
+                for j in 0..R {
+                    $a[j] = $add($a[j], $mul($add(l[j], h[j]), wv));
+                }
+                s += 1;
+                if s == k {
+                    break;
+                }
+                let (nl, nh) = ($ld(*lo.add(k - 1 - s)), $ld(*hi.add(R - 1 + s)));
+                l = std::array::from_fn(|j| if j == 0 { nl } else { l[j - 1] });
+                h = std::array::from_fn(|j| if j + 1 == R { nh } else { h[j + 1] });
+            }
+        }};
+    }
+
+    /// The sums of one chunk of `R` output rows over every column: up to `MAX_COL_PAIRS` pairs
+    /// its unrolled [`col_block`] picked by its length, longer ones [`col_rot`].
     macro_rules! cols_sums {
         ($a:ident, $ld:ident, $cols:expr, $offs:expr, $st:expr, $wv:expr, $add:ident, $mul:ident) => {{
             let mut p = $offs;
             for c in $cols {
-                let (lo, hi) = (*p, *p.add(1));
                 let w = $wv.add(c.w0);
-                match c.len() {
+                let k = c.len();
+                if k > super::MAX_COL_PAIRS {
+                    let m = super::col_run(k, R);
+                    col_rot!($a, $ld, p, p.add(m), k, w, $add, $mul);
+                    p = p.add(2 * m);
+                    continue;
+                }
+                let (lo, hi) = (*p, *p.add(1));
+                match k {
                     1 => col_block!(1, $a, $ld, lo, hi, $st, w, $add, $mul),
                     2 => col_block!(2, $a, $ld, lo, hi, $st, w, $add, $mul),
                     3 => col_block!(3, $a, $ld, lo, hi, $st, w, $add, $mul),
@@ -646,6 +733,7 @@ mod simd {
         offs: &[usize],
         q0: i16,
         wq: &[i16],
+        prefetch: &[&[u8]],
     ) -> usize {
         let n = outs[0].len() / 16 * 16;
         let bp = base.as_ptr();
@@ -672,9 +760,24 @@ mod simd {
                     _mm_storeu_si128(o.as_mut_ptr().add(i) as *mut __m128i, _mm256_castsi256_si128(v));
                 }
             }
+            prefetch_rows(prefetch, i, 16);
             i += 16;
         }
         n
+    }
+
+    /// Prefetches the cache lines of `rows` that hold bytes `i..i + step` (the first byte of
+    /// each line once).
+    #[inline(always)]
+    fn prefetch_rows(rows: &[&[u8]], i: usize, step: usize) {
+        if i % 64 < step {
+            for r in rows {
+                if let Some(b) = r.get(i - i % 64) {
+                    // SAFETY: a prefetch reads nothing observable; the address is inside `r`.
+                    unsafe { _mm_prefetch::<_MM_HINT_T0>(b as *const u8 as *const i8) };
+                }
+            }
+        }
     }
 
     /// [`cols_avx2`] with 32 outputs per register.
@@ -689,6 +792,7 @@ mod simd {
         offs: &[usize],
         q0: i16,
         wq: &[i16],
+        prefetch: &[&[u8]],
     ) -> usize {
         let n = outs[0].len() / 32 * 32;
         let bp = base.as_ptr();
@@ -712,6 +816,7 @@ mod simd {
                     _mm256_storeu_si256(o.as_mut_ptr().add(i) as *mut __m256i, _mm512_cvtusepi16_epi8(v));
                 }
             }
+            prefetch_rows(prefetch, i, 32);
             i += 32;
         }
         n
@@ -834,7 +939,7 @@ mod tests {
                 .collect();
             let centre: Vec<usize> = (0..nrows).map(|j| at(j as isize, 0)).collect();
             let mut outs: Vec<&mut [u8]> = rows.iter_mut().map(|r| &mut r[..]).collect();
-            sym_fir_cols_u8(&mut outs, &base, pw, &centre, &cols, &offs, q0 as i16, &wq);
+            sym_fir_cols_u8(&mut outs, &base, pw, &centre, &cols, &offs, q0 as i16, &wq, &[]);
             for (j, got) in rows.iter().enumerate() {
                 let cj = c0 + j * pw;
                 let at = |dx: isize, dy: isize| (cj as isize + dy * pw as isize + dx * ch as isize) as usize;

@@ -241,10 +241,8 @@ fn tap_cols(pairs: &[(i32, i32)], q: &[i16]) -> (Vec<fir16::TapCol>, Vec<i16>) {
         let (dy0, dy1) = (dys.clone().min().unwrap_or(0), dys.max().unwrap_or(0));
         let w0 = wq.len();
         wq.extend((dy0..=dy1).map(|dy| norm.iter().find(|t| t.0 == dx && t.1 == dy).map_or(0, |t| t.2)));
-        // Cut into columns of at most `fir16::MAX_COL_PAIRS` pairs (the kernel's limit), of
-        // about equal lengths (a short piece shares its loads among fewer pairs).
         let k = (dy1 - dy0 + 1) as usize;
-        let pieces = k.div_ceil(fir16::MAX_COL_PAIRS);
+        let pieces = if std::env::var_os("FIRX_CUT").is_some() { k.div_ceil(fir16::MAX_COL_PAIRS) } else { 1 };
         let mut a = dy0;
         for p in 0..pieces {
             let len = (k * (p + 1) / pieces - k * p / pieces) as i32;
@@ -312,7 +310,7 @@ fn convolve_q6(
     if offs.len() < pairs.len() * nb {
         offs.resize(pairs.len() * nb, (0, 0));
     }
-    let nco = (2 * cols.len()).max(1);
+    let nco = cols.iter().map(|c| fir16::col_offs(c.len(), rr)).sum::<usize>().max(1);
     if coffs.len() < nco * nb {
         coffs.resize(nco * nb, 0);
     }
@@ -361,19 +359,38 @@ fn convolve_q6(
                 }
                 // Sample 0 of virtual row yv, shifted by dx pixels.
                 let at = |yv: isize, dx: isize| slot(yv) * pw + (r as isize + dx) as usize * ch;
-                // Per column the first rows of its two runs (contiguous: see `ext`).
-                for (c, o) in cols.iter().zip(coffs.chunks_exact_mut(2)) {
-                    let dx = c.dx as isize;
-                    o[0] = at(yi - c.dy1 as isize, -dx);
-                    o[1] = at(yi + c.dy0 as isize, dx);
+                // Per column the first rows of its two runs (contiguous: see `ext`), or for
+                // longer columns every row of them.
+                let mut p = 0;
+                for c in cols {
+                    let (dx, k) = (c.dx as isize, c.len());
+                    let m = fir16::col_offs(k, rr);
+                    let (lo, hi) = (yi - c.dy1 as isize, yi + c.dy0 as isize);
+                    for t in 0..m / 2 {
+                        coffs[p + t] = at(lo + t as isize, -dx);
+                        coffs[p + m / 2 + t] = at(hi + t as isize, dx);
+                    }
+                    p += m;
                 }
-                let p = 2 * cols.len();
                 let centre: [usize; fir16::MAX_COL_ROWS] = std::array::from_fn(|j| at(yi + j as isize, 0));
                 let i = y - y0;
-                let mut it = band[i * stride..].chunks_mut(stride).map(|row| &mut row[..rl]);
+                let (done, rest) = band.split_at_mut(((i + rr) * stride).min(band.len()));
+                let mut it = done[i * stride..].chunks_mut(stride).map(|row| &mut row[..rl]);
                 let mut outs: [&mut [u8]; fir16::MAX_COL_ROWS] =
                     std::array::from_fn(|j| if j < rr { it.next().expect("rr rows in the band") } else { &mut [] });
-                fir16::sym_fir_cols_u8(&mut outs[..rr], ring, pw, &centre[..rr], cols, &coffs[..p], q[0], wq);
+                // The band rows the next call's fill reads (virtual rows y + rr + r + t), if
+                // they are in the band and not mirrored.
+                let mut pf: [&[u8]; fir16::MAX_COL_ROWS] = [&[]; fir16::MAX_COL_ROWS];
+                let mut npf = 0;
+                for t in 0..rr {
+                    let yv = yi + (2 * rr + r + t) as isize - rr as isize;
+                    if !from_halo(yv, y0, y1, h) {
+                        let k = (yv as usize - y0 - i - rr) * stride;
+                        pf[npf] = &rest[k..k + rl];
+                        npf += 1;
+                    }
+                }
+                fir16::sym_fir_cols_u8(&mut outs[..rr], ring, pw, &centre[..rr], cols, &coffs[..p], q[0], wq, &pf[..npf]);
                 y += rr;
             }
             for y in y..y1 {
@@ -861,6 +878,10 @@ impl Effect for MotionBlur {
             self.q15 = fir16::q15_pairs(&half);
             self.pairs = pairs;
             (self.cols, self.wq) = tap_cols(&self.pairs, &self.q15);
+            if std::env::var_os("FIRX_DEBUG").is_some() {
+                let ks: Vec<usize> = self.cols.iter().map(|c| c.len()).collect();
+                eprintln!("FIRX r {} pairs {} streak {} cols {:?} pay8 {} pay4 {}", self.radius, self.pairs.len() - 1, runs_streak_with(len, ang, &self.taps), ks, cols_pay(self.pairs.len(), &self.cols, 8), cols_pay(self.pairs.len(), &self.cols, 4));
+            }
             self.row_box = RowBox::new(len, ang, &self.taps);
             self.streak = runs_streak_with(len, ang, &self.taps).then(|| streak::StreakPlan::new(len, ang));
             self.key = Some((len.to_bits(), ang.to_bits()));
