@@ -209,11 +209,7 @@ pub fn col_run(k: usize, rows: usize) -> usize {
 /// first rows of its two runs) up to [`MAX_COL_PAIRS`] pairs, else one per source row,
 /// `2 col_run(k, rows)`.
 pub fn col_offs(k: usize, rows: usize) -> usize {
-    if k <= MAX_COL_PAIRS {
-        2
-    } else {
-        2 * col_run(k, rows)
-    }
+    if k <= MAX_COL_PAIRS { 2 } else { 2 * col_run(k, rows) }
 }
 
 /// A 2D point-symmetric FIR ([`sym_fir`]'s sums: the centre `mulhrs(x, q0)` plus, per tap pair,
@@ -362,15 +358,9 @@ pub fn u8_to_q6(out: &mut [i16], src: &[u8]) {
     let (out, src) = (&mut out[..n], &src[..n]);
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
-    {
-        if super::kit::has_avx512() {
-            // SAFETY: AVX-512 F/BW present (checked); both slices hold n values.
-            done = unsafe { simd::u8_to_q6_avx512(out, src) };
-        }
-        if super::kit::has_avx2() {
-            // SAFETY: AVX2 present (checked); both slices hold n - done values.
-            done += unsafe { simd::u8_to_q6_avx2(&mut out[done..], &src[done..]) };
-        }
+    if super::kit::has_avx2() {
+        // SAFETY: AVX2 present (checked); both slices hold n values.
+        done = unsafe { simd::u8_to_q6_avx2(out, src) };
     }
     for (p, &v) in out[done..].iter_mut().zip(&src[done..]) {
         *p = (v as i16) << SAMPLE_Q;
@@ -484,26 +474,6 @@ mod simd {
                 _mm256_storeu_si256(out.as_mut_ptr().add(i) as *mut __m256i, _mm256_slli_epi16::<6>(v));
             }
             i += 16;
-        }
-        n
-    }
-
-    /// [`u8_to_q6_avx2`] with 64 samples per iteration.
-    #[target_feature(enable = "avx512f,avx512bw")]
-    pub unsafe fn u8_to_q6_avx512(out: &mut [i16], src: &[u8]) -> usize {
-        let n = out.len().min(src.len()) / 64 * 64;
-        let mut i = 0;
-        while i < n {
-            // SAFETY (block): i + 64 <= n <= both lengths.
-            unsafe {
-                let s = src.as_ptr().add(i);
-                let o = out.as_mut_ptr().add(i) as *mut __m512i;
-                let a = _mm512_cvtepu8_epi16(_mm256_loadu_si256(s as *const __m256i));
-                let b = _mm512_cvtepu8_epi16(_mm256_loadu_si256(s.add(32) as *const __m256i));
-                _mm512_storeu_si512(o, _mm512_slli_epi16::<6>(a));
-                _mm512_storeu_si512(o.add(1), _mm512_slli_epi16::<6>(b));
-            }
-            i += 64;
         }
         n
     }
@@ -674,9 +644,9 @@ mod simd {
     /// registers, one new load per side and pair.
     macro_rules! col_rot {
         ($a:ident, $ld:ident, $lo:expr, $hi:expr, $k:expr, $w:expr, $add:ident, $mul:ident) => {{
-            let (lo, hi, k, w) = ($lo, $hi, $k, $w);
-            let mut l: [_; R] = std::array::from_fn(|j| $ld(*lo.add(k - 1 + j)));
-            let mut h: [_; R] = std::array::from_fn(|j| $ld(*hi.add(j)));
+            let (lo_at, hi_at, k, w) = ($lo, $hi, $k, $w);
+            let mut l: [_; R] = std::array::from_fn(|j| $ld(lo_at(k - 1 + j)));
+            let mut h: [_; R] = std::array::from_fn(|j| $ld(hi_at(j)));
             let mut s = 0;
             loop {
                 let wv = *w.add(s);
@@ -687,7 +657,7 @@ mod simd {
                 if s == k {
                     break;
                 }
-                let (nl, nh) = ($ld(*lo.add(k - 1 - s)), $ld(*hi.add(R - 1 + s)));
+                let (nl, nh) = ($ld(lo_at(k - 1 - s)), $ld(hi_at(R - 1 + s)));
                 l = std::array::from_fn(|j| if j == 0 { nl } else { l[j - 1] });
                 h = std::array::from_fn(|j| if j + 1 == R { nh } else { h[j + 1] });
             }
@@ -704,7 +674,7 @@ mod simd {
                 let k = c.len();
                 if k > super::MAX_COL_PAIRS {
                     let m = super::col_run(k, R);
-                    col_rot!($a, $ld, p, p.add(m), k, w, $add, $mul);
+                    col_rot!($a, $ld, |t: usize| *p.add(t), |t: usize| *p.add(m + t), k, w, $add, $mul);
                     p = p.add(2 * m);
                     continue;
                 }
@@ -899,7 +869,8 @@ mod tests {
         }
         // The column kernel: the same bytes as sym_fir + q6_to_u8 row by row, over columns with
         // negative and positive dy, a gap (weight 0), dx = 0, at lengths around the chunk sizes.
-        // Columns of 1 to 4 pairs (one dx cut into four columns), 4 and 8 output rows.
+        // Unrolled columns of 1 to 4 pairs (one dx cut into four columns) and rotated ones of 5
+        // (the shortest), 7 and 9 pairs, 4 and 8 output rows.
         let (pw, ch) = (700usize, 3usize);
         let cols = [
             TapCol { dx: 0, dy0: 1, dy1: 3, w0: 0 },
@@ -910,11 +881,16 @@ mod tests {
             TapCol { dx: 2, dy0: 0, dy1: 2, w0: 12 },
             TapCol { dx: 2, dy0: 3, dy1: 5, w0: 15 },
             TapCol { dx: 3, dy0: -2, dy1: 1, w0: 18 },
+            TapCol { dx: 5, dy0: -3, dy1: 3, w0: 22 },
+            TapCol { dx: 6, dy0: -4, dy1: 4, w0: 29 },
+            TapCol { dx: 7, dy0: 0, dy1: 4, w0: 38 },
         ];
-        let wq: [i16; 23] = [
+        let mut wq = vec![
             2100, 1300, 700, 900, 0, 2500, 1200, 400, 300, 50, 800, 0, 120, 640, 90, 1000, 20, 260, 310, 0, 450, 700,
-            15,
         ];
+        // The rotated columns: 21 small weights (one gap), sum 2100.
+        wq.extend((0..21).map(|s| if s == 10 { 0 } else { 5 + 10 * s as i16 }));
+        assert_eq!(wq.len(), 43);
         let q0 = 32768 - 2 * wq.iter().map(|&v| v as i32).sum::<i32>();
         assert!(q0 > 0);
         let base: Vec<i16> = (0..pw * 30).map(|_| rng.below(16321) as i16).collect();
@@ -931,15 +907,21 @@ mod tests {
             let c0 = 10 * pw + 5 * ch;
             let mut rows: Vec<Vec<u8>> = vec![vec![0u8; n]; nrows];
             // Sample 0 of row y + t (t from -10), shifted by dx pixels; per column lo (row
-            // -dy1, -dx) and hi (row dy0, +dx).
+            // -dy1, -dx) and hi (row dy0, +dx): two offsets, or for the rotated columns every
+            // row of the two runs.
             let at = |t: isize, dx: isize| (c0 as isize + t * pw as isize + dx * ch as isize) as usize;
-            let offs: Vec<usize> = cols
-                .iter()
-                .flat_map(|c| [at(-c.dy1 as isize, -(c.dx as isize)), at(c.dy0 as isize, c.dx as isize)])
-                .collect();
+            let mut offs = Vec::new();
+            for c in &cols {
+                let (dx, m) = (c.dx as isize, col_offs(c.len(), nrows));
+                offs.extend((0..m / 2).map(|t| at(t as isize - c.dy1 as isize, -dx)));
+                offs.extend((0..m / 2).map(|t| at(c.dy0 as isize + t as isize, dx)));
+            }
             let centre: Vec<usize> = (0..nrows).map(|j| at(j as isize, 0)).collect();
             let mut outs: Vec<&mut [u8]> = rows.iter_mut().map(|r| &mut r[..]).collect();
-            sym_fir_cols_u8(&mut outs, &base, pw, &centre, &cols, &offs, q0 as i16, &wq, &[]);
+            // Prefetched rows (their bytes are not read): one shorter than the outputs.
+            let spare = vec![7u8; 2 * n + 64];
+            let pf: Vec<&[u8]> = (0..nrows).map(|j| if j == 1 { &spare[..n / 2] } else { &spare[j..j + n] }).collect();
+            sym_fir_cols_u8(&mut outs, &base, pw, &centre, &cols, &offs, q0 as i16, &wq, &pf);
             for (j, got) in rows.iter().enumerate() {
                 let cj = c0 + j * pw;
                 let at = |dx: isize, dy: isize| (cj as isize + dy * pw as isize + dx * ch as isize) as usize;
