@@ -627,10 +627,10 @@ mod simd {
     /// fully unrolled; each source vector is loaded once (repeated loads of one address merge)
     /// and each weight is a register broadcast once per call.
     macro_rules! col_block {
-        ($k:literal, $a:ident, $ld:ident, $lo:expr, $hi:expr, $st:expr, $w:expr, $add:ident, $mul:ident) => {{
+        ($k:literal, $a:ident, $ld:ident, $lo:expr, $hi:expr, $st:expr, $w:expr, $add:ident, $mul:ident, $bc:ident) => {{
             let (lo, hi, st, w) = ($lo, $hi, $st, $w);
             for s in 0..$k {
-                let wv = *w.add(s);
+                let wv = $bc(w.add(s));
                 for j in 0..R {
                     let v = $add($ld(lo + ($k - 1 + j - s) * st), $ld(hi + (j + s) * st));
                     $a[j] = $add($a[j], $mul(v, wv));
@@ -643,13 +643,13 @@ mod simd {
     /// `hi`: [`super::col_run`]`(k, R)` each): the `R` source vectors of each side rotate through
     /// registers, one new load per side and pair.
     macro_rules! col_rot {
-        ($a:ident, $ld:ident, $lo:expr, $hi:expr, $k:expr, $w:expr, $add:ident, $mul:ident) => {{
+        ($a:ident, $ld:ident, $lo:expr, $hi:expr, $k:expr, $w:expr, $add:ident, $mul:ident, $bc:ident) => {{
             let (lo_at, hi_at, k, w) = ($lo, $hi, $k, $w);
             let mut l: [_; R] = std::array::from_fn(|j| $ld(lo_at(k - 1 + j)));
             let mut h: [_; R] = std::array::from_fn(|j| $ld(hi_at(j)));
             let mut s = 0;
             loop {
-                let wv = *w.add(s);
+                let wv = $bc(w.add(s));
                 for j in 0..R {
                     $a[j] = $add($a[j], $mul($add(l[j], h[j]), wv));
                 }
@@ -667,23 +667,23 @@ mod simd {
     /// The sums of one chunk of `R` output rows over every column: up to `MAX_COL_PAIRS` pairs
     /// its unrolled [`col_block`] picked by its length, longer ones [`col_rot`].
     macro_rules! cols_sums {
-        ($a:ident, $ld:ident, $cols:expr, $offs:expr, $st:expr, $wv:expr, $add:ident, $mul:ident) => {{
+        ($a:ident, $ld:ident, $cols:expr, $offs:expr, $st:expr, $wv:expr, $add:ident, $mul:ident, $bc:ident) => {{
             let mut p = $offs;
             for c in $cols {
                 let w = $wv.add(c.w0);
                 let k = c.len();
                 if k > super::MAX_COL_PAIRS {
                     let m = super::col_run(k, R);
-                    col_rot!($a, $ld, |t: usize| *p.add(t), |t: usize| *p.add(m + t), k, w, $add, $mul);
+                    col_rot!($a, $ld, |t: usize| *p.add(t), |t: usize| *p.add(m + t), k, w, $add, $mul, $bc);
                     p = p.add(2 * m);
                     continue;
                 }
                 let (lo, hi) = (*p, *p.add(1));
                 match k {
-                    1 => col_block!(1, $a, $ld, lo, hi, $st, w, $add, $mul),
-                    2 => col_block!(2, $a, $ld, lo, hi, $st, w, $add, $mul),
-                    3 => col_block!(3, $a, $ld, lo, hi, $st, w, $add, $mul),
-                    _ => col_block!(4, $a, $ld, lo, hi, $st, w, $add, $mul),
+                    1 => col_block!(1, $a, $ld, lo, hi, $st, w, $add, $mul, $bc),
+                    2 => col_block!(2, $a, $ld, lo, hi, $st, w, $add, $mul, $bc),
+                    3 => col_block!(3, $a, $ld, lo, hi, $st, w, $add, $mul, $bc),
+                    _ => col_block!(4, $a, $ld, lo, hi, $st, w, $add, $mul, $bc),
                 }
                 p = p.add(2);
             }
@@ -707,10 +707,8 @@ mod simd {
     ) -> usize {
         let n = outs[0].len() / 16 * 16;
         let bp = base.as_ptr();
-        let mut wv = [_mm256_setzero_si256(); super::MAX_COL_WEIGHTS];
-        for (v, &q) in wv.iter_mut().zip(wq) {
-            *v = _mm256_set1_epi16(q);
-        }
+        // SAFETY: the callers read weights inside `wq`.
+        let bc = |p: *const i16| _mm256_set1_epi16(unsafe { *p });
         let q0v = _mm256_set1_epi16(q0);
         let half = _mm256_set1_epi16(32);
         let add = |a, b| _mm256_add_epi16(a, b);
@@ -723,7 +721,7 @@ mod simd {
             unsafe {
                 let ld = |p: usize| _mm256_loadu_si256(bp.add(p + i) as *const __m256i);
                 let mut a: [__m256i; R] = std::array::from_fn(|j| _mm256_mulhrs_epi16(ld(centre[j]), q0v));
-                cols_sums!(a, ld, cols, offs.as_ptr(), stride, wv.as_ptr(), add, mul);
+                cols_sums!(a, ld, cols, offs.as_ptr(), stride, wq.as_ptr(), add, mul, bc);
                 for (o, a) in outs.iter_mut().zip(a) {
                     let v = _mm256_srai_epi16::<6>(_mm256_adds_epi16(a, half));
                     let v = _mm256_permute4x64_epi64::<0xD8>(_mm256_packus_epi16(v, v));
@@ -766,10 +764,8 @@ mod simd {
     ) -> usize {
         let n = outs[0].len() / 32 * 32;
         let bp = base.as_ptr();
-        let mut wv = [_mm512_setzero_si512(); super::MAX_COL_WEIGHTS];
-        for (v, &q) in wv.iter_mut().zip(wq) {
-            *v = _mm512_set1_epi16(q);
-        }
+        // SAFETY: the callers read weights inside `wq`.
+        let bc = |p: *const i16| _mm512_set1_epi16(unsafe { *p });
         let q0v = _mm512_set1_epi16(q0);
         let (half, zero) = (_mm512_set1_epi16(32), _mm512_setzero_si512());
         let add = |a, b| _mm512_add_epi16(a, b);
@@ -780,7 +776,7 @@ mod simd {
             unsafe {
                 let ld = |p: usize| _mm512_loadu_si512(bp.add(p + i) as *const __m512i);
                 let mut a: [__m512i; R] = std::array::from_fn(|j| _mm512_mulhrs_epi16(ld(centre[j]), q0v));
-                cols_sums!(a, ld, cols, offs.as_ptr(), stride, wv.as_ptr(), add, mul);
+                cols_sums!(a, ld, cols, offs.as_ptr(), stride, wq.as_ptr(), add, mul, bc);
                 for (o, a) in outs.iter_mut().zip(a) {
                     let v = _mm512_max_epi16(_mm512_srai_epi16::<6>(_mm512_adds_epi16(a, half)), zero);
                     _mm256_storeu_si256(o.as_mut_ptr().add(i) as *mut __m256i, _mm512_cvtusepi16_epi8(v));
