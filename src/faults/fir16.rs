@@ -177,8 +177,9 @@ impl TapCol {
 /// Most output rows [`sym_fir_cols_u8`] processes together.
 pub const MAX_COL_ROWS: usize = 8;
 
-/// Most Q15 weights (`wq.len()`) the SIMD column kernels take (their weights are broadcast once
-/// per call into registers on the stack); longer weight lists run the scalar code.
+/// Most Q15 weights (`wq.len()`) the SIMD column kernels take; longer weight lists run the
+/// scalar code (kept from the per-call weight array of stop 41; the kernels now broadcast each
+/// weight where it is used, as main's did).
 pub const MAX_COL_WEIGHTS: usize = 64;
 
 /// Output rows [`sym_fir_cols_u8`] should get per call on this CPU: 8 on AVX-512 (32 zmm
