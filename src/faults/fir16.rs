@@ -174,87 +174,150 @@ impl TapCol {
     }
 }
 
-/// Output rows processed together by [`sym_fir_cols_u8`].
-pub const COL_ROWS: usize = 4;
+/// Most output rows [`sym_fir_cols_u8`] processes together.
+pub const MAX_COL_ROWS: usize = 8;
 
-/// Source vectors [`sym_fir_cols_u8`] loads for a column of `k` pairs, per side.
-pub fn col_loads(k: usize) -> usize {
-    k + COL_ROWS - 1
+/// Most Q15 weights (`wq.len()`) the SIMD column kernels take; longer weight lists run the
+/// scalar code (kept from the per-call weight array of stop 41; the kernels now broadcast each
+/// weight where it is used, as main's did).
+pub const MAX_COL_WEIGHTS: usize = 64;
+
+/// Output rows [`sym_fir_cols_u8`] should get per call on this CPU: 8 on AVX-512 (32 zmm
+/// registers hold the 8 sums, the weights and a column's source vectors, so each source vector
+/// and weight serves twice the rows), 4 on AVX2 (16 ymm registers: 8 rows spill) and without SIMD.
+/// Measured on the Zen 4, rgb8 24 px at 30 deg: AVX-512 4 rows 5.7 ms, 8 rows 5.0 ms; AVX2 4 rows
+/// 6.2 ms, 8 rows 7.9 ms.
+pub fn col_rows() -> usize {
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx512() {
+        return 8;
+    }
+    4
+}
+
+/// Longest [`TapCol`] [`sym_fir_cols_u8`] takes as a strided run (two offsets, fully unrolled
+/// code); longer columns take one offset per source row and a loop that rotates the source
+/// vectors through registers (two loads per pair for all `R` rows).
+pub const MAX_COL_PAIRS: usize = 4;
+
+/// Source rows a column of `k` pairs reads per side for `rows` output rows (one run of
+/// consecutive rows, see [`sym_fir_cols_u8`]).
+pub fn col_run(k: usize, rows: usize) -> usize {
+    k + rows - 1
+}
+
+/// Offsets [`sym_fir_cols_u8`] takes for a column of `k` pairs and `rows` output rows: 2 (the
+/// first rows of its two runs) up to [`MAX_COL_PAIRS`] pairs, else one per source row,
+/// `2 col_run(k, rows)`.
+pub fn col_offs(k: usize, rows: usize) -> usize {
+    if k <= MAX_COL_PAIRS { 2 } else { 2 * col_run(k, rows) }
 }
 
 /// A 2D point-symmetric FIR ([`sym_fir`]'s sums: the centre `mulhrs(x, q0)` plus, per tap pair,
 /// `mulhrs(x_lo + x_hi, w)`, wrapping 16-bit adds, rounded to bytes as [`q6_to_u8`]) for
-/// [`COL_ROWS`] consecutive output rows `y + j` at once, the tap pairs grouped by columns
-/// ([`TapCol`]): within a column the source rows of `dy` and `dy + 1` serve neighbouring output
-/// rows, so each source vector is loaded once for all of them and held in registers (a column
-/// of `k` pairs costs `2 (k + COL_ROWS - 1)` loads instead of `2 k COL_ROWS`). `centre[j]` is the
-/// offset in `base` of output row `j`'s centre sample 0; per column, in order, `offs` holds
-/// [`col_loads`]`(k)` offsets `lo[m]` (of sample 0 of source row `y + COL_ROWS - 1 - dy0 - m`,
-/// shifted by `-dx` pixels) and as many `hi[m]` (row `y + dy0 + m`, shifted by `+dx`): pair
-/// `dy0 + s` of output row `j` is `lo[COL_ROWS - 1 - j + s] + hi[j + s]`. The same integer values
-/// as [`sym_fir`] and [`q6_to_u8`] per row (every pair's sum and product is the same; the sums
-/// of the products are wrapping, so their order does not matter). Panics if a read would leave
-/// `base`.
-#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
+/// `R = outs.len()` (4 or 8, see [`col_rows`]) consecutive output rows `y + j` at once, the tap
+/// pairs grouped by columns ([`TapCol`]): within a column the source rows of `dy` and `dy + 1`
+/// serve neighbouring output rows, so each source vector is loaded once for all of them (a
+/// column of `k` pairs costs `2 (k + R - 1)` loads instead of `2 k R`). `centre[j]` is the
+/// offset in `base` of output row `j`'s centre sample 0. A column of `k` pairs reads the runs of
+/// [`col_run`]`(k, R)` source rows `lo[m]` (sample 0 of row `y - dy1 + m`, shifted by `-dx`
+/// pixels) and `hi[m]` (row `y + dy0 + m`, shifted by `+dx`): pair `dy0 + s` of output row `j`
+/// is `lo[k - 1 + j - s] + hi[j + s]`. Per column, in order, `offs` holds [`col_offs`]`(k, R)`
+/// offsets: for `k <= MAX_COL_PAIRS` `lo[0]` and `hi[0]`, the runs' rows `stride` samples
+/// apart (the caller keeps each run contiguous); for longer columns every `lo[m]`, then every
+/// `hi[m]`. The same integer values as [`sym_fir`] and [`q6_to_u8`] per row (every pair's sum
+/// and product is the same; the sums of the products are wrapping, so their order does not
+/// matter). Panics if a read would leave `base`. The bytes of the (at most `R`) rows in
+/// `prefetch` are only prefetched into the cache, spread over the call (the caller's next
+/// rows: their loads then overlap this call's arithmetic instead of stalling the next fill).
+#[allow(clippy::too_many_arguments)]
 pub fn sym_fir_cols_u8(
-    outs: [&mut [u8]; COL_ROWS],
+    outs: &mut [&mut [u8]],
     base: &[i16],
-    centre: [usize; COL_ROWS],
+    stride: usize,
+    centre: &[usize],
     cols: &[TapCol],
     offs: &[usize],
     q0: i16,
     wq: &[i16],
+    prefetch: &[&[u8]],
 ) {
+    let rows = outs.len();
+    assert!(rows == 4 || rows == 8, "fir: 4 or 8 output rows");
+    assert!(prefetch.len() <= rows);
+    assert_eq!(centre.len(), rows);
     let n = outs[0].len();
     assert!(outs.iter().all(|o| o.len() == n));
-    assert!(centre.iter().chain(offs).all(|&o| o + n <= base.len()), "fir: rows inside the buffer");
-    assert_eq!(offs.len(), cols.iter().map(|c| 2 * col_loads(c.len())).sum::<usize>());
-    assert!(cols.iter().all(|c| c.dy0 <= c.dy1 && c.w0 + c.len() <= wq.len()));
-    let [o0, o1, o2, o3] = outs;
+    assert!(centre.iter().all(|&o| o + n <= base.len()), "fir: rows inside the buffer");
+    assert_eq!(offs.len(), cols.iter().map(|c| col_offs(c.len(), rows)).sum::<usize>());
+    let mut p = 0;
+    for c in cols {
+        assert!(c.dy0 <= c.dy1 && c.w0 + c.len() <= wq.len());
+        let m = col_offs(c.len(), rows);
+        let o = &offs[p..p + m];
+        let last = if m == 2 { (col_run(c.len(), rows) - 1) * stride + n } else { n };
+        assert!(o.iter().all(|&o| o + last <= base.len()), "fir: rows inside the buffer");
+        p += m;
+    }
+    #[allow(unused_mut)]
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
-    {
+    if wq.len() <= MAX_COL_WEIGHTS {
         if super::kit::has_avx512() {
-            // SAFETY: AVX-512 F/BW present (checked); reads are in bounds (asserted above).
+            // SAFETY: AVX-512 F/BW present (checked); reads are in bounds, `offs` holds
+            // col_offs(k, rows) offsets per column and wq fits the kernel's weight registers
+            // (asserted above).
             done = unsafe {
-                simd::fir_cols_avx512([&mut *o0, &mut *o1, &mut *o2, &mut *o3], base, centre, cols, offs, q0, wq)
+                if rows == 8 {
+                    simd::cols_avx512::<8>(outs, base, stride, centre, cols, offs, q0, wq, prefetch)
+                } else {
+                    simd::cols_avx512::<4>(outs, base, stride, centre, cols, offs, q0, wq, prefetch)
+                }
             };
         } else if super::kit::has_avx2() {
-            // SAFETY: AVX2 present (checked); reads are in bounds (asserted above).
+            // SAFETY: AVX2 present (checked); as above.
             done = unsafe {
-                simd::fir_cols_avx2([&mut *o0, &mut *o1, &mut *o2, &mut *o3], base, centre, cols, offs, q0, wq)
+                if rows == 8 {
+                    simd::cols_avx2::<8>(outs, base, stride, centre, cols, offs, q0, wq, prefetch)
+                } else {
+                    simd::cols_avx2::<4>(outs, base, stride, centre, cols, offs, q0, wq, prefetch)
+                }
             };
         }
     }
-    let outs = [&mut o0[done..], &mut o1[done..], &mut o2[done..], &mut o3[done..]];
-    fir_cols_scalar(outs, base, centre, cols, offs, q0, wq, done);
+    fir_cols_scalar(outs, base, stride, centre, cols, offs, q0, wq, done);
 }
 
 /// Scalar reference of [`sym_fir_cols_u8`] (outputs from `skip` on).
 #[allow(clippy::too_many_arguments)]
 fn fir_cols_scalar(
-    outs: [&mut [u8]; COL_ROWS],
+    outs: &mut [&mut [u8]],
     base: &[i16],
-    centre: [usize; COL_ROWS],
+    stride: usize,
+    centre: &[usize],
     cols: &[TapCol],
     offs: &[usize],
     q0: i16,
     wq: &[i16],
     skip: usize,
 ) {
-    for (j, out) in outs.into_iter().enumerate() {
-        for (i, o) in out.iter_mut().enumerate() {
+    let rows = outs.len();
+    for (j, out) in outs.iter_mut().enumerate() {
+        for (i, o) in out[skip..].iter_mut().enumerate() {
             let x = skip + i;
             let mut acc = mulhrs(base[centre[j] + x], q0);
             let mut p = 0;
             for c in cols {
-                let m = col_loads(c.len());
-                let (lo, hi) = (&offs[p..p + m], &offs[p + m..p + 2 * m]);
-                for s in 0..c.len() {
-                    let v = base[lo[COL_ROWS - 1 - j + s] + x].wrapping_add(base[hi[j + s] + x]);
+                let (k, m) = (c.len(), col_offs(c.len(), rows));
+                let o = &offs[p..p + m];
+                // Row t of the column's lo and hi runs.
+                let lo = |t: usize| if m == 2 { o[0] + t * stride } else { o[t] };
+                let hi = |t: usize| if m == 2 { o[1] + t * stride } else { o[m / 2 + t] };
+                for s in 0..k {
+                    let v = base[lo(k - 1 + j - s) + x].wrapping_add(base[hi(j + s) + x]);
                     acc = acc.wrapping_add(mulhrs(v, wq[c.w0 + s]));
                 }
-                p += 2 * m;
+                p += m;
             }
             *o = ((acc.max(0) as i32 + 32) >> SAMPLE_Q).min(255) as u8;
         }
@@ -560,142 +623,170 @@ mod simd {
         n
     }
 
-    /// [`super::sym_fir_cols_u8`] on whole chunks of 16 outputs per row (one register per output
-    /// row; a column's source vectors rotate through registers); returns the count.
+    /// One column of `$k` tap pairs for `R` output rows (see [`super::sym_fir_cols_u8`]):
+    /// `a[j] += mulhrs(lo[(k - 1 + j - s) stride] + hi[(j + s) stride], w[s])` for `s < $k`,
+    /// fully unrolled; each source vector is loaded once (repeated loads of one address merge)
+    /// and each weight is a register broadcast once per call.
+    macro_rules! col_block {
+        ($k:literal, $a:ident, $ld:ident, $lo:expr, $hi:expr, $st:expr, $w:expr, $add:ident, $mul:ident, $bc:ident) => {{
+            let (lo, hi, st, w) = ($lo, $hi, $st, $w);
+            for s in 0..$k {
+                let wv = $bc(w.add(s));
+                for j in 0..R {
+                    let v = $add($ld(lo + ($k - 1 + j - s) * st), $ld(hi + (j + s) * st));
+                    $a[j] = $add($a[j], $mul(v, wv));
+                }
+            }
+        }};
+    }
+
+    /// One column of `k > MAX_COL_PAIRS` pairs for `R` output rows from per-row offsets (`lo`,
+    /// `hi`: [`super::col_run`]`(k, R)` each): the `R` source vectors of each side rotate through
+    /// registers, one new load per side and pair.
+    macro_rules! col_rot {
+        ($a:ident, $ld:ident, $lo:expr, $hi:expr, $k:expr, $w:expr, $add:ident, $mul:ident, $bc:ident) => {{
+            let (lo_at, hi_at, k, w) = ($lo, $hi, $k, $w);
+            let mut l: [_; R] = std::array::from_fn(|j| $ld(lo_at(k - 1 + j)));
+            let mut h: [_; R] = std::array::from_fn(|j| $ld(hi_at(j)));
+            let mut s = 0;
+            loop {
+                let wv = $bc(w.add(s));
+                for j in 0..R {
+                    $a[j] = $add($a[j], $mul($add(l[j], h[j]), wv));
+                }
+                s += 1;
+                if s == k {
+                    break;
+                }
+                let (nl, nh) = ($ld(lo_at(k - 1 - s)), $ld(hi_at(R - 1 + s)));
+                l = std::array::from_fn(|j| if j == 0 { nl } else { l[j - 1] });
+                h = std::array::from_fn(|j| if j + 1 == R { nh } else { h[j + 1] });
+            }
+        }};
+    }
+
+    /// The sums of one chunk of `R` output rows over every column: up to `MAX_COL_PAIRS` pairs
+    /// its unrolled [`col_block`] picked by its length, longer ones [`col_rot`].
+    macro_rules! cols_sums {
+        ($a:ident, $ld:ident, $cols:expr, $offs:expr, $st:expr, $wv:expr, $add:ident, $mul:ident, $bc:ident) => {{
+            let mut p = $offs;
+            for c in $cols {
+                let w = $wv.add(c.w0);
+                let k = c.len();
+                if k > super::MAX_COL_PAIRS {
+                    let m = super::col_run(k, R);
+                    col_rot!($a, $ld, |t: usize| *p.add(t), |t: usize| *p.add(m + t), k, w, $add, $mul, $bc);
+                    p = p.add(2 * m);
+                    continue;
+                }
+                let (lo, hi) = (*p, *p.add(1));
+                match k {
+                    1 => col_block!(1, $a, $ld, lo, hi, $st, w, $add, $mul, $bc),
+                    2 => col_block!(2, $a, $ld, lo, hi, $st, w, $add, $mul, $bc),
+                    3 => col_block!(3, $a, $ld, lo, hi, $st, w, $add, $mul, $bc),
+                    _ => col_block!(4, $a, $ld, lo, hi, $st, w, $add, $mul, $bc),
+                }
+                p = p.add(2);
+            }
+        }};
+    }
+
+    /// [`super::sym_fir_cols_u8`] for `R` output rows on whole chunks of 16 outputs per row (one
+    /// register per output row); `wq.len() <= MAX_COL_WEIGHTS`. Returns the count done.
     #[target_feature(enable = "avx2")]
-    pub unsafe fn fir_cols_avx2(
-        mut outs: [&mut [u8]; super::COL_ROWS],
+    #[allow(clippy::too_many_arguments)]
+    pub unsafe fn cols_avx2<const R: usize>(
+        outs: &mut [&mut [u8]],
         base: &[i16],
-        centre: [usize; super::COL_ROWS],
+        stride: usize,
+        centre: &[usize],
         cols: &[super::TapCol],
         offs: &[usize],
         q0: i16,
         wq: &[i16],
+        prefetch: &[&[u8]],
     ) -> usize {
         let n = outs[0].len() / 16 * 16;
         let bp = base.as_ptr();
+        // SAFETY: the callers read weights inside `wq`.
+        let bc = |p: *const i16| _mm256_set1_epi16(unsafe { *p });
         let q0v = _mm256_set1_epi16(q0);
         let half = _mm256_set1_epi16(32);
+        let add = |a, b| _mm256_add_epi16(a, b);
+        let mul = |a, b| _mm256_mulhrs_epi16(a, b);
         let mut i = 0;
         while i < n {
             // SAFETY (block): every offset in `centre` and `offs` plus i + 16 is at most
-            // base.len() and every weight index is inside `wq` (asserted by the caller); each
-            // output holds n >= i + 16 bytes.
+            // base.len(), every weight index is inside `wq` (asserted by the caller) and so
+            // inside `wv`; each output holds n >= i + 16 bytes.
             unsafe {
                 let ld = |p: usize| _mm256_loadu_si256(bp.add(p + i) as *const __m256i);
-                let mut a0 = _mm256_mulhrs_epi16(ld(centre[0]), q0v);
-                let mut a1 = _mm256_mulhrs_epi16(ld(centre[1]), q0v);
-                let mut a2 = _mm256_mulhrs_epi16(ld(centre[2]), q0v);
-                let mut a3 = _mm256_mulhrs_epi16(ld(centre[3]), q0v);
-                let mut p = offs.as_ptr();
-                for c in cols {
-                    let k = c.len();
-                    let m = super::col_loads(k);
-                    let (lo, hi) = (p, p.add(m));
-                    let (mut l3, mut l2, mut l1, mut l0) = (ld(*lo), ld(*lo.add(1)), ld(*lo.add(2)), ld(*lo.add(3)));
-                    let (mut h0, mut h1, mut h2, mut h3) = (ld(*hi), ld(*hi.add(1)), ld(*hi.add(2)), ld(*hi.add(3)));
-                    let w = wq.as_ptr().add(c.w0);
-                    let mut s = 0;
-                    loop {
-                        let wv = _mm256_set1_epi16(*w.add(s));
-                        a0 = _mm256_add_epi16(a0, _mm256_mulhrs_epi16(_mm256_add_epi16(l0, h0), wv));
-                        a1 = _mm256_add_epi16(a1, _mm256_mulhrs_epi16(_mm256_add_epi16(l1, h1), wv));
-                        a2 = _mm256_add_epi16(a2, _mm256_mulhrs_epi16(_mm256_add_epi16(l2, h2), wv));
-                        a3 = _mm256_add_epi16(a3, _mm256_mulhrs_epi16(_mm256_add_epi16(l3, h3), wv));
-                        s += 1;
-                        if s == k {
-                            break;
-                        }
-                        (l3, l2, l1, l0) = (l2, l1, l0, ld(*lo.add(3 + s)));
-                        (h0, h1, h2, h3) = (h1, h2, h3, ld(*hi.add(3 + s)));
-                    }
-                    p = p.add(2 * m);
-                }
-                for (o, a) in outs.iter_mut().zip([a0, a1, a2, a3]) {
+                let mut a: [__m256i; R] = std::array::from_fn(|j| _mm256_mulhrs_epi16(ld(centre[j]), q0v));
+                cols_sums!(a, ld, cols, offs.as_ptr(), stride, wq.as_ptr(), add, mul, bc);
+                for (o, a) in outs.iter_mut().zip(a) {
                     let v = _mm256_srai_epi16::<6>(_mm256_adds_epi16(a, half));
                     let v = _mm256_permute4x64_epi64::<0xD8>(_mm256_packus_epi16(v, v));
                     _mm_storeu_si128(o.as_mut_ptr().add(i) as *mut __m128i, _mm256_castsi256_si128(v));
                 }
             }
+            prefetch_rows(prefetch, i, 16);
             i += 16;
         }
         n
     }
 
-    /// [`fir_cols_avx2`] with 32 outputs per register.
+    /// Prefetches the cache lines of `rows` that hold bytes `i..i + step` (the first byte of
+    /// each line once).
+    #[inline(always)]
+    fn prefetch_rows(rows: &[&[u8]], i: usize, step: usize) {
+        if i % 64 < step {
+            for r in rows {
+                if let Some(b) = r.get(i - i % 64) {
+                    // SAFETY: a prefetch reads nothing observable; the address is inside `r`.
+                    unsafe { _mm_prefetch::<_MM_HINT_T0>(b as *const u8 as *const i8) };
+                }
+            }
+        }
+    }
+
+    /// [`cols_avx2`] with 32 outputs per register.
     #[target_feature(enable = "avx512f,avx512bw")]
-    pub unsafe fn fir_cols_avx512(
-        mut outs: [&mut [u8]; super::COL_ROWS],
+    #[allow(clippy::too_many_arguments)]
+    pub unsafe fn cols_avx512<const R: usize>(
+        outs: &mut [&mut [u8]],
         base: &[i16],
-        centre: [usize; super::COL_ROWS],
+        stride: usize,
+        centre: &[usize],
         cols: &[super::TapCol],
         offs: &[usize],
         q0: i16,
         wq: &[i16],
+        prefetch: &[&[u8]],
     ) -> usize {
-        let len = outs[0].len();
+        let n = outs[0].len() / 32 * 32;
         let bp = base.as_ptr();
+        // SAFETY: the callers read weights inside `wq`.
+        let bc = |p: *const i16| _mm512_set1_epi16(unsafe { *p });
         let q0v = _mm512_set1_epi16(q0);
         let (half, zero) = (_mm512_set1_epi16(32), _mm512_setzero_si512());
-        // V registers of 32 samples per output row and source vector (32 zmm registers hold
-        // 4 V sums and 8 V source vectors for V = 2).
-        macro_rules! chunk {
-            ($v:literal, $i:expr) => {{
-                let i = $i;
-                let ld = |p: usize| -> [__m512i; $v] {
-                    std::array::from_fn(|t| _mm512_loadu_si512(bp.add(p + i + 32 * t) as *const __m512i))
-                };
-                let mulc = |p: usize| ld(p).map(|x| _mm512_mulhrs_epi16(x, q0v));
-                let (mut a0, mut a1, mut a2, mut a3) = (mulc(centre[0]), mulc(centre[1]), mulc(centre[2]), mulc(centre[3]));
-                let mut p = offs.as_ptr();
-                for c in cols {
-                    let k = c.len();
-                    let m = super::col_loads(k);
-                    let (lo, hi) = (p, p.add(m));
-                    let (mut l3, mut l2, mut l1, mut l0) = (ld(*lo), ld(*lo.add(1)), ld(*lo.add(2)), ld(*lo.add(3)));
-                    let (mut h0, mut h1, mut h2, mut h3) = (ld(*hi), ld(*hi.add(1)), ld(*hi.add(2)), ld(*hi.add(3)));
-                    let w = wq.as_ptr().add(c.w0);
-                    let mut s = 0;
-                    loop {
-                        let wv = _mm512_set1_epi16(*w.add(s));
-                        for t in 0..$v {
-                            a0[t] = _mm512_add_epi16(a0[t], _mm512_mulhrs_epi16(_mm512_add_epi16(l0[t], h0[t]), wv));
-                            a1[t] = _mm512_add_epi16(a1[t], _mm512_mulhrs_epi16(_mm512_add_epi16(l1[t], h1[t]), wv));
-                            a2[t] = _mm512_add_epi16(a2[t], _mm512_mulhrs_epi16(_mm512_add_epi16(l2[t], h2[t]), wv));
-                            a3[t] = _mm512_add_epi16(a3[t], _mm512_mulhrs_epi16(_mm512_add_epi16(l3[t], h3[t]), wv));
-                        }
-                        s += 1;
-                        if s == k {
-                            break;
-                        }
-                        (l3, l2, l1, l0) = (l2, l1, l0, ld(*lo.add(3 + s)));
-                        (h0, h1, h2, h3) = (h1, h2, h3, ld(*hi.add(3 + s)));
-                    }
-                    p = p.add(2 * m);
-                }
-                for (o, a) in outs.iter_mut().zip([a0, a1, a2, a3]) {
-                    for t in 0..$v {
-                        let v = _mm512_max_epi16(_mm512_srai_epi16::<6>(_mm512_adds_epi16(a[t], half)), zero);
-                        _mm256_storeu_si256(o.as_mut_ptr().add(i + 32 * t) as *mut __m256i, _mm512_cvtusepi16_epi8(v));
-                    }
-                }
-            }};
-        }
-        let n2 = len / 64 * 64;
+        let add = |a, b| _mm512_add_epi16(a, b);
+        let mul = |a, b| _mm512_mulhrs_epi16(a, b);
         let mut i = 0;
-        while i < n2 {
-            // SAFETY (block): every offset in `centre` and `offs` plus i + 64 is at most
-            // base.len() and every weight index is inside `wq` (asserted by the caller); each
-            // output holds n2 >= i + 64 bytes.
-            unsafe { chunk!(2, i) };
-            i += 64;
-        }
-        if len - i >= 32 {
-            // SAFETY: as above, with i + 32 <= len.
-            unsafe { chunk!(1, i) };
+        while i < n {
+            // SAFETY (block): as in `cols_avx2`, with i + 32.
+            unsafe {
+                let ld = |p: usize| _mm512_loadu_si512(bp.add(p + i) as *const __m512i);
+                let mut a: [__m512i; R] = std::array::from_fn(|j| _mm512_mulhrs_epi16(ld(centre[j]), q0v));
+                cols_sums!(a, ld, cols, offs.as_ptr(), stride, wq.as_ptr(), add, mul, bc);
+                for (o, a) in outs.iter_mut().zip(a) {
+                    let v = _mm512_max_epi16(_mm512_srai_epi16::<6>(_mm512_adds_epi16(a, half)), zero);
+                    _mm256_storeu_si256(o.as_mut_ptr().add(i) as *mut __m256i, _mm512_cvtusepi16_epi8(v));
+                }
+            }
+            prefetch_rows(prefetch, i, 32);
             i += 32;
         }
-        i
+        n
     }
 
     /// Whole chunks of 128 outputs; returns how many outputs were written.
@@ -775,15 +866,31 @@ mod tests {
         }
         // The column kernel: the same bytes as sym_fir + q6_to_u8 row by row, over columns with
         // negative and positive dy, a gap (weight 0), dx = 0, at lengths around the chunk sizes.
+        // Unrolled columns of 1 to 4 pairs (one dx cut into four columns) and rotated ones of 5
+        // (the shortest), 7 and 9 pairs, 4 and 8 output rows.
         let (pw, ch) = (700usize, 3usize);
         let cols = [
             TapCol { dx: 0, dy0: 1, dy1: 3, w0: 0 },
             TapCol { dx: 1, dy0: -2, dy1: 1, w0: 3 },
             TapCol { dx: 4, dy0: 2, dy1: 2, w0: 7 },
+            TapCol { dx: 2, dy0: -4, dy1: -4, w0: 8 },
+            TapCol { dx: 2, dy0: -3, dy1: -1, w0: 9 },
+            TapCol { dx: 2, dy0: 0, dy1: 2, w0: 12 },
+            TapCol { dx: 2, dy0: 3, dy1: 5, w0: 15 },
+            TapCol { dx: 3, dy0: -2, dy1: 1, w0: 18 },
+            TapCol { dx: 5, dy0: -3, dy1: 3, w0: 22 },
+            TapCol { dx: 6, dy0: -4, dy1: 4, w0: 29 },
+            TapCol { dx: 7, dy0: 0, dy1: 4, w0: 38 },
         ];
-        let wq: [i16; 8] = [2100, 1300, 700, 900, 0, 2500, 1200, 400];
+        let mut wq = vec![
+            2100, 1300, 700, 900, 0, 2500, 1200, 400, 300, 50, 800, 0, 120, 640, 90, 1000, 20, 260, 310, 0, 450, 700,
+        ];
+        // The rotated columns: 21 small weights (one gap), sum 2100.
+        wq.extend((0..21).map(|s| if s == 10 { 0 } else { 5 + 10 * s as i16 }));
+        assert_eq!(wq.len(), 43);
         let q0 = 32768 - 2 * wq.iter().map(|&v| v as i32).sum::<i32>();
-        let base: Vec<i16> = (0..pw * 12).map(|_| rng.below(16321) as i16).collect();
+        assert!(q0 > 0);
+        let base: Vec<i16> = (0..pw * 30).map(|_| rng.below(16321) as i16).collect();
         // (dx, dy) pairs and their weights for sym_fir.
         let mut pairs = vec![((0isize, 0isize), q0 as i16)];
         for c in &cols {
@@ -791,30 +898,27 @@ mod tests {
                 pairs.push(((c.dx as isize, dy as isize), wq[c.w0 + s]));
             }
         }
-        for n in [0usize, 1, 15, 16, 17, 31, 32, 33, 100, 600] {
-            let c0 = 4 * pw + 4 * ch;
-            let mut rows: Vec<Vec<u8>> = vec![vec![0u8; n]; COL_ROWS];
-            let [a, b, c, d] = &mut rows[..] else { unreachable!() };
-            // Sample 0 of row y + t (t from -4), shifted by dx pixels; per column lo[m] (row
-            // COL_ROWS - 1 - dy0 - m, -dx) and hi[m] (row dy0 + m, +dx).
+        for (nrows, n) in
+            [4usize, 8].into_iter().flat_map(|r| [0usize, 1, 15, 16, 17, 31, 32, 33, 100, 600].map(|n| (r, n)))
+        {
+            let c0 = 10 * pw + 5 * ch;
+            let mut rows: Vec<Vec<u8>> = vec![vec![0u8; n]; nrows];
+            // Sample 0 of row y + t (t from -10), shifted by dx pixels; per column lo (row
+            // -dy1, -dx) and hi (row dy0, +dx): two offsets, or for the rotated columns every
+            // row of the two runs.
             let at = |t: isize, dx: isize| (c0 as isize + t * pw as isize + dx * ch as isize) as usize;
             let mut offs = Vec::new();
             for c in &cols {
-                let m = col_loads(c.len()) as isize;
-                let dy0 = c.dy0 as isize;
-                offs.extend((0..m).map(|t| at(COL_ROWS as isize - 1 - dy0 - t, -(c.dx as isize))));
-                offs.extend((0..m).map(|t| at(dy0 + t, c.dx as isize)));
+                let (dx, m) = (c.dx as isize, col_offs(c.len(), nrows));
+                offs.extend((0..m / 2).map(|t| at(t as isize - c.dy1 as isize, -dx)));
+                offs.extend((0..m / 2).map(|t| at(c.dy0 as isize + t as isize, dx)));
             }
-            let centre: [usize; COL_ROWS] = std::array::from_fn(|j| at(j as isize, 0));
-            sym_fir_cols_u8(
-                [&mut a[..], &mut b[..], &mut c[..], &mut d[..]],
-                &base,
-                centre,
-                &cols,
-                &offs,
-                q0 as i16,
-                &wq,
-            );
+            let centre: Vec<usize> = (0..nrows).map(|j| at(j as isize, 0)).collect();
+            let mut outs: Vec<&mut [u8]> = rows.iter_mut().map(|r| &mut r[..]).collect();
+            // Prefetched rows (their bytes are not read): one shorter than the outputs.
+            let spare = vec![7u8; 2 * n + 64];
+            let pf: Vec<&[u8]> = (0..nrows).map(|j| if j == 1 { &spare[..n / 2] } else { &spare[j..j + n] }).collect();
+            sym_fir_cols_u8(&mut outs, &base, pw, &centre, &cols, &offs, q0 as i16, &wq, &pf);
             for (j, got) in rows.iter().enumerate() {
                 let cj = c0 + j * pw;
                 let at = |dx: isize, dy: isize| (cj as isize + dy * pw as isize + dx * ch as isize) as usize;
@@ -824,7 +928,7 @@ mod tests {
                 sym_fir(&mut acc, &base, cj, &offs, &q);
                 let mut want = vec![0u8; n];
                 q6_to_u8(&mut want, &acc);
-                assert_eq!(*got, want, "column kernel, n {n}, row {j}");
+                assert_eq!(*got, want, "column kernel, {nrows} rows, n {n}, row {j}");
                 let mut fused = vec![0u8; n];
                 sym_fir_u8(&mut fused, &base, cj, &offs, &q);
                 assert_eq!(fused, want, "sym_fir_u8, n {n}, row {j}");

@@ -241,18 +241,24 @@ fn tap_cols(pairs: &[(i32, i32)], q: &[i16]) -> (Vec<fir16::TapCol>, Vec<i16>) {
         let (dy0, dy1) = (dys.clone().min().unwrap_or(0), dys.max().unwrap_or(0));
         let w0 = wq.len();
         wq.extend((dy0..=dy1).map(|dy| norm.iter().find(|t| t.0 == dx && t.1 == dy).map_or(0, |t| t.2)));
+        // One column per dx, however long: the kernel takes columns of up to
+        // `fir16::MAX_COL_PAIRS` pairs fully unrolled, longer ones in a loop that loads each
+        // source row once for all its rows (cut into pieces, every piece would load `rr - 1`
+        // rows more per side: 4-10 % slower at 60-80 deg on AVX-512, measured at stop 41).
         cols.push(fir16::TapCol { dx: dx as usize, dy0, dy1, w0 });
     }
+    // Longest columns first: the kernel picks its unrolled code by the column's length, and runs
+    // of equal lengths keep that choice predictable (the sums' order does not change the bytes).
+    cols.sort_by_key(|c| std::cmp::Reverse(c.len()));
     (cols, wq)
 }
 
 /// Whether the column kernel (`fir16::sym_fir_cols_u8`) runs an 8-bit FIR: when it loads at
 /// most 3/4 of the source vectors the row kernel (`fir16::sym_fir_u8`, two loads per pair and
-/// row, four independent sums per row) does for `COL_ROWS` rows. Streaks near the horizontal have
+/// row, four independent sums per row) does for `rows` rows. Streaks near the horizontal have
 /// one pair per column (no sharing between rows) and keep the row kernel.
-fn cols_pay(npairs: usize, cols: &[fir16::TapCol]) -> bool {
-    let rows = fir16::COL_ROWS;
-    let by_cols = rows + cols.iter().map(|c| 2 * fir16::col_loads(c.len())).sum::<usize>();
+fn cols_pay(npairs: usize, cols: &[fir16::TapCol], rows: usize) -> bool {
+    let by_cols = rows + cols.iter().map(|c| 2 * fir16::col_run(c.len(), rows)).sum::<usize>();
     let by_rows = rows * (2 * npairs.saturating_sub(1) + 1);
     4 * by_cols <= 3 * by_rows
 }
@@ -282,12 +288,18 @@ fn convolve_q6(
 ) {
     let rl = w * ch;
     let pw = (w + 2 * r) * ch;
-    const R: usize = fir16::COL_ROWS;
-    let n = 2 * r + R;
+    // Output rows per column-kernel call (the ring holds R more rows than the taps reach).
+    let rr = fir16::col_rows();
+    let n = 2 * r + rr;
+    // Ring slots n..n + ext repeat slots 0..ext, so that the run of `fir16::col_run(k, rr)`
+    // consecutive ring rows a column of k <= MAX_COL_PAIRS pairs reads is contiguous (at stride
+    // pw); longer columns take one offset per row.
+    let short = cols.iter().map(|c| c.len()).filter(|&k| k <= fir16::MAX_COL_PAIRS).max();
+    let ext = short.map_or(0, |k| fir16::col_run(k, rr) - 1);
     let threads = rayon::current_num_threads().max(1);
     let per = h.div_ceil(threads).max(16);
     let nb = h.div_ceil(per);
-    let (per_halo, per_ring) = (2 * r * rl, n * pw);
+    let (per_halo, per_ring) = (2 * r * rl, (n + ext) * pw);
     if halo.len() < per_halo * nb {
         halo.resize(per_halo * nb, 0);
     }
@@ -297,12 +309,12 @@ fn convolve_q6(
     if offs.len() < pairs.len() * nb {
         offs.resize(pairs.len() * nb, (0, 0));
     }
-    let nco = cols.iter().map(|c| 2 * fir16::col_loads(c.len())).sum::<usize>().max(1);
+    let nco = cols.iter().map(|c| fir16::col_offs(c.len(), rr)).sum::<usize>().max(1);
     if coffs.len() < nco * nb {
         coffs.resize(nco * nb, 0);
     }
     let bounds = |b: usize| (b * per, ((b + 1) * per).min(h));
-    let use_cols = cols_pay(pairs.len(), cols);
+    let use_cols = cols_pay(pairs.len(), cols, rr) && wq.len() <= fir16::MAX_COL_WEIGHTS;
     // Pass 1: the rows each band reads from the unmodified frame (at most r above and r below).
     fill_band_halos(d, &mut halo[..per_halo * nb], per_halo, per, h, r, stride, rl);
     // Pass 2: the bands, each walking down its rows with its ring.
@@ -330,34 +342,65 @@ fn convolve_q6(
                 };
                 let k = slot(yv);
                 super::defocus::pad_row_q6(src, w, ch, r, &mut ring[k * pw..(k + 1) * pw]);
+                if k < ext && use_cols {
+                    ring.copy_within(k * pw..(k + 1) * pw, (n + k) * pw);
+                }
             };
             for yv in first..y0 as isize + r as isize {
                 produce(yv, band, ring);
             }
             let mut y = y0;
-            // COL_ROWS output rows at a time, their source rows loaded once per column of taps.
-            while use_cols && y + R <= y1 {
+            // rr output rows at a time, their source rows loaded once per column of taps.
+            while use_cols && y + rr <= y1 {
                 let yi = y as isize;
-                for t in 0..R {
+                for t in 0..rr {
                     produce(yi + (r + t) as isize, band, ring);
                 }
                 // Sample 0 of virtual row yv, shifted by dx pixels.
                 let at = |yv: isize, dx: isize| slot(yv) * pw + (r as isize + dx) as usize * ch;
+                // Per column the first rows of its two runs (contiguous: see `ext`), or for
+                // longer columns every row of them.
                 let mut p = 0;
                 for c in cols {
-                    let (m, dx) = (fir16::col_loads(c.len()), c.dx as isize);
-                    for t in 0..m as isize {
-                        coffs[p + t as usize] = at(yi + (R - 1) as isize - c.dy0 as isize - t, -dx);
-                        coffs[p + m + t as usize] = at(yi + c.dy0 as isize + t, dx);
+                    let (dx, k) = (c.dx as isize, c.len());
+                    let m = fir16::col_offs(k, rr);
+                    let (lo, hi) = (yi - c.dy1 as isize, yi + c.dy0 as isize);
+                    for t in 0..m / 2 {
+                        coffs[p + t] = at(lo + t as isize, -dx);
+                        coffs[p + m / 2 + t] = at(hi + t as isize, dx);
                     }
-                    p += 2 * m;
+                    p += m;
                 }
-                let centre: [usize; R] = std::array::from_fn(|j| at(yi + j as isize, 0));
+                let centre: [usize; fir16::MAX_COL_ROWS] = std::array::from_fn(|j| at(yi + j as isize, 0));
                 let i = y - y0;
-                let mut it = band[i * stride..].chunks_mut(stride).map(|row| &mut row[..rl]);
-                let outs: [&mut [u8]; R] = std::array::from_fn(|_| it.next().expect("R rows in the band"));
-                fir16::sym_fir_cols_u8(outs, ring, centre, cols, &coffs[..p], q[0], wq);
-                y += R;
+                let (done, rest) = band.split_at_mut(((i + rr) * stride).min(band.len()));
+                let mut it = done[i * stride..].chunks_mut(stride).map(|row| &mut row[..rl]);
+                let mut outs: [&mut [u8]; fir16::MAX_COL_ROWS] =
+                    std::array::from_fn(|j| if j < rr { it.next().expect("rr rows in the band") } else { &mut [] });
+                // The band rows the next call's fill reads (virtual rows y + rr + r + t), if
+                // they are in the band and not mirrored.
+                let mut pf: [&[u8]; fir16::MAX_COL_ROWS] = [&[]; fir16::MAX_COL_ROWS];
+                let mut npf = 0;
+                for t in 0..rr {
+                    let yv = yi + (2 * rr + r + t) as isize - rr as isize;
+                    if !from_halo(yv, y0, y1, h) {
+                        let k = (yv as usize - y0 - i - rr) * stride;
+                        pf[npf] = &rest[k..k + rl];
+                        npf += 1;
+                    }
+                }
+                fir16::sym_fir_cols_u8(
+                    &mut outs[..rr],
+                    ring,
+                    pw,
+                    &centre[..rr],
+                    cols,
+                    &coffs[..p],
+                    q[0],
+                    wq,
+                    &pf[..npf],
+                );
+                y += rr;
             }
             for y in y..y1 {
                 let yi = y as isize;
