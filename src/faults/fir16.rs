@@ -324,6 +324,79 @@ fn fir_cols_scalar(
     }
 }
 
+/// Source rows [`sym_fir_cols4_u8`] reads per side for a column of `k` pairs: `k + 3`.
+pub fn col_loads4(k: usize) -> usize {
+    k + 3
+}
+
+/// [`sym_fir_cols_u8`] for 4 output rows with one offset per source row in main's (stop 41)
+/// layout, for the 4-row (AVX2) kernel when most pairs lie in columns longer than
+/// [`MAX_COL_PAIRS`] (steep streaks): every column rotates its source vectors through
+/// registers, with no per-call or per-column set-up beyond main's (`sym_fir_cols_u8` on such
+/// streaks ran 7-10 % slower on the AVX2 kernels at 60-80 deg, mono8, for reasons not found;
+/// this is stop 41's kernel unchanged). Per column, in order, `offs` holds
+/// [`col_loads4`]`(k)` offsets `lo[m]` (sample 0 of source row `y + 3 - dy0 - m`, shifted by
+/// `-dx` pixels) and as many `hi[m]` (row `y + dy0 + m`, shifted by `+dx`): pair `dy0 + s` of
+/// output row `j` is `lo[3 - j + s] + hi[j + s]`. The same bytes as [`sym_fir_cols_u8`].
+/// Panics if a read would leave `base`.
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
+pub fn sym_fir_cols4_u8(
+    outs: [&mut [u8]; 4],
+    base: &[i16],
+    centre: [usize; 4],
+    cols: &[TapCol],
+    offs: &[usize],
+    q0: i16,
+    wq: &[i16],
+) {
+    let n = outs[0].len();
+    assert!(outs.iter().all(|o| o.len() == n));
+    assert!(centre.iter().chain(offs).all(|&o| o + n <= base.len()), "fir: rows inside the buffer");
+    assert_eq!(offs.len(), cols.iter().map(|c| 2 * col_loads4(c.len())).sum::<usize>());
+    assert!(cols.iter().all(|c| c.dy0 <= c.dy1 && c.w0 + c.len() <= wq.len()));
+    let [o0, o1, o2, o3] = outs;
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx2() {
+        // SAFETY: AVX2 present (checked); reads are in bounds (asserted above).
+        done =
+            unsafe { simd::fir_cols4_avx2([&mut *o0, &mut *o1, &mut *o2, &mut *o3], base, centre, cols, offs, q0, wq) };
+    }
+    let outs = [&mut o0[done..], &mut o1[done..], &mut o2[done..], &mut o3[done..]];
+    fir_cols4_scalar(outs, base, centre, cols, offs, q0, wq, done);
+}
+
+/// Scalar reference of [`sym_fir_cols4_u8`] (outputs from `skip` on).
+#[allow(clippy::too_many_arguments)]
+fn fir_cols4_scalar(
+    outs: [&mut [u8]; 4],
+    base: &[i16],
+    centre: [usize; 4],
+    cols: &[TapCol],
+    offs: &[usize],
+    q0: i16,
+    wq: &[i16],
+    skip: usize,
+) {
+    for (j, out) in outs.into_iter().enumerate() {
+        for (i, o) in out.iter_mut().enumerate() {
+            let x = skip + i;
+            let mut acc = mulhrs(base[centre[j] + x], q0);
+            let mut p = 0;
+            for c in cols {
+                let m = col_loads4(c.len());
+                let (lo, hi) = (&offs[p..p + m], &offs[p + m..p + 2 * m]);
+                for s in 0..c.len() {
+                    let v = base[lo[3 - j + s] + x].wrapping_add(base[hi[j + s] + x]);
+                    acc = acc.wrapping_add(mulhrs(v, wq[c.w0 + s]));
+                }
+                p += 2 * m;
+            }
+            *o = ((acc.max(0) as i32 + 32) >> SAMPLE_Q).min(255) as u8;
+        }
+    }
+}
+
 /// Scalar reference of [`sym_fir`] (outputs from `skip` on: tap offsets are shifted by it).
 fn fir_scalar(out: &mut [i16], base: &[i16], center: usize, offs: &[(usize, usize)], q: &[i16], skip: usize) {
     for (i, o) in out.iter_mut().enumerate() {
@@ -619,6 +692,68 @@ mod simd {
                 _mm256_storeu_si256(op.add(3), cv(a3));
             }
             i += 128;
+        }
+        n
+    }
+
+    /// [`super::sym_fir_cols4_u8`] on whole chunks of 16 outputs per row (one register per
+    /// output row; a column's source vectors rotate through registers); returns the count.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn fir_cols4_avx2(
+        mut outs: [&mut [u8]; 4],
+        base: &[i16],
+        centre: [usize; 4],
+        cols: &[super::TapCol],
+        offs: &[usize],
+        q0: i16,
+        wq: &[i16],
+    ) -> usize {
+        let n = outs[0].len() / 16 * 16;
+        let bp = base.as_ptr();
+        let q0v = _mm256_set1_epi16(q0);
+        let half = _mm256_set1_epi16(32);
+        let mut i = 0;
+        while i < n {
+            // SAFETY (block): every offset in `centre` and `offs` plus i + 16 is at most
+            // base.len() and every weight index is inside `wq` (asserted by the caller); each
+            // output holds n >= i + 16 bytes.
+            unsafe {
+                let ld = |p: usize| _mm256_loadu_si256(bp.add(p + i) as *const __m256i);
+                let mut a0 = _mm256_mulhrs_epi16(ld(centre[0]), q0v);
+                let mut a1 = _mm256_mulhrs_epi16(ld(centre[1]), q0v);
+                let mut a2 = _mm256_mulhrs_epi16(ld(centre[2]), q0v);
+                let mut a3 = _mm256_mulhrs_epi16(ld(centre[3]), q0v);
+                let mut p = offs.as_ptr();
+                for c in cols {
+                    let k = c.len();
+                    let m = super::col_loads4(k);
+                    let (lo, hi) = (p, p.add(m));
+                    let (mut l3, mut l2, mut l1, mut l0) = (ld(*lo), ld(*lo.add(1)), ld(*lo.add(2)), ld(*lo.add(3)));
+                    let (mut h0, mut h1, mut h2, mut h3) = (ld(*hi), ld(*hi.add(1)), ld(*hi.add(2)), ld(*hi.add(3)));
+                    let w = wq.as_ptr().add(c.w0);
+                    let mut s = 0;
+                    loop {
+                        let wv = _mm256_set1_epi16(*w.add(s));
+                        a0 = _mm256_add_epi16(a0, _mm256_mulhrs_epi16(_mm256_add_epi16(l0, h0), wv));
+                        a1 = _mm256_add_epi16(a1, _mm256_mulhrs_epi16(_mm256_add_epi16(l1, h1), wv));
+                        a2 = _mm256_add_epi16(a2, _mm256_mulhrs_epi16(_mm256_add_epi16(l2, h2), wv));
+                        a3 = _mm256_add_epi16(a3, _mm256_mulhrs_epi16(_mm256_add_epi16(l3, h3), wv));
+                        s += 1;
+                        if s == k {
+                            break;
+                        }
+                        (l3, l2, l1, l0) = (l2, l1, l0, ld(*lo.add(3 + s)));
+                        (h0, h1, h2, h3) = (h1, h2, h3, ld(*hi.add(3 + s)));
+                    }
+                    p = p.add(2 * m);
+                }
+                for (o, a) in outs.iter_mut().zip([a0, a1, a2, a3]) {
+                    let v = _mm256_srai_epi16::<6>(_mm256_adds_epi16(a, half));
+                    let v = _mm256_permute4x64_epi64::<0xD8>(_mm256_packus_epi16(v, v));
+                    _mm_storeu_si128(o.as_mut_ptr().add(i) as *mut __m128i, _mm256_castsi256_si128(v));
+                }
+            }
+            i += 16;
         }
         n
     }
@@ -919,6 +1054,21 @@ mod tests {
             let spare = vec![7u8; 2 * n + 64];
             let pf: Vec<&[u8]> = (0..nrows).map(|j| if j == 1 { &spare[..n / 2] } else { &spare[j..j + n] }).collect();
             sym_fir_cols_u8(&mut outs, &base, pw, &centre, &cols, &offs, q0 as i16, &wq, &pf);
+            if nrows == 4 {
+                // Stop 41's 4-row kernel (every column rotated): lo[m] row 3 - dy0 - m (-dx),
+                // hi[m] row dy0 + m (+dx); the same bytes.
+                let mut offs4 = Vec::new();
+                for c in &cols {
+                    let (dx, dy0, m) = (c.dx as isize, c.dy0 as isize, col_loads4(c.len()) as isize);
+                    offs4.extend((0..m).map(|t| at(3 - dy0 - t, -dx)));
+                    offs4.extend((0..m).map(|t| at(dy0 + t, dx)));
+                }
+                let mut rows4: Vec<Vec<u8>> = vec![vec![0u8; n]; 4];
+                let [o0, o1, o2, o3] = &mut rows4[..] else { unreachable!() };
+                let c4: [usize; 4] = std::array::from_fn(|j| centre[j]);
+                sym_fir_cols4_u8([o0, o1, o2, o3], &base, c4, &cols, &offs4, q0 as i16, &wq);
+                assert_eq!(rows4, rows, "4-row rotated kernel, n {n}");
+            }
             for (j, got) in rows.iter().enumerate() {
                 let cj = c0 + j * pw;
                 let at = |dx: isize, dy: isize| (cj as isize + dy * pw as isize + dx * ch as isize) as usize;

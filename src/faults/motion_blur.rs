@@ -151,12 +151,15 @@ pub struct MotionBlur {
     // of each point-symmetric pair (dy > 0, or dy = 0 and dx > 0), and their Q15 weights
     pairs: Vec<(i32, i32)>,
     q15: Vec<i16>,
-    // the same pairs grouped by columns for `fir16::sym_fir_cols_u8`, and their weights
+    // the same pairs grouped by columns for `fir16::sym_fir_cols_u8` / `sym_fir_cols4_u8`, and
+    // their weights
     cols: Vec<fir16::TapCol>,
     wq: Vec<i16>,
     // allocation: once per frame size, streak and thread count: 8-bit frames: per band the rows
-    // it reads from the unmodified frame, its ring of 2r + 4 mirrored Q6 rows and its tap offsets (per pair, and per
-    // column of pairs)
+    // it reads from the unmodified frame, its ring of 2r + R mirrored Q6 rows (R = 8 output rows
+    // per column-kernel call on AVX-512, else 4) plus the repeated first rows that keep the short
+    // columns' runs contiguous (`convolve_q6`), and its tap offsets (per pair, and per column of
+    // pairs)
     halo: Vec<u8>,
     ring16: Vec<i16>,
     offs: Vec<(usize, usize)>,
@@ -249,8 +252,21 @@ fn tap_cols(pairs: &[(i32, i32)], q: &[i16]) -> (Vec<fir16::TapCol>, Vec<i16>) {
     }
     // Longest columns first: the kernel picks its unrolled code by the column's length, and runs
     // of equal lengths keep that choice predictable (the sums' order does not change the bytes).
-    cols.sort_by_key(|c| std::cmp::Reverse(c.len()));
+    // Stop 41's rotated kernel keeps its dx order (as timed against main).
+    if !rotated_cols(&cols, fir16::col_rows()) {
+        cols.sort_by_key(|c| std::cmp::Reverse(c.len()));
+    }
     (cols, wq)
+}
+
+/// Whether [`convolve_q6`] runs `fir16::sym_fir_cols4_u8` (every column rotated, stop 41's
+/// kernel) instead of `fir16::sym_fir_cols_u8`: on 4 rows (AVX2, and without SIMD) when the columns
+/// longer than `fir16::MAX_COL_PAIRS` hold at least half the pairs (streaks steeper than about
+/// 50 deg). There `sym_fir_cols_u8` was 7-10 % slower (mono8 16-24 px at 60 and 80 deg, stop 42;
+/// its gains at 5-45 deg come from the short columns it unrolls).
+fn rotated_cols(cols: &[fir16::TapCol], rows: usize) -> bool {
+    let long = cols.iter().map(|c| c.len()).filter(|&k| k > fir16::MAX_COL_PAIRS).sum::<usize>();
+    rows == 4 && 2 * long >= cols.iter().map(|c| c.len()).sum::<usize>()
 }
 
 /// Whether the column kernel (`fir16::sym_fir_cols_u8`) runs an 8-bit FIR: when it loads at
@@ -295,7 +311,8 @@ fn convolve_q6(
     // consecutive ring rows a column of k <= MAX_COL_PAIRS pairs reads is contiguous (at stride
     // pw); longer columns take one offset per row.
     let short = cols.iter().map(|c| c.len()).filter(|&k| k <= fir16::MAX_COL_PAIRS).max();
-    let ext = short.map_or(0, |k| fir16::col_run(k, rr) - 1);
+    let four = rotated_cols(cols, rr);
+    let ext = if four { 0 } else { short.map_or(0, |k| fir16::col_run(k, rr) - 1) };
     let threads = rayon::current_num_threads().max(1);
     let per = h.div_ceil(threads).max(16);
     let nb = h.div_ceil(per);
@@ -309,7 +326,11 @@ fn convolve_q6(
     if offs.len() < pairs.len() * nb {
         offs.resize(pairs.len() * nb, (0, 0));
     }
-    let nco = cols.iter().map(|c| fir16::col_offs(c.len(), rr)).sum::<usize>().max(1);
+    let nco = if four {
+        cols.iter().map(|c| 2 * fir16::col_loads4(c.len())).sum::<usize>().max(1)
+    } else {
+        cols.iter().map(|c| fir16::col_offs(c.len(), rr)).sum::<usize>().max(1)
+    };
     if coffs.len() < nco * nb {
         coffs.resize(nco * nb, 0);
     }
@@ -350,8 +371,32 @@ fn convolve_q6(
                 produce(yv, band, ring);
             }
             let mut y = y0;
+            // 4 output rows at a time, every column rotated (stop 41's kernel and layout).
+            while four && use_cols && y + 4 <= y1 {
+                let yi = y as isize;
+                for t in 0..4 {
+                    produce(yi + (r + t) as isize, band, ring);
+                }
+                // Sample 0 of virtual row yv, shifted by dx pixels.
+                let at = |yv: isize, dx: isize| slot(yv) * pw + (r as isize + dx) as usize * ch;
+                let mut p = 0;
+                for c in cols {
+                    let (m, dx) = (fir16::col_loads4(c.len()), c.dx as isize);
+                    for t in 0..m as isize {
+                        coffs[p + t as usize] = at(yi + 3 - c.dy0 as isize - t, -dx);
+                        coffs[p + m + t as usize] = at(yi + c.dy0 as isize + t, dx);
+                    }
+                    p += 2 * m;
+                }
+                let centre: [usize; 4] = std::array::from_fn(|j| at(yi + j as isize, 0));
+                let i = y - y0;
+                let mut it = band[i * stride..].chunks_mut(stride).map(|row| &mut row[..rl]);
+                let outs: [&mut [u8]; 4] = std::array::from_fn(|_| it.next().expect("4 rows in the band"));
+                fir16::sym_fir_cols4_u8(outs, ring, centre, cols, &coffs[..p], q[0], wq);
+                y += 4;
+            }
             // rr output rows at a time, their source rows loaded once per column of taps.
-            while use_cols && y + rr <= y1 {
+            while !four && use_cols && y + rr <= y1 {
                 let yi = y as isize;
                 for t in 0..rr {
                     produce(yi + (r + t) as isize, band, ring);
@@ -1129,6 +1174,37 @@ mod tests {
             g
         };
         assert_eq!(run(1), run(2));
+    }
+}
+
+#[cfg(test)]
+mod rotated_cols_tests {
+    use super::*;
+
+    /// The columns of a streak's tap pairs, as `MotionBlur::apply` builds them.
+    fn cols_of(len: f64, ang: f64) -> Vec<fir16::TapCol> {
+        let (pairs, half) = pair_up(&line_taps(len, ang));
+        tap_cols(&pairs, &fir16::q15_pairs(&half)).0
+    }
+
+    #[test]
+    fn steep_streaks_rotate_every_column_on_four_rows() {
+        for (len, ang, steep) in [
+            (16.0, 60.0, true),
+            (20.0, 60.0, true),
+            (24.0, 60.0, true),
+            (20.0, 80.0, true),
+            (24.0, 80.0, true),
+            (24.0, 100.0, true),
+            (24.0, 30.0, false),
+            (24.0, 45.0, false),
+            (10.0, 30.0, false),
+            (30.0, 5.0, false),
+        ] {
+            let cols = cols_of(len, ang);
+            assert_eq!(rotated_cols(&cols, 4), steep, "{len} px at {ang} deg");
+            assert!(!rotated_cols(&cols, 8), "8 rows (AVX-512) keep sym_fir_cols_u8");
+        }
     }
 }
 
