@@ -94,11 +94,14 @@ pub fn line_taps(length: f64, angle_deg: f64) -> Vec<(i32, i32, f32)> {
 }
 
 /// Most point-symmetric tap pairs (the centre tap included) of a streak that 8-bit frames run
-/// as the exact FIR (`fir16`, cost about linear in the pair count, about 0.28 ms per pair on
-/// rgb8 1920x1200): 13 for mostly vertical streaks (every one longer than 24 px runs the running
-/// sums, which cost less than a 14-pair FIR there), 34 for mostly horizontal ones (their running
-/// sums run on a transposed copy, about twice the cost); about where the two paths cost the same
-/// (BENCHMARKS.md).
+/// as the exact FIR (`fir16`, cost about linear in the pair count: about 0.10-0.13 ms per pair on
+/// rgb8 1920x1200 with the AVX-512 kernels, 0.15-0.19 with the AVX2 ones, on a Zen 4 at stop 42):
+/// 13 for mostly vertical streaks (every one longer than 24 px runs the running sums, which cost
+/// less than a 14-pair FIR there), 34 for mostly horizontal ones, set where the two paths cost
+/// the same when those running sums still transposed the whole frame. Since stop 42 they cost
+/// less from about 27 pairs on (BENCHMARKS.md "Stop 42 motion_blur"); the switch stays, because
+/// moving it would change those streaks' bytes and take them from the FIR's 1 DN to the running
+/// sums' 10 DN of the model, still above 4 ms.
 pub fn fir_max_pairs(angle_deg: f64) -> usize {
     if streak::is_vertical(angle_deg) { 13 } else { 34 }
 }
