@@ -177,11 +177,6 @@ impl TapCol {
 /// Most output rows [`sym_fir_cols_u8`] processes together.
 pub const MAX_COL_ROWS: usize = 8;
 
-/// Most Q15 weights (`wq.len()`) the SIMD column kernels take; longer weight lists run the
-/// scalar code (kept from the per-call weight array of stop 41; the kernels now broadcast each
-/// weight where it is used, as main's did).
-pub const MAX_COL_WEIGHTS: usize = 64;
-
 /// Output rows [`sym_fir_cols_u8`] should get per call on this CPU: 8 on AVX-512 (32 zmm
 /// registers hold the 8 sums, the weights and a column's source vectors, so each source vector
 /// and weight serves twice the rows), 4 on AVX2 (16 ymm registers: 8 rows spill) and without SIMD.
@@ -262,10 +257,10 @@ pub fn sym_fir_cols_u8(
     #[allow(unused_mut)]
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
-    if wq.len() <= MAX_COL_WEIGHTS {
+    {
         if super::kit::has_avx512() {
             // SAFETY: AVX-512 F/BW present (checked); reads are in bounds, `offs` holds
-            // col_offs(k, rows) offsets per column and wq fits the kernel's weight registers
+            // col_offs(k, rows) offsets per column and every column's weights lie inside `wq`
             // (asserted above).
             done = unsafe {
                 if rows == 8 {
@@ -827,7 +822,7 @@ mod simd {
     }
 
     /// [`super::sym_fir_cols_u8`] for `R` output rows on whole chunks of 16 outputs per row (one
-    /// register per output row); `wq.len() <= MAX_COL_WEIGHTS`. Returns the count done.
+    /// register per output row). Returns the count done.
     #[target_feature(enable = "avx2")]
     #[allow(clippy::too_many_arguments)]
     pub unsafe fn cols_avx2<const R: usize>(
@@ -852,8 +847,8 @@ mod simd {
         let mut i = 0;
         while i < n {
             // SAFETY (block): every offset in `centre` and `offs` plus i + 16 is at most
-            // base.len(), every weight index is inside `wq` (asserted by the caller) and so
-            // inside `wv`; each output holds n >= i + 16 bytes.
+            // base.len(), every weight index is inside `wq` (asserted by the caller); each
+            // output holds n >= i + 16 bytes.
             unsafe {
                 let ld = |p: usize| _mm256_loadu_si256(bp.add(p + i) as *const __m256i);
                 let mut a: [__m256i; R] = std::array::from_fn(|j| _mm256_mulhrs_epi16(ld(centre[j]), q0v));

@@ -338,7 +338,7 @@ fn convolve_q6(
         coffs.resize(nco * nb, 0);
     }
     let bounds = |b: usize| (b * per, ((b + 1) * per).min(h));
-    let use_cols = cols_pay(pairs.len(), cols, rr) && wq.len() <= fir16::MAX_COL_WEIGHTS;
+    let use_cols = cols_pay(pairs.len(), cols, rr);
     // Pass 1: the rows each band reads from the unmodified frame (at most r above and r below).
     fill_band_halos(d, &mut halo[..per_halo * nb], per_halo, per, h, r, stride, rl);
     // Pass 2: the bands, each walking down its rows with its ring.
