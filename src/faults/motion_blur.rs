@@ -766,28 +766,9 @@ mod rb_simd {
     pub unsafe fn prefix256(pre: &mut [u16], p: &[u16], ch: usize) -> usize {
         let n = p.len() / 16 * 16;
         assert!(pre.len() >= n && (ch == 1 || ch == 3));
-        // x shifted up by S lanes (zeros in), S < 16: `lo` = [0, low half of x].
+        // x shifted up by S lanes (zeros in), S < 16: `lo` = [0, low half of x]; S < 8 takes the
+        // top S lanes of `lo`'s half below each half of x (`vpalignr` by 16 - 2 S bytes).
         macro_rules! up {
-            ($x:expr, 1) => {{
-                let x = $x;
-                _mm256_alignr_epi8::<14>(x, _mm256_permute2x128_si256::<0x08>(x, x))
-            }};
-            ($x:expr, 2) => {{
-                let x = $x;
-                _mm256_alignr_epi8::<12>(x, _mm256_permute2x128_si256::<0x08>(x, x))
-            }};
-            ($x:expr, 3) => {{
-                let x = $x;
-                _mm256_alignr_epi8::<10>(x, _mm256_permute2x128_si256::<0x08>(x, x))
-            }};
-            ($x:expr, 4) => {{
-                let x = $x;
-                _mm256_alignr_epi8::<8>(x, _mm256_permute2x128_si256::<0x08>(x, x))
-            }};
-            ($x:expr, 6) => {{
-                let x = $x;
-                _mm256_alignr_epi8::<4>(x, _mm256_permute2x128_si256::<0x08>(x, x))
-            }};
             ($x:expr, 8) => {{
                 let x = $x;
                 _mm256_permute2x128_si256::<0x08>(x, x)
@@ -795,6 +776,10 @@ mod rb_simd {
             ($x:expr, 12) => {{
                 let x = $x;
                 _mm256_slli_si256::<8>(_mm256_permute2x128_si256::<0x08>(x, x))
+            }};
+            ($x:expr, $s:literal) => {{
+                let x = $x;
+                _mm256_alignr_epi8::<{ 16 - 2 * $s }>(x, _mm256_permute2x128_si256::<0x08>(x, x))
             }};
         }
         // The previous vector's last sum per channel into every lane of that channel: lane i
