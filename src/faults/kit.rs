@@ -411,6 +411,32 @@ pub unsafe fn transpose8x8_epi32(r: [std::arch::x86_64::__m256i; 8]) -> [std::ar
     }
 }
 
+/// Transposes, within each 128-bit lane, the 4 x 4 32-bit lanes of four AVX2 registers (dword
+/// `c` of lane `l` of result `i` is dword `i` of lane `l` of input `c`): 8 in-lane unpacks, no
+/// lane permutes. Two 4 x 4 transposes at once; an 8 x 8 transpose when the inputs hold rows `r`
+/// and `r + 4` in their two lanes.
+///
+/// # Safety
+/// AVX2: call only from code compiled with (or checked for) AVX2; inlined into its caller.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+pub unsafe fn transpose4x4x2_epi32(r: [std::arch::x86_64::__m256i; 4]) -> [std::arch::x86_64::__m256i; 4] {
+    use std::arch::x86_64::*;
+    // SAFETY: register-only AVX2 operations; the caller guarantees AVX2.
+    unsafe {
+        let t0 = _mm256_unpacklo_epi32(r[0], r[1]);
+        let t1 = _mm256_unpackhi_epi32(r[0], r[1]);
+        let t2 = _mm256_unpacklo_epi32(r[2], r[3]);
+        let t3 = _mm256_unpackhi_epi32(r[2], r[3]);
+        [
+            _mm256_unpacklo_epi64(t0, t2),
+            _mm256_unpackhi_epi64(t0, t2),
+            _mm256_unpacklo_epi64(t1, t3),
+            _mm256_unpackhi_epi64(t1, t3),
+        ]
+    }
+}
+
 /// The kernel set the hot loops run on this CPU, as `faultcam bench` reports it: "AVX-512
 /// (VBMI)", "AVX-512", "AVX2" or "scalar" (after `FAULTCAM_NO_AVX512` / `FAULTCAM_NO_SIMD`).
 pub fn kernel_set() -> &'static str {

@@ -473,6 +473,20 @@ fn load_group(
                 }
                 r += 8;
             }
+            if r > r0 && r < r1 {
+                // The last rows as a block ending at r1 (overlapping the one before: the same
+                // bytes again; no wide store).
+                // SAFETY: as above for rows r1 - 8 >= r0 ..r1.
+                unsafe {
+                    let p = base.wrapping_add((r1 - 8) * ss + j0 * ch);
+                    let d = strip.as_mut_ptr().add((r1 - 8) * ch);
+                    match ch {
+                        1 => simd::t8x8_px::<1>(p, ss, d, ls),
+                        _ => simd::t8x8_px::<3>(p, ss, d, ls),
+                    }
+                }
+                r = r1;
+            }
         }
         for y in r..r1 {
             for t in 0..nc {
@@ -823,23 +837,29 @@ fn flush_cols(lv: u8, cols: Cols, ch: usize, tile: &[u8], tl: usize, c0: isize, 
     // Pixels [xs, xv) of every line in registers.
     let (xs, xe) = grp.iter().fold((isize::MIN, isize::MAX), |(a, b), &(_, k, o0, o1)| (a.max(o0 - k), b.min(o1 - k)));
     #[cfg(target_arch = "x86_64")]
-    let simd = lv >= 1 && grp.len() == TILE && xe > xs && super::kit::has_avx2();
+    let simd = lv >= 1 && grp.len() == TILE && xe - xs >= 8 && super::kit::has_avx2();
     #[cfg(not(target_arch = "x86_64"))]
     let simd = {
         let _ = lv;
         false
     };
-    let xv = if simd { xs + (xe - xs) / 8 * 8 } else { xs };
+    // All of [xs, xe) through registers (the last block overlaps the one before: the same bytes
+    // written twice), when it holds a block.
+    let xv = if simd { xe } else { xs };
     #[cfg(target_arch = "x86_64")]
     if simd {
-        for x in (xs..xv).step_by(8) {
-            let src: [*const u8; TILE] = std::array::from_fn(|t| {
-                let (_, k, ..) = grp[t];
-                let at = t * tl + (x + k - c0) as usize * ch;
-                tile[at..at + 8 * ch].as_ptr()
-            });
+        // Line t's pixel x at `tile[t * tl + (x + k - c0) ch..]`: pixels [xs, xe) are inside its
+        // row of the tile (o0 - k <= xs, xe <= o1 - k, and [o0, o1) within [c0, c1)).
+        assert!(grp.iter().all(|&(_, k, o0, o1)| o0 >= c0 && (o1 - c0) as usize * ch <= tl && o0 - k <= xs && xe <= o1 - k));
+        assert!(tile.len() >= TILE * tl);
+        let at: [isize; TILE] = std::array::from_fn(|t| t as isize * tl as isize + (grp[t].1 - c0) * ch as isize);
+        let last = xe - 8;
+        for x in (xs..last).step_by(8).chain([last]) {
+            // SAFETY: pixels x..x + 8 within [xs, xe) of each line: inside its row of `tile`
+            // (asserted above).
+            let src: [*const u8; TILE] = std::array::from_fn(|t| unsafe { tile.as_ptr().offset(at[t] + x * ch as isize) });
             // SAFETY: AVX2 present (checked with `simd`); each source row has its 8 pixels
-            // inside `tile` (sliced above); the 8 destination rows x..x + 8 < rows have columns
+            // inside `tile` (above); the 8 destination rows x..x + 8 < rows have columns
             // ifirst..ifirst + 8 <= cols inside the frame (asserted above), which only this band
             // writes (see `Cols`).
             unsafe {
@@ -1395,25 +1415,37 @@ mod simd {
     unsafe fn t8x8_narrow<const C: usize>(src: [*const u8; 8]) -> [__m256i; 8] {
         // SAFETY: as documented; every load stays within the 8 C bytes of its row.
         unsafe {
-            let widen = _mm256_setr_epi8(
-                0, 1, 2, -1, 3, 4, 5, -1, 6, 7, 8, -1, 9, 10, 11, -1, 4, 5, 6, -1, 7, 8, 9, -1, 10, 11, 12, -1, 13, 14,
-                15, -1,
-            );
-            let ld = |r: usize| {
-                let p = src[r];
-                if C == 3 {
-                    // Pixels 0..4 from bytes 0..12, pixels 4..8 from bytes 12..24 (lane 1 loads
-                    // from byte 8).
-                    let v = _mm256_set_m128i(
-                        _mm_loadu_si128(p.add(8) as *const __m128i),
-                        _mm_loadu_si128(p as *const __m128i),
-                    );
-                    _mm256_shuffle_epi8(v, widen)
-                } else {
-                    _mm256_cvtepu8_epi32(_mm_loadl_epi64(p as *const __m128i))
-                }
+            let cols = if C == 3 {
+                // Rows r and r + 4 in the two lanes of one register (their pixels 0..4 from bytes
+                // 0..12, pixels 4..8 from bytes 12..24 loaded from byte 8), each pixel widened
+                // to a 32-bit lane: two in-lane 4 x 4 transposes give the columns, no lane
+                // permutes.
+                let wa = _mm256_setr_epi8(
+                    0, 1, 2, -1, 3, 4, 5, -1, 6, 7, 8, -1, 9, 10, 11, -1, 0, 1, 2, -1, 3, 4, 5, -1, 6, 7, 8, -1, 9, 10,
+                    11, -1,
+                );
+                let wb = _mm256_setr_epi8(
+                    4, 5, 6, -1, 7, 8, 9, -1, 10, 11, 12, -1, 13, 14, 15, -1, 4, 5, 6, -1, 7, 8, 9, -1, 10, 11, 12, -1,
+                    13, 14, 15, -1,
+                );
+                let ld = |r: usize, o: usize, w: __m256i| {
+                    _mm256_shuffle_epi8(
+                        _mm256_set_m128i(
+                            _mm_loadu_si128(src[r + 4].add(o) as *const __m128i),
+                            _mm_loadu_si128(src[r].add(o) as *const __m128i),
+                        ),
+                        w,
+                    )
+                };
+                let [c0, c1, c2, c3] =
+                    crate::faults::kit::transpose4x4x2_epi32([ld(0, 0, wa), ld(1, 0, wa), ld(2, 0, wa), ld(3, 0, wa)]);
+                let [c4, c5, c6, c7] =
+                    crate::faults::kit::transpose4x4x2_epi32([ld(0, 8, wb), ld(1, 8, wb), ld(2, 8, wb), ld(3, 8, wb)]);
+                [c0, c1, c2, c3, c4, c5, c6, c7]
+            } else {
+                let ld = |r: usize| _mm256_cvtepu8_epi32(_mm_loadl_epi64(src[r] as *const __m128i));
+                crate::faults::kit::transpose8x8_epi32([ld(0), ld(1), ld(2), ld(3), ld(4), ld(5), ld(6), ld(7)])
             };
-            let cols = crate::faults::kit::transpose8x8_epi32([ld(0), ld(1), ld(2), ld(3), ld(4), ld(5), ld(6), ld(7)]);
             let narrow = if C == 3 {
                 _mm256_setr_epi8(
                     0, 1, 2, 4, 5, 6, 8, 9, 10, 12, 13, 14, -1, -1, -1, -1, 0, 1, 2, 4, 5, 6, 8, 9, 10, 12, 13, 14, -1,
@@ -1580,6 +1612,7 @@ mod tests {
             (64, 7, PixelFormat::Rgb8),
             (7, 64, PixelFormat::Mono8),
             (130, 20, PixelFormat::Rgb8),
+            (143, 70, PixelFormat::Rgb8),
         ] {
             let f = crate::faults::kit::bench_scene(w, h, format, 3).unwrap();
             let ch = format.channels();
