@@ -198,6 +198,24 @@ struct Slot {
     tile: Vec<u8>,
     // mostly horizontal streaks: the band's own source lines read from the frame (see `Strips`)
     strips: Strips,
+    // allocation: per frame size and streak: the shift of every line the band reads (see
+    // `Shifts`)
+    shifts: Vec<i64>,
+}
+
+/// [`StreakPlan::shift_q`] of lines `j0..j0 + v.len()`, looked up (the band asks for a line's
+/// shift several times per block: its output position, its fill, its group's load).
+#[derive(Clone, Copy)]
+struct Shifts<'a> {
+    v: &'a [i64],
+    j0: isize,
+}
+
+impl Shifts<'_> {
+    #[inline(always)]
+    fn q(&self, j: isize) -> i64 {
+        self.v[(j - self.j0) as usize]
+    }
 }
 
 /// Scratch of [`blur_u8`]; grows only (allocation when the frame size or the streak grows).
@@ -337,7 +355,7 @@ impl Strips {
     fn line<'s, 'a: 's>(
         &'s mut self,
         lv: u8,
-        plan: &StreakPlan,
+        sh: Shifts,
         src: &Src<'a>,
         j: isize,
         bi: usize,
@@ -368,7 +386,7 @@ impl Strips {
             let carry_valid = bi > 0 && self.carry_b[g] == bi;
             let strip = &mut self.buf[slot * 8 * ls..(slot + 1) * 8 * ls];
             let carry = &mut self.carry[g * 8 * CARRY * ch..(g + 1) * 8 * CARRY * ch];
-            load_group(lv, plan, cs, g, c0, c1, strip, carry, carry_valid);
+            load_group(lv, sh, cs, g, c0, c1, strip, carry, carry_valid);
             self.tag[slot] = (g, bi);
             self.carry_b[g] = bi + 1;
         }
@@ -390,7 +408,7 @@ const LOAD_AHEAD: usize = 32;
 #[cfg_attr(not(target_arch = "x86_64"), allow(unused_variables, unused_mut))]
 fn load_group(
     lv: u8,
-    plan: &StreakPlan,
+    sh: Shifts,
     cs: &ColSrc,
     g: usize,
     c0: isize,
@@ -403,7 +421,7 @@ fn load_group(
     let ls = h * ch;
     let j0 = cs.i0 + 8 * g;
     let nc = 8.min(cs.i0 + cs.rows - j0);
-    let s = |j: usize| (plan.shift_q(j as isize) >> 6) as isize;
+    let s = |j: usize| (sh.q(j as isize) >> 6) as isize;
     let (smin, smax) = (j0..j0 + nc).fold((isize::MAX, isize::MIN), |(a, b), j| (a.min(s(j)), b.max(s(j))));
     assert!(smax - smin + 4 <= CARRY as isize);
     // Virtual rows [lo, hi) (before mirroring), the rows [amin, amax) that holds.
@@ -892,8 +910,14 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
     let n = plan.n as isize;
     // Line i's output pixel x reads B at k = x + klo(i) and k + 1 (phase g); the cross filter
     // needs one position more on each side.
+    // The shifts of lines i0 - n - 2 ..= i0 + rows + n + 2 (the window's lines).
+    let mut shifts = std::mem::take(&mut slot.shifts);
+    let jlo = i0 as isize - n - 2;
+    shifts.clear();
+    shifts.extend((jlo..i0 as isize + rows as isize + n + 3).map(|j| plan.shift_q(j)));
+    let sh = Shifts { v: &shifts, j0: jlo };
     let klo = |i: usize| -> (isize, u8) {
-        let q = -plan.shift_q(i as isize);
+        let q = -sh.q(i as isize);
         ((q >> 6) as isize, (q & 63) as u8)
     };
     let chunk = chunk(ch);
@@ -921,7 +945,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
     }
     // A(j, k) for k in [k0, k1) into `a` (index (k - base) ch).
     let fill = |a: &mut [u16], pad: &mut Vec<u8>, base: isize, j: isize, k0: isize, k1: isize, line: &[u8]| {
-        let q = plan.shift_q(j);
+        let q = sh.q(j);
         let (s, f) = ((q >> 6) as isize, (q & 63) as u8);
         let x = |k: isize| (k - base) as usize * ch;
         // Positions whose two pixels are inside the line read it directly; the others go
@@ -973,7 +997,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
                 continue;
             }
             let (n0, n1) = (o0 - 1, o1 + 2);
-            let Slot { r, b, u, pad, tile, ring, strips } = &mut *slot;
+            let Slot { r, b, u, pad, tile, ring, strips, .. } = &mut *slot;
             // Running sums and the window's lines at line i over [g0, g1).
             let mut init = |g0: isize, g1: isize| {
                 let (x0, x1) = ((g0 - base) as usize * ch, (g1 - base) as usize * ch);
@@ -981,7 +1005,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
                 for d in -n - 2..=n + 2 {
                     let j = i as isize + d;
                     let line = &mut ring[at(j)..at(j) + len];
-                    fill(line, pad, base, j, g0, g1, strips.line(lv, plan, &src, j, bi, c0, c1));
+                    fill(line, pad, base, j, g0, g1, strips.line(lv, sh, &src, j, bi, c0, c1));
                     if d.abs() <= n {
                         add_d(lv, &mut r[x0..x1], &line[x0..x1]);
                     }
@@ -1070,7 +1094,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
             // which leaves it (the other lines are valid over [v0, v1): every line entered over
             // the range then valid, `init` extends all of them, and the range only grows there).
             let j = i as isize + 1 + n + 2;
-            fill(&mut ring[at(j)..at(j) + len], pad, base, j, v0, v1, strips.line(lv, plan, &src, j, bi, c0, c1));
+            fill(&mut ring[at(j)..at(j) + len], pad, base, j, v0, v1, strips.line(lv, sh, &src, j, bi, c0, c1));
             prefetch(plan, src, i as isize + 1 + n + 2 + AHEAD, v0, v1);
         }
         if let Dst::Cols(cols) = &dst {
@@ -1079,6 +1103,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
         c0 = c1;
         bi += 1;
     }
+    slot.shifts = shifts;
 }
 
 /// Pixel transpose: `dst[x * dstride + y * ch + c] = src[y * sstride + x * ch + c]` for
@@ -1390,15 +1415,17 @@ mod simd {
         // SAFETY: as documented; every store stays within the 8 C bytes of its row.
         unsafe {
             let cols = t8x8_narrow::<C>(src);
+            // Dwords 0..3 and 4..7 of each lane's 12 valid bytes first (C = 3).
+            let pack = _mm256_setr_epi32(0, 1, 2, 4, 5, 6, 3, 7);
             for (c, v) in cols.into_iter().enumerate() {
-                let (lo, hi) = (_mm256_castsi256_si128(v), _mm256_extracti128_si256(v, 1));
                 let d = dst.add(c * ds);
                 if C == 3 {
-                    // Bytes 0..16 (12 valid), then 12..20 and 20..24 from the second half.
-                    _mm_storeu_si128(d as *mut __m128i, lo);
-                    _mm_storel_epi64(d.add(12) as *mut __m128i, hi);
-                    (d.add(20) as *mut i32).write_unaligned(_mm_cvtsi128_si32(_mm_srli_si128(hi, 8)));
+                    // The 24 bytes packed, stored as 16 + 8.
+                    let v = _mm256_permutevar8x32_epi32(v, pack);
+                    _mm_storeu_si128(d as *mut __m128i, _mm256_castsi256_si128(v));
+                    _mm_storel_epi64(d.add(16) as *mut __m128i, _mm256_extracti128_si256(v, 1));
                 } else {
+                    let (lo, hi) = (_mm256_castsi256_si128(v), _mm256_extracti128_si256(v, 1));
                     _mm_storel_epi64(d as *mut __m128i, _mm_unpacklo_epi32(lo, hi));
                 }
             }
