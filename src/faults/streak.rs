@@ -924,17 +924,24 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
     // The block's positions, then room for the last whole vector of `step_d` and `unshear_d`
     // (see `whole`).
     let len = (chunk as usize + 3) * ch + VPAD;
+    // The running sums, `B` and every ring line start on a 64-byte line (from `ro`, `bo`, `go`
+    // values into their buffers; ring lines `lp` values apart), so that the step's vectors, which
+    // start at a multiple of VPAD values with SIMD (see `y0`), do not straddle cache lines.
+    let lp = len.div_ceil(VPAD) * VPAD;
     for v in [&mut slot.r, &mut slot.b, &mut slot.u] {
-        if v.len() < len {
-            v.resize(len, 0);
+        if v.len() < len + VPAD {
+            v.resize(len + VPAD, 0);
         }
     }
-    // The ring's slots: line j at `(j mod nr) len`.
+    // The ring's slots: line j at `(j mod nr) lp`.
     let nr = 2 * n + 5;
-    if slot.ring.len() < nr as usize * len {
-        slot.ring.resize(nr as usize * len, 0);
+    if slot.ring.len() < nr as usize * lp + VPAD {
+        slot.ring.resize(nr as usize * lp + VPAD, 0);
     }
-    let at = |j: isize| j.rem_euclid(nr) as usize * len;
+    // Values from the buffer's start to its first 64-byte boundary (u16 buffers: even addresses).
+    let line_start = |v: &[u16]| (v.as_ptr() as usize).wrapping_neg() % 64 / 2;
+    let (ro, bo, go) = (line_start(&slot.r), line_start(&slot.b), line_start(&slot.ring));
+    let at = |j: isize| go + j.rem_euclid(nr) as usize * lp;
     let tl = chunk as usize * ch;
     if matches!(dst, Dst::Cols(_)) && slot.tile.len() < TILE * tl + VPAD {
         slot.tile.resize(TILE * tl + VPAD, 0);
@@ -998,6 +1005,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
             }
             let (n0, n1) = (o0 - 1, o1 + 2);
             let Slot { r, b, u, pad, tile, ring, strips, .. } = &mut *slot;
+            let (r, b) = (&mut r[ro..ro + len], &mut b[bo..bo + len]);
             // Running sums and the window's lines at line i over [g0, g1).
             let mut init = |g0: isize, g1: isize| {
                 let (x0, x1) = ((g0 - base) as usize * ch, (g1 - base) as usize * ch);
@@ -1046,6 +1054,9 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
             // then unshear and cross filter into pixels o0 - k.. o1 - k.
             // The step over whole vectors, up to VPAD values beyond y1 (values nobody reads: B
             // beyond v1, and running sums beyond v1, which `init` restarts before they are used).
+            // With SIMD the step starts at the multiple of VPAD values at or below y0 (B and
+            // running sums of positions below v0: values nobody reads, see above).
+            let y0 = y0 / whole(1) * whole(1);
             let y1 = y0 + whole(y1 - y0);
             // Ring slots of lines i - n - 2, .., i - n, i + n + 1, i + n + 2: s0, s0 + 1, s0 + 2,
             // s0 - 2, s0 - 1 modulo 2n + 5 (one division).
@@ -1059,7 +1070,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
                 } else {
                     sl
                 };
-                let o = sl as usize * len;
+                let o = go + sl as usize * lp;
                 &ring[o + y0..o + y1]
             });
             step_d(lv, &mut b[y0..y1], &mut r[y0..y1], a0, a1, a2, a3, a4, plan.eq[0], plan.eq[1]);
