@@ -940,11 +940,14 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
     }
     // Values from the buffer's start to its first 64-byte boundary (u16 buffers: even addresses).
     let line_start = |v: &[u16]| (v.as_ptr() as usize).wrapping_neg() % 64 / 2;
-    let (ro, bo, go) = (line_start(&slot.r), line_start(&slot.b), line_start(&slot.ring));
+    let (ro, bo, go, uo) = (line_start(&slot.r), line_start(&slot.b), line_start(&slot.ring), line_start(&slot.u));
+    // The tile from a 64-byte line too (the unshear's stores of a block's inner lines start
+    // there).
+    let to = (slot.tile.as_ptr() as usize).wrapping_neg() % 64;
     let at = |j: isize| go + j.rem_euclid(nr) as usize * lp;
     let tl = chunk as usize * ch;
-    if matches!(dst, Dst::Cols(_)) && slot.tile.len() < TILE * tl + VPAD {
-        slot.tile.resize(TILE * tl + VPAD, 0);
+    if matches!(dst, Dst::Cols(_)) && slot.tile.len() < TILE * tl + VPAD + 64 {
+        slot.tile.resize(TILE * tl + VPAD + 64, 0);
     }
     let whole = whole_vectors(lv);
     if let Src::Cols(_) = src {
@@ -1005,7 +1008,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
             }
             let (n0, n1) = (o0 - 1, o1 + 2);
             let Slot { r, b, u, pad, tile, ring, strips, .. } = &mut *slot;
-            let (r, b) = (&mut r[ro..ro + len], &mut b[bo..bo + len]);
+            let (r, b, u) = (&mut r[ro..ro + len], &mut b[bo..bo + len], &mut u[uo..uo + len]);
             // Running sums and the window's lines at line i over [g0, g1).
             let mut init = |g0: isize, g1: isize| {
                 let (x0, x1) = ((g0 - base) as usize * ch, (g1 - base) as usize * ch);
@@ -1085,14 +1088,14 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
                     // Whole vectors, up to VPAD bytes beyond the line's pixels into the tile's
                     // next row (written after this one) or its padding: bytes `flush_cols` does
                     // not read.
-                    let p0 = glen * tl + (o0 - c0) as usize * ch;
+                    let p0 = to + glen * tl + (o0 - c0) as usize * ch;
                     let no = whole((o1 - o0) as usize * ch);
                     let bx = &b[x0..x0 + no + 3 * ch];
                     unshear_d(lv, &mut tile[p0..p0 + no], bx, u, ch, g, taps[row], plan.dm, plan.ds);
                     grp[glen] = (i, k, o0, o1);
                     glen += 1;
                     if glen == TILE {
-                        flush_cols(lv, *cols, ch, tile, tl, c0, &grp);
+                        flush_cols(lv, *cols, ch, &tile[to..], tl, c0, &grp);
                         glen = 0;
                     }
                 }
@@ -1109,7 +1112,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
             prefetch(plan, src, i as isize + 1 + n + 2 + AHEAD, v0, v1);
         }
         if let Dst::Cols(cols) = &dst {
-            flush_cols(lv, *cols, ch, &slot.tile, tl, c0, &grp[..glen]);
+            flush_cols(lv, *cols, ch, &slot.tile[to..], tl, c0, &grp[..glen]);
         }
         c0 = c1;
         bi += 1;
