@@ -868,14 +868,17 @@ fn flush_cols(lv: u8, cols: Cols, ch: usize, tile: &[u8], tl: usize, c0: isize, 
     if simd {
         // Line t's pixel x at `tile[t * tl + (x + k - c0) ch..]`: pixels [xs, xe) are inside its
         // row of the tile (o0 - k <= xs, xe <= o1 - k, and [o0, o1) within [c0, c1)).
-        assert!(grp.iter().all(|&(_, k, o0, o1)| o0 >= c0 && (o1 - c0) as usize * ch <= tl && o0 - k <= xs && xe <= o1 - k));
+        assert!(
+            grp.iter().all(|&(_, k, o0, o1)| o0 >= c0 && (o1 - c0) as usize * ch <= tl && o0 - k <= xs && xe <= o1 - k)
+        );
         assert!(tile.len() >= TILE * tl);
         let at: [isize; TILE] = std::array::from_fn(|t| t as isize * tl as isize + (grp[t].1 - c0) * ch as isize);
         let last = xe - 8;
         for x in (xs..last).step_by(8).chain([last]) {
-            // SAFETY: pixels x..x + 8 within [xs, xe) of each line: inside its row of `tile`
-            // (asserted above).
-            let src: [*const u8; TILE] = std::array::from_fn(|t| unsafe { tile.as_ptr().offset(at[t] + x * ch as isize) });
+            // Pixels x..x + 8 within [xs, xe) of each line: inside its row of `tile` (asserted
+            // above).
+            let src: [*const u8; TILE] =
+                std::array::from_fn(|t| tile.as_ptr().wrapping_offset(at[t] + x * ch as isize));
             // SAFETY: AVX2 present (checked with `simd`); each source row has its 8 pixels
             // inside `tile` (above); the 8 destination rows x..x + 8 < rows have columns
             // ifirst..ifirst + 8 <= cols inside the frame (asserted above), which only this band
@@ -1385,7 +1388,8 @@ mod simd {
     }
 
     /// Transposes 8 x 8 pixels of `C` (1 or 3) bytes: `dst[c * ds + r * C + b] = src[r * ss +
-    /// c * C + b]`, each pixel widened to a 32-bit lane, an 8 x 8 32-bit transpose, narrowed back.
+    /// c * C + b]`, each pixel widened to a 32-bit lane, an 8 x 8 32-bit transpose (`C` = 3: two
+    /// in-lane 4 x 4 ones, see [`t8x8_narrow`]), narrowed back.
     ///
     /// # Safety
     /// AVX2; 8 rows of `8 C` bytes readable at `src + r * ss`, writable at `dst + c * ds`.
