@@ -557,6 +557,21 @@ fn lerp_k(a: &mut [u16], p: &[u8], ch: usize, f: u8, q: u32) {
 }
 dispatch!(lerp_d, lerp_k, (a: &mut [u16], p: &[u8], ch: usize, f: u8, q: u32));
 
+/// [`lerp_k`]: on the AVX2 kernels (level `lv` = 1) whole vectors through [`simd::lerp256`] (one
+/// `vpmaddubsw` per 16 values), the rest (and every level other than 1) through [`lerp_d`];
+/// the same integers, so the same bytes.
+#[inline]
+fn lerp(lv: u8, a: &mut [u16], p: &[u8], ch: usize, f: u8, q: u32) {
+    #[allow(unused_mut)]
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if lv == 1 && super::kit::has_avx2() {
+        // SAFETY: AVX2 present (checked).
+        done = unsafe { simd::lerp256(a, p, ch, f, q) };
+    }
+    lerp_d(lv, &mut a[done..], &p[done..], ch, f, q);
+}
+
 /// `r[t] += a[t]` (16-bit; the plan's `q` keeps every running sum below 2^16).
 #[inline(always)]
 fn add_k(r: &mut [u16], a: &[u16]) {
@@ -966,7 +981,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
         let (i0, i1) = ((-s).clamp(k0, k1), (nl as isize - 1 - s).clamp(k0, k1).max((-s).clamp(k0, k1)));
         if i1 > i0 {
             let p = ((i0 + s) as usize) * ch;
-            lerp_d(lv, &mut a[x(i0)..x(i1)], &line[p..p + ((i1 - i0) as usize + 1) * ch], ch, f, plan.q);
+            lerp(lv, &mut a[x(i0)..x(i1)], &line[p..p + ((i1 - i0) as usize + 1) * ch], ch, f, plan.q);
         }
         for (e0, e1) in [(k0, i0), (i1, k1)] {
             if e1 > e0 {
@@ -978,7 +993,7 @@ fn band(lv: u8, plan: &StreakPlan, src: Src, i0: usize, rows: usize, mut dst: Ds
                     1 => pad_px::<1>(&mut pad[..cnt], line, e0 + s, nl),
                     _ => pad_px::<3>(&mut pad[..cnt * 3], line, e0 + s, nl),
                 }
-                lerp_d(lv, &mut a[x(e0)..x(e1)], &pad[..cnt * ch], ch, f, plan.q);
+                lerp(lv, &mut a[x(e0)..x(e1)], &pad[..cnt * ch], ch, f, plan.q);
             }
         }
     };
@@ -1200,6 +1215,41 @@ fn transpose_px<const C: usize>(
 mod simd {
     use super::super::kit::{mulhi_epu16_256 as mulhi, mulhi_epu16_512 as mulhi512};
     use std::arch::x86_64::*;
+
+    /// [`super::lerp_k`] over the first `a.len() / 32 * 32` values (returned), 32 at a time: the
+    /// two pixels of each value interleaved (`vpunpck*bw`) and multiplied with the weight pair
+    /// `(64 - f, f)` by one `vpmaddubsw` per 16 values (both weights fit a signed byte; the sum,
+    /// at most 255 * 64, does not saturate), rounded and shifted as `lerp_k` does.
+    ///
+    /// # Safety
+    /// AVX2.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn lerp256(a: &mut [u16], p: &[u8], ch: usize, f: u8, q: u32) -> usize {
+        let n = a.len() / 32 * 32;
+        assert!(p.len() >= n + ch && f < 64 && q <= 6);
+        let w = _mm256_set1_epi16((((f as u16) << 8) | (64 - f as u16)) as i16);
+        let half = _mm256_set1_epi16(((1u16 << (6 - q)) >> 1) as i16);
+        let cnt = _mm_cvtsi32_si128(6 - q as i32);
+        for i in (0..n).step_by(32) {
+            // SAFETY: AVX2 (the caller's contract); loads of 32 bytes of `p` below `n + ch <=
+            // p.len()`, stores of 32 values of `a` below n (asserted).
+            unsafe {
+                let x0 = _mm256_loadu_si256(p.as_ptr().add(i).cast::<__m256i>());
+                let x1 = _mm256_loadu_si256(p.as_ptr().add(i + ch).cast::<__m256i>());
+                // Values 0..8 and 16..24 (lo), 8..16 and 24..32 (hi), each in its lane.
+                let lo = _mm256_maddubs_epi16(_mm256_unpacklo_epi8(x0, x1), w);
+                let hi = _mm256_maddubs_epi16(_mm256_unpackhi_epi8(x0, x1), w);
+                let lo = _mm256_srl_epi16(_mm256_add_epi16(lo, half), cnt);
+                let hi = _mm256_srl_epi16(_mm256_add_epi16(hi, half), cnt);
+                _mm256_storeu_si256(a.as_mut_ptr().add(i).cast::<__m256i>(), _mm256_permute2x128_si256(lo, hi, 0x20));
+                _mm256_storeu_si256(
+                    a.as_mut_ptr().add(i + 16).cast::<__m256i>(),
+                    _mm256_permute2x128_si256(lo, hi, 0x31),
+                );
+            }
+        }
+        n
+    }
 
     /// [`super::step_k`] over the first `b.len() / 16 * 16` positions (returned), 16 at a time.
     ///
@@ -1694,6 +1744,37 @@ mod tests {
                                 p % stride
                             );
                         }
+                    }
+                }
+            }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn lerp256_equals_the_scalar_lerp() {
+        if !crate::faults::kit::has_avx2() {
+            return;
+        }
+        let mut seed = 12345u32;
+        let p: Vec<u8> = (0..400)
+            .map(|_| {
+                seed = seed.wrapping_mul(1664525).wrapping_add(1013904223);
+                (seed >> 24) as u8
+            })
+            .chain([0, 255, 255, 0, 255, 255, 255, 255, 255, 255])
+            .collect();
+        for ch in [1, 3] {
+            for q in 0..=6 {
+                for f in 0..64u8 {
+                    for (len, off) in [(0, 0), (31, 5), (32, 0), (64, 3), (95, 1), (320, 67), (390, 7)] {
+                        let (mut a, mut b) = (vec![0u16; len], vec![0u16; len]);
+                        let src = &p[off..off + len + ch];
+                        lerp_k(&mut a, src, ch, f, q);
+                        // SAFETY: AVX2 present (checked above).
+                        let done = unsafe { simd::lerp256(&mut b, src, ch, f, q) };
+                        assert_eq!(done, len / 32 * 32);
+                        assert_eq!(a[..done], b[..done], "ch {ch} q {q} f {f} len {len}");
                     }
                 }
             }
