@@ -1201,3 +1201,77 @@ mod tests {
         assert_eq!(mul_gain_q(65535u16, gain_to_q(2.0)), 65535);
     }
 }
+
+multiversion! {
+    /// `acc[i] += x[i]` (exact integer sums: the same values on every path; the caller keeps
+    /// them within u32).
+    pub fn accumulate_u32_row<T: Sample>(acc: &mut [u32], x: &[T]) {
+        for (a, &v) in acc.iter_mut().zip(x) {
+            *a += v.to_u32();
+        }
+    }
+}
+
+/// Length of the repeating addend pattern of [`add_lerp_runs_row`]: a multiple of 1 and 3
+/// (the channel counts) and of the AVX2 f32 lane count.
+const LERP_PATTERN: usize = 24;
+
+/// Scalar reference of [`add_lerp_runs_row`] for any channel count.
+#[inline(always)]
+fn lerp_runs_any<T: Sample>(row: &mut [T], t: &[f32], runs: &[(u32, u32, u32)], cells: &[f32], ch: usize) {
+    let gw = cells.len() / ch;
+    for &(x0, x1, c0) in runs {
+        let (x0, x1, c0) = (x0 as usize, x1 as usize, c0 as usize);
+        let c1 = (c0 + 1).min(gw - 1);
+        for x in x0..x1 {
+            for c in 0..ch {
+                let (p, q) = (cells[c0 * ch + c], cells[c1 * ch + c]);
+                let v = &mut row[x * ch + c];
+                *v = T::from_f32(v.to_f32() + (p + t[x * ch + c] * (q - p)));
+            }
+        }
+    }
+}
+
+/// [`add_lerp_runs_row`] for `CH` channels: each run's `p` and `d` as a pattern of
+/// [`LERP_PATTERN`] samples (built in registers), the samples in steps of the pattern.
+#[inline(always)]
+fn lerp_runs_ch<T: Sample, const CH: usize>(row: &mut [T], t: &[f32], runs: &[(u32, u32, u32)], cells: &[f32]) {
+    let gw = cells.len() / CH;
+    for &(x0, x1, c0) in runs {
+        let (x0, x1, c0) = (x0 as usize, x1 as usize, c0 as usize);
+        let c1 = (c0 + 1).min(gw - 1);
+        let pc: [f32; CH] = std::array::from_fn(|c| cells[c0 * CH + c]);
+        let dc: [f32; CH] = std::array::from_fn(|c| cells[c1 * CH + c] - pc[c]);
+        let p: [f32; LERP_PATTERN] = std::array::from_fn(|k| pc[k % CH]);
+        let d: [f32; LERP_PATTERN] = std::array::from_fn(|k| dc[k % CH]);
+        let (r, tt) = (&mut row[x0 * CH..x1 * CH], &t[x0 * CH..x1 * CH]);
+        let mut rc = r.chunks_exact_mut(LERP_PATTERN);
+        let mut tc = tt.chunks_exact(LERP_PATTERN);
+        for (r, tt) in (&mut rc).zip(&mut tc) {
+            for k in 0..LERP_PATTERN {
+                r[k] = T::from_f32(r[k].to_f32() + (p[k] + tt[k] * d[k]));
+            }
+        }
+        for (((v, &tt), &pp), &dd) in rc.into_remainder().iter_mut().zip(tc.remainder()).zip(&p).zip(&d) {
+            *v = T::from_f32(v.to_f32() + (pp + tt * dd));
+        }
+    }
+}
+
+multiversion! {
+    /// Adds to a row of `ch`-channel pixels the linear interpolation between cell values, run by
+    /// run: for each run `(x0, x1, c0)` (pixels `x0..x1`, left cell `c0`, right cell
+    /// `c1 = min(c0 + 1, gw - 1)`) and channel c, `v = round(v + (p + t * (q - p)))` with
+    /// `p = cells[c0 ch + c]`, `q = cells[c1 ch + c]` (cells interleaved, `gw x ch`) and `t` the
+    /// sample's weight (`t[x ch + c]`). f32, a multiply then an add (no fused multiply-add);
+    /// rounded half up and clipped as [`add_round_row`]: the same values on every path, without
+    /// writing the addends out.
+    pub fn add_lerp_runs_row<T: Sample>(row: &mut [T], t: &[f32], runs: &[(u32, u32, u32)], cells: &[f32], ch: usize) {
+        match ch {
+            1 => lerp_runs_ch::<T, 1>(row, t, runs, cells),
+            3 => lerp_runs_ch::<T, 3>(row, t, runs, cells),
+            _ => lerp_runs_any(row, t, runs, cells, ch),
+        }
+    }
+}
