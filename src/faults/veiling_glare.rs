@@ -15,7 +15,7 @@
 //! output cell and pixel is computed independently in a fixed order: same bytes on any thread
 //! count.
 
-use super::kit::{accumulate_u32_row, add_lerp_runs_row, band_rows, bands, multiversion, par_bands_with};
+use super::kit::{accumulate_u32_row, add_lerp_runs_row, band_rows, bands, par_bands_with};
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, Sample};
 use crate::with_image_mut;
@@ -277,47 +277,104 @@ fn add_glare<T: Sample>(
     });
 }
 
-multiversion! {
-    /// Output cell row `oy` of one channel of the grid convolution: `out[ox] = scale * sum over
-    /// the nonzero input rows iy (in order) of dot(cells row iy, K(iy - oy, . - ox))`, each dot
-    /// as [`dot`] computes it. Four outputs at a time (their dots interleaved, each in its own
-    /// fixed order: the same values as one at a time).
-    fn conv_row<U: Copy>(out: &mut [f32], cells: &[f32], kern: &[f32], nz: &[bool], oy: usize, scale: f32, _u: U) {
-        let (gw, gh) = (out.len(), nz.len());
-        let kw = 2 * gw - 1;
-        let mut ox = 0;
-        while ox + 4 <= gw {
-            let mut acc = [0f32; 4];
-            for iy in 0..gh {
-                if !nz[iy] {
-                    continue;
-                }
-                let a = &cells[iy * gw..][..gw];
-                let base = (iy + gh - 1 - oy) * kw + (gw - 1 - ox);
-                let s = dot4(a, [&kern[base..][..gw], &kern[base - 1..][..gw], &kern[base - 2..][..gw], &kern[base - 3..][..gw]]);
-                for j in 0..4 {
-                    acc[j] += s[j];
-                }
-            }
-            for j in 0..4 {
-                out[ox + j] = acc[j] * scale;
-            }
-            ox += 4;
-        }
-        for (ox, o) in out.iter_mut().enumerate().skip(ox) {
-            let mut acc = 0f32;
-            for iy in 0..gh {
-                if !nz[iy] {
-                    continue;
-                }
-                // K(o - i) for ix = 0..gw: the PSF is symmetric, so K(o - i) = K(i - o), a
-                // contiguous run of the kernel row dy = iy - oy from dx = -ox.
-                let krow = &kern[(iy + gh - 1 - oy) * kw + (gw - 1 - ox)..][..gw];
-                acc += dot(&cells[iy * gw..][..gw], krow);
-            }
-            *o = acc * scale;
-        }
+/// Output cell row `oy` of one channel of the grid convolution: `out[ox] = scale * sum over the
+/// nonzero input rows iy (in order) of dot(cells row iy, K(iy - oy, . - ox))`, each dot as
+/// [`dot`] computes it. Four outputs at a time (their dots interleaved, each in its own fixed
+/// order: the same values as one at a time; on AVX2 CPUs with 8-lane registers).
+fn conv_row(out: &mut [f32], cells: &[f32], kern: &[f32], nz: &[bool], oy: usize, scale: f32) {
+    let (gw, gh) = (out.len(), nz.len());
+    let kw = 2 * gw - 1;
+    let mut ox = 0;
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx2() {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        ox = unsafe { conv4_avx2(out, cells, kern, nz, oy, scale) };
     }
+    while ox + 4 <= gw {
+        let mut acc = [0f32; 4];
+        for iy in 0..gh {
+            if !nz[iy] {
+                continue;
+            }
+            let a = &cells[iy * gw..][..gw];
+            let base = (iy + gh - 1 - oy) * kw + (gw - 1 - ox);
+            let s = dot4(a, [&kern[base..][..gw], &kern[base - 1..][..gw], &kern[base - 2..][..gw], &kern[base - 3..][..gw]]);
+            for j in 0..4 {
+                acc[j] += s[j];
+            }
+        }
+        for j in 0..4 {
+            out[ox + j] = acc[j] * scale;
+        }
+        ox += 4;
+    }
+    for (ox, o) in out.iter_mut().enumerate().skip(ox) {
+        let mut acc = 0f32;
+        for iy in 0..gh {
+            if !nz[iy] {
+                continue;
+            }
+            // K(o - i) for ix = 0..gw: the PSF is symmetric, so K(o - i) = K(i - o), a
+            // contiguous run of the kernel row dy = iy - oy from dx = -ox.
+            let krow = &kern[(iy + gh - 1 - oy) * kw + (gw - 1 - ox)..][..gw];
+            acc += dot(&cells[iy * gw..][..gw], krow);
+        }
+        *o = acc * scale;
+    }
+}
+
+/// The four-output groups of [`conv_row`] on AVX2 (returns the outputs done, a multiple of 4):
+/// lane l of output j's register is [`dot`]'s partial sum l; the partial sums are combined as
+/// `((l0 + l4) + (l1 + l5)) + ((l2 + l6) + (l3 + l7))` (two `hadd`s pair them so), then the
+/// remainder products are added in order, then the dot to the output's sum: [`dot`]'s values.
+///
+/// # Safety
+/// AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn conv4_avx2(out: &mut [f32], cells: &[f32], kern: &[f32], nz: &[bool], oy: usize, scale: f32) -> usize {
+    use std::arch::x86_64::*;
+    let (gw, gh) = (out.len(), nz.len());
+    let kw = 2 * gw - 1;
+    let n8 = gw / 8 * 8;
+    let mut ox = 0;
+    while ox + 4 <= gw {
+        let mut acc = _mm_setzero_ps();
+        for iy in 0..gh {
+            if !nz[iy] {
+                continue;
+            }
+            let a = &cells[iy * gw..][..gw];
+            let base = (iy + gh - 1 - oy) * kw + (gw - 1 - ox);
+            // Rows base - j .. base - j + gw lie inside the kernel (base >= 3: ox + 4 <= gw).
+            let k = &kern[base - 3..base + gw];
+            let mut v = [_mm256_setzero_ps(); 4];
+            let mut i = 0;
+            while i < n8 {
+                // SAFETY: i + 8 <= gw: inside a (gw long) and k (gw + 3 long, row j at 3 - j).
+                unsafe {
+                    let x = _mm256_loadu_ps(a.as_ptr().add(i));
+                    for (j, vj) in v.iter_mut().enumerate() {
+                        let y = _mm256_loadu_ps(k.as_ptr().add(3 - j + i));
+                        *vj = _mm256_add_ps(*vj, _mm256_mul_ps(x, y));
+                    }
+                }
+                i += 8;
+            }
+            let e = v.map(|r| _mm_add_ps(_mm256_castps256_ps128(r), _mm256_extractf128_ps(r, 1)));
+            let mut s = _mm_hadd_ps(_mm_hadd_ps(e[0], e[1]), _mm_hadd_ps(e[2], e[3]));
+            for i in n8..gw {
+                let y = _mm_setr_ps(k[3 + i], k[2 + i], k[1 + i], k[i]);
+                s = _mm_add_ps(s, _mm_mul_ps(_mm_set1_ps(a[i]), y));
+            }
+            acc = _mm_add_ps(acc, s);
+        }
+        let r = _mm_mul_ps(acc, _mm_set1_ps(scale));
+        // SAFETY: ox + 4 <= gw = out.len().
+        unsafe { _mm_storeu_ps(out.as_mut_ptr().add(ox), r) };
+        ox += 4;
+    }
+    ox
 }
 
 /// [`dot`] of `a` with four rows at once: each result is computed in exactly [`dot`]'s order.
@@ -384,7 +441,7 @@ impl Effect for VeilingGlare {
         let (kern, cells, nz) = (&self.kern, &self.cells, &self.row_nonzero);
         self.glare.par_chunks_mut(gw).enumerate().for_each(|(k, out)| {
             let (c, oy) = (k / gh, k % gh);
-            conv_row(out, &cells[c * plane..][..plane], kern, &nz[c * gh..][..gh], oy, scale, ());
+            conv_row(out, &cells[c * plane..][..plane], kern, &nz[c * gh..][..gh], oy, scale);
         });
         let (glare, scratch) = (&self.glare, &mut self.scratch);
         let cols = (&self.runs[..], &self.tx[..]);
