@@ -463,6 +463,31 @@ mod tests {
         VeilingGlare::default().apply(f, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
     }
 
+    /// The grid convolution's kernels (AVX2 four-output groups, the portable four-output groups)
+    /// give every output exactly the value of the one-at-a-time [`dot`] sum, on odd grid sizes
+    /// (partial 8-lane chunks, groups of four with a tail) and with skipped (all-zero) rows.
+    #[test]
+    fn conv_rows_equal_the_one_at_a_time_sums() {
+        let mut rng = crate::rng::Rng::new(11);
+        for (gw, gh) in [(1usize, 1usize), (3, 2), (4, 5), (7, 3), (8, 8), (9, 4), (13, 7), (17, 11), (48, 30), (48, 27)] {
+            let kern = kernel(7, gw, gh, 9.0, 1.7);
+            let cells: Vec<f32> = (0..gw * gh).map(|_| rng.uniform_f32() * 4000.0).collect();
+            let nz: Vec<bool> = (0..gh).map(|i| i % 3 != 1).collect();
+            let kw = 2 * gw - 1;
+            for oy in 0..gh {
+                let mut got = vec![0f32; gw];
+                conv_row(&mut got, &cells, &kern, &nz, oy, 0.37);
+                for (ox, &g) in got.iter().enumerate() {
+                    let mut acc = 0f32;
+                    for iy in (0..gh).filter(|&iy| nz[iy]) {
+                        acc += dot(&cells[iy * gw..][..gw], &kern[(iy + gh - 1 - oy) * kw + (gw - 1 - ox)..][..gw]);
+                    }
+                    assert_eq!((acc * 0.37).to_bits(), g.to_bits(), "gw {gw} gh {gh} oy {oy} ox {ox}");
+                }
+            }
+        }
+    }
+
     /// The shared kernel is the kernel: a miss builds it, a hit returns the same allocation, and
     /// arguments that differ in any bit get their own kernel (the cache is keyed exactly).
     #[test]
