@@ -1269,12 +1269,13 @@ multiversion! {
     /// writing the addends out.
     pub fn add_lerp_runs_row<T: Sample>(row: &mut [T], t: &[f32], runs: &[(u32, u32, u32)], cells: &[f32], ch: usize) {
         #[cfg(target_arch = "x86_64")]
-        if ch == 3 && has_avx2() {
-            if let Some(r) = T::bytes_mut(row) {
-                // SAFETY: the CPU supports AVX2 (checked just above).
-                unsafe { lerp_runs_rgb8_avx2(r, t, runs, cells) };
-                return;
-            }
+        if ch == 3
+            && has_avx2()
+            && let Some(r) = T::bytes_mut(row)
+        {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            unsafe { lerp_runs_rgb8_avx2(r, t, runs, cells) };
+            return;
         }
         match ch {
             1 => lerp_runs_ch::<T, 1>(row, t, runs, cells),

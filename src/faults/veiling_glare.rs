@@ -298,7 +298,10 @@ fn conv_row(out: &mut [f32], cells: &[f32], kern: &[f32], nz: &[bool], oy: usize
             }
             let a = &cells[iy * gw..][..gw];
             let base = (iy + gh - 1 - oy) * kw + (gw - 1 - ox);
-            let s = dot4(a, [&kern[base..][..gw], &kern[base - 1..][..gw], &kern[base - 2..][..gw], &kern[base - 3..][..gw]]);
+            let s = dot4(
+                a,
+                [&kern[base..][..gw], &kern[base - 1..][..gw], &kern[base - 2..][..gw], &kern[base - 3..][..gw]],
+            );
             for j in 0..4 {
                 acc[j] += s[j];
             }
@@ -469,7 +472,9 @@ mod tests {
     #[test]
     fn conv_rows_equal_the_one_at_a_time_sums() {
         let mut rng = crate::rng::Rng::new(11);
-        for (gw, gh) in [(1usize, 1usize), (3, 2), (4, 5), (7, 3), (8, 8), (9, 4), (13, 7), (17, 11), (48, 30), (48, 27)] {
+        for (gw, gh) in
+            [(1usize, 1usize), (3, 2), (4, 5), (7, 3), (8, 8), (9, 4), (13, 7), (17, 11), (48, 30), (48, 27)]
+        {
             let kern = kernel(7, gw, gh, 9.0, 1.7);
             let cells: Vec<f32> = (0..gw * gh).map(|_| rng.uniform_f32() * 4000.0).collect();
             let nz: Vec<bool> = (0..gh).map(|i| i % 3 != 1).collect();
