@@ -1227,3 +1227,190 @@ mod tests {
         assert_eq!(mul_gain_q(65535u16, gain_to_q(2.0)), 65535);
     }
 }
+
+multiversion! {
+    /// `acc[i] += x[i]` (exact integer sums: the same values on every path; the caller keeps
+    /// them within u32).
+    pub fn accumulate_u32_row<T: Sample>(acc: &mut [u32], x: &[T]) {
+        for (a, &v) in acc.iter_mut().zip(x) {
+            *a += v.to_u32();
+        }
+    }
+}
+
+/// Length of the repeating addend pattern of [`add_lerp_runs_row`]: a multiple of 1 and 3
+/// (the channel counts) and of the AVX2 f32 lane count.
+const LERP_PATTERN: usize = 24;
+
+/// Scalar reference of [`add_lerp_runs_row`] for any channel count.
+#[inline(always)]
+fn lerp_runs_any<T: Sample>(row: &mut [T], t: &[f32], runs: &[(u32, u32, u32)], cells: &[f32], ch: usize) {
+    let gw = cells.len() / ch;
+    for &(x0, x1, c0) in runs {
+        let (x0, x1, c0) = (x0 as usize, x1 as usize, c0 as usize);
+        let c1 = (c0 + 1).min(gw - 1);
+        for x in x0..x1 {
+            for c in 0..ch {
+                let (p, q) = (cells[c0 * ch + c], cells[c1 * ch + c]);
+                let v = &mut row[x * ch + c];
+                *v = T::from_f32(v.to_f32() + (p + t[x * ch + c] * (q - p)));
+            }
+        }
+    }
+}
+
+/// [`add_lerp_runs_row`] for `CH` channels: each run's `p` and `d` as a pattern of
+/// [`LERP_PATTERN`] samples (built in registers), the samples in steps of the pattern.
+#[inline(always)]
+fn lerp_runs_ch<T: Sample, const CH: usize>(row: &mut [T], t: &[f32], runs: &[(u32, u32, u32)], cells: &[f32]) {
+    let gw = cells.len() / CH;
+    for &(x0, x1, c0) in runs {
+        let (x0, x1, c0) = (x0 as usize, x1 as usize, c0 as usize);
+        let c1 = (c0 + 1).min(gw - 1);
+        let pc: [f32; CH] = std::array::from_fn(|c| cells[c0 * CH + c]);
+        let dc: [f32; CH] = std::array::from_fn(|c| cells[c1 * CH + c] - pc[c]);
+        let p: [f32; LERP_PATTERN] = std::array::from_fn(|k| pc[k % CH]);
+        let d: [f32; LERP_PATTERN] = std::array::from_fn(|k| dc[k % CH]);
+        let (r, tt) = (&mut row[x0 * CH..x1 * CH], &t[x0 * CH..x1 * CH]);
+        let mut rc = r.chunks_exact_mut(LERP_PATTERN);
+        let mut tc = tt.chunks_exact(LERP_PATTERN);
+        for (r, tt) in (&mut rc).zip(&mut tc) {
+            for k in 0..LERP_PATTERN {
+                r[k] = T::from_f32(r[k].to_f32() + (p[k] + tt[k] * d[k]));
+            }
+        }
+        for (((v, &tt), &pp), &dd) in rc.into_remainder().iter_mut().zip(tc.remainder()).zip(&p).zip(&d) {
+            *v = T::from_f32(v.to_f32() + (pp + tt * dd));
+        }
+    }
+}
+
+multiversion! {
+    /// Adds to a row of `ch`-channel pixels the linear interpolation between cell values, run by
+    /// run: for each run `(x0, x1, c0)` (pixels `x0..x1`, left cell `c0`, right cell
+    /// `c1 = min(c0 + 1, gw - 1)`) and channel c, `v = round(v + (p + t * (q - p)))` with
+    /// `p = cells[c0 ch + c]`, `q = cells[c1 ch + c]` (cells interleaved, `gw x ch`) and `t` the
+    /// sample's weight (`t[x ch + c]`). f32, a multiply then an add (no fused multiply-add);
+    /// rounded half up and clipped as [`add_round_row`]: the same values on every path, without
+    /// writing the addends out.
+    pub fn add_lerp_runs_row<T: Sample>(row: &mut [T], t: &[f32], runs: &[(u32, u32, u32)], cells: &[f32], ch: usize) {
+        #[cfg(target_arch = "x86_64")]
+        if ch == 3
+            && has_avx2()
+            && let Some(r) = T::bytes_mut(row)
+        {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            unsafe { lerp_runs_rgb8_avx2(r, t, runs, cells) };
+            return;
+        }
+        match ch {
+            1 => lerp_runs_ch::<T, 1>(row, t, runs, cells),
+            3 => lerp_runs_ch::<T, 3>(row, t, runs, cells),
+            _ => lerp_runs_any(row, t, runs, cells, ch),
+        }
+    }
+}
+
+/// [`add_lerp_runs_row`] for RGB8 on AVX2: each run's `p` and `d` as three 8-lane patterns
+/// (channel pattern 0 1 2 0 1 2 0 1, then 2 0 1 .., 1 2 0 ..) permuted in registers, 24 samples
+/// a step; the same f32 operations in the same order as [`lerp_runs_any`] (a multiply then an
+/// add, `max` giving 0 for NaN as `from_f32` does).
+///
+/// # Safety
+/// AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn lerp_runs_rgb8_avx2(row: &mut [u8], t: &[f32], runs: &[(u32, u32, u32)], cells: &[f32]) {
+    use std::arch::x86_64::*;
+    let gw = cells.len() / 3;
+    let (zero, half, top) = (_mm256_setzero_ps(), _mm256_set1_ps(0.5), _mm256_set1_ps(255.0));
+    let idx = [
+        _mm256_setr_epi32(0, 1, 2, 0, 1, 2, 0, 1),
+        _mm256_setr_epi32(2, 0, 1, 2, 0, 1, 2, 0),
+        _mm256_setr_epi32(1, 2, 0, 1, 2, 0, 1, 2),
+    ];
+    for &(x0, x1, c0) in runs {
+        let (x0, x1, c0) = (x0 as usize, x1 as usize, c0 as usize);
+        let c1 = (c0 + 1).min(gw - 1);
+        let pc = [cells[c0 * 3], cells[c0 * 3 + 1], cells[c0 * 3 + 2]];
+        let dc = [cells[c1 * 3] - pc[0], cells[c1 * 3 + 1] - pc[1], cells[c1 * 3 + 2] - pc[2]];
+        let pv = _mm256_setr_ps(pc[0], pc[1], pc[2], 0.0, 0.0, 0.0, 0.0, 0.0);
+        let dv = _mm256_setr_ps(dc[0], dc[1], dc[2], 0.0, 0.0, 0.0, 0.0, 0.0);
+        let p = idx.map(|i| _mm256_permutevar8x32_ps(pv, i));
+        let d = idx.map(|i| _mm256_permutevar8x32_ps(dv, i));
+        let (r, tt) = (&mut row[x0 * 3..x1 * 3], &t[x0 * 3..x1 * 3]);
+        let n = r.len();
+        let mut i = 0;
+        while i + 24 <= n {
+            for j in 0..3 {
+                let k = i + 8 * j;
+                // SAFETY: k + 8 <= n: 8-byte and 8-float accesses inside the run's slices.
+                unsafe {
+                    let rp = r.as_mut_ptr().add(k);
+                    let v = _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(_mm_loadl_epi64(rp as *const __m128i)));
+                    let g = _mm256_add_ps(p[j], _mm256_mul_ps(_mm256_loadu_ps(tt.as_ptr().add(k)), d[j]));
+                    let x = _mm256_min_ps(_mm256_max_ps(_mm256_add_ps(_mm256_add_ps(v, g), half), zero), top);
+                    let q = _mm256_cvttps_epi32(x);
+                    let w = _mm_packus_epi32(_mm256_castsi256_si128(q), _mm256_extracti128_si256(q, 1));
+                    _mm_storel_epi64(rp as *mut __m128i, _mm_packus_epi16(w, w));
+                }
+            }
+            i += 24;
+        }
+        // i is a multiple of 3: sample k is channel k % 3.
+        for k in i..n {
+            let c = k % 3;
+            r[k] = u8::from_f32(r[k] as f32 + (pc[c] + tt[k] * dc[c]));
+        }
+    }
+}
+
+#[cfg(test)]
+mod lerp_tests {
+    use super::*;
+
+    /// The dispatched kernels (RGB8 AVX2, the per-channel-count patterns) against the scalar
+    /// reference on odd widths and run lengths, u8 and u16, 1 and 3 channels.
+    #[test]
+    fn lerp_runs_kernels_match_the_scalar_reference() {
+        let mut rng = Rng::new(7);
+        for ch in [1usize, 3] {
+            for w in [1usize, 2, 7, 8, 23, 24, 25, 41, 97, 333] {
+                for b in [1usize, 3, 8, 9, 40] {
+                    let gw = w.div_ceil(b);
+                    let cells: Vec<f32> = (0..gw * ch).map(|_| rng.uniform_f32() * 300.0 - 20.0).collect();
+                    let t: Vec<f32> = (0..w * ch).map(|_| rng.uniform_f32()).collect();
+                    let mut runs: Vec<(u32, u32, u32)> = Vec::new();
+                    for x in 0..w {
+                        let c0 = ((x / b) as u32).min(gw.saturating_sub(2) as u32);
+                        match runs.last_mut() {
+                            Some(r) if r.2 == c0 => r.1 = x as u32 + 1,
+                            _ => runs.push((x as u32, x as u32 + 1, c0)),
+                        }
+                    }
+                    let row8: Vec<u8> = (0..w * ch).map(|_| (rng.next_u64() & 255) as u8).collect();
+                    let (mut a, mut e) = (row8.clone(), row8.clone());
+                    add_lerp_runs_row(&mut a, &t, &runs, &cells, ch);
+                    lerp_runs_any(&mut e, &t, &runs, &cells, ch);
+                    assert_eq!(a, e, "u8 ch {ch} w {w} b {b}");
+                    let row16: Vec<u16> = row8.iter().map(|&v| v as u16 * 257).collect();
+                    let cells16: Vec<f32> = cells.iter().map(|v| v * 300.0).collect();
+                    let (mut a, mut e) = (row16.clone(), row16.clone());
+                    add_lerp_runs_row(&mut a, &t, &runs, &cells16, ch);
+                    lerp_runs_any(&mut e, &t, &runs, &cells16, ch);
+                    assert_eq!(a, e, "u16 ch {ch} w {w} b {b}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn accumulate_u32_row_adds_every_sample() {
+        for n in [0usize, 1, 7, 31, 33, 100] {
+            let x: Vec<u8> = (0..n).map(|i| (i * 37 % 256) as u8).collect();
+            let mut acc: Vec<u32> = (0..n as u32).collect();
+            accumulate_u32_row(&mut acc, &x);
+            assert!(acc.iter().enumerate().all(|(i, &a)| a == i as u32 + x[i] as u32));
+        }
+    }
+}

@@ -15,7 +15,7 @@
 //! output cell and pixel is computed independently in a fixed order: same bytes on any thread
 //! count.
 
-use super::kit::{add_round_row, band_rows, bands, par_bands_with};
+use super::kit::{accumulate_u32_row, add_lerp_runs_row, band_rows, bands, par_bands_with};
 use super::{ALL_FORMATS, Effect, EffectCtx, EffectInfo, FaultError, Outcome, ParamSpec, Params, Stage};
 use crate::frame::{Frame, Sample};
 use crate::with_image_mut;
@@ -150,10 +150,10 @@ pub struct VeilingGlare {
     /// Glare density per pixel at the cell centres (DN), planar per channel.
     glare: Vec<f32>,
     /// The columns as runs between cell centres: (first column, end column, left cell), and
-    /// each column's weight of the right cell, contiguous.
+    /// each column's weight of the right cell, once per sample (`w x ch`), contiguous.
     runs: Vec<(u32, u32, u32)>,
     tx: Vec<f32>,
-    /// Per band: one interpolated cell row (gw x ch).
+    /// Per band: one interpolated cell row (gw x ch, channels interleaved).
     scratch: Vec<f32>,
 }
 
@@ -192,13 +192,13 @@ impl VeilingGlare {
         self.runs.clear();
         for x in 0..w {
             let (c0, tx) = interp(x, b, gw);
-            self.tx.push(tx);
+            self.tx.extend(std::iter::repeat_n(tx, ch));
             match self.runs.last_mut() {
                 Some(r) if r.2 == c0 => r.1 = x as u32 + 1,
                 _ => self.runs.push((x as u32, x as u32 + 1, c0)),
             }
         }
-        self.scratch = vec![0.0; (gw + w) * ch * bands(h)];
+        self.scratch = vec![0.0; gw * ch * bands(h)];
         self.key = Some(key);
     }
 }
@@ -210,32 +210,39 @@ fn interp(x: usize, b: usize, n: usize) -> (u32, f32) {
     (i0 as u32, (u - i0 as f64) as f32)
 }
 
-/// Cell sums of the frame, `[cell row][channel][cell column]`. Parallel over cell rows, one pass
-/// over each row's samples for every channel (exact integer sums).
+/// Samples per block of [`cell_sums`]: column sums of a block of a cell row are kept on the stack.
+const SUM_BLOCK: usize = 1536;
+
+/// Cell sums of the frame, `[cell row][channel][cell column]`. Parallel over cell rows; each
+/// cell row is summed in blocks of columns: the rows' samples are added column by column into
+/// u32 column sums (vectorised), which are then added up per cell and channel (exact integer
+/// sums: the values do not depend on the order).
 fn cell_sums<T: Sample>(data: &[T], stride: usize, w: usize, h: usize, ch: usize, b: usize, sums: &mut [u64]) {
     let (gw, gh) = (w.div_ceil(b), h.div_ceil(b));
     sums[..gw * gh * ch].par_chunks_mut(gw * ch).enumerate().for_each(|(cy, row)| {
         row.fill(0);
         let (y0, y1) = (cy * b, ((cy + 1) * b).min(h));
-        for y in y0..y1 {
-            let line = &data[y * stride..y * stride + w * ch];
-            for cx in 0..gw {
-                let (x0, x1) = (cx * b, ((cx + 1) * b).min(w));
-                // A cell row's samples fit a u32 sum (b < 65536 px of at most 65535); ch <= 4.
-                if ch == 1 {
-                    row[cx] += line[x0..x1].iter().map(|v| v.to_u32()).sum::<u32>() as u64;
-                } else {
-                    let mut acc = [0u32; 4];
-                    for px in line[x0 * ch..x1 * ch].chunks_exact(ch) {
-                        for (a, v) in acc.iter_mut().zip(px) {
-                            *a += v.to_u32();
-                        }
-                    }
-                    for (c, &a) in acc.iter().take(ch).enumerate() {
-                        row[c * gw + cx] += a as u64;
-                    }
-                }
+        let mut col = [0u32; SUM_BLOCK];
+        let mut x = 0;
+        while x < w {
+            let xe = (x + SUM_BLOCK / ch).min(w);
+            let acc = &mut col[..(xe - x) * ch];
+            acc.fill(0);
+            // A column's sum over a cell row fits a u32 (b < 65536 px of at most 65535).
+            for y in y0..y1 {
+                accumulate_u32_row(acc, &data[y * stride + x * ch..][..(xe - x) * ch]);
             }
+            let mut px = x;
+            while px < xe {
+                let cx = px / b;
+                let pe = ((cx + 1) * b).min(xe);
+                for c in 0..ch {
+                    let s: u64 = acc[(px - x) * ch + c..(pe - x) * ch].iter().step_by(ch).map(|&v| v as u64).sum();
+                    row[c * gw + cx] += s;
+                }
+                px = pe;
+            }
+            x = xe;
         }
     });
 }
@@ -250,44 +257,156 @@ fn add_glare<T: Sample>(
 ) {
     let gh = h.div_ceil(b);
     let plane = gw * gh;
-    par_bands_with(data, stride, h, scratch, (gw + w) * ch, |_, y0, band, buf| {
-        let (cellrow, grow) = buf.split_at_mut(gw * ch);
+    par_bands_with(data, stride, h, scratch, gw * ch, |_, y0, band, cellrow| {
         for (i, row) in band_rows(band, stride, w * ch).enumerate() {
             let (r0, ty) = interp(y0 + i, b, gh);
             let r1 = (r0 as usize + 1).min(gh - 1);
             for c in 0..ch {
                 let a = &glare[c * plane + r0 as usize * gw..][..gw];
                 let z = &glare[c * plane + r1 * gw..][..gw];
-                for (o, (p, q)) in cellrow[c * gw..(c + 1) * gw].iter_mut().zip(a.iter().zip(z)) {
+                for (o, (p, q)) in cellrow.iter_mut().skip(c).step_by(ch).zip(a.iter().zip(z)) {
                     *o = p + ty * (q - p);
                 }
             }
             // The row's glare, p + tx (q - p) between the two nearest cell centres, run by run
-            // (p and q - p are the same for every column of a run), then added in one pass.
-            for &(x0, x1, c0) in runs {
-                let (x0, x1, c0) = (x0 as usize, x1 as usize, c0 as usize);
-                let c1 = (c0 + 1).min(gw - 1);
-                let pd = |c: usize| (cellrow[c * gw + c0], cellrow[c * gw + c1] - cellrow[c * gw + c0]);
-                if ch == 3 {
-                    let [(p0, d0), (p1, d1), (p2, d2)] = [pd(0), pd(1), pd(2)];
-                    for (g, &t) in grow[x0 * 3..x1 * 3].chunks_exact_mut(3).zip(&tx[x0..x1]) {
-                        g[0] = p0 + t * d0;
-                        g[1] = p1 + t * d1;
-                        g[2] = p2 + t * d2;
-                    }
-                } else {
-                    for c in 0..ch {
-                        let (p, d) = pd(c);
-                        for (x, &t) in (x0..x1).zip(&tx[x0..x1]) {
-                            grow[x * ch + c] = p + t * d;
-                        }
-                    }
-                }
-            }
-            // v is whole, so rounding v + g rounds the glare half up (as sample rounding does).
-            add_round_row(row, &grow[..w * ch]);
+            // (p and q - p are the same for every column of a run), added to the samples as it
+            // is computed. v is whole, so rounding v + g rounds the glare half up (as sample
+            // rounding does).
+            add_lerp_runs_row(row, tx, runs, cellrow, ch);
         }
     });
+}
+
+/// Output cell row `oy` of one channel of the grid convolution: `out[ox] = scale * sum over the
+/// nonzero input rows iy (in order) of dot(cells row iy, K(iy - oy, . - ox))`, each dot as
+/// [`dot`] computes it. Four outputs at a time (their dots interleaved, each in its own fixed
+/// order: the same values as one at a time; on AVX2 CPUs with 8-lane registers).
+fn conv_row(out: &mut [f32], cells: &[f32], kern: &[f32], nz: &[bool], oy: usize, scale: f32) {
+    let (gw, gh) = (out.len(), nz.len());
+    let kw = 2 * gw - 1;
+    let mut ox = 0;
+    #[cfg(target_arch = "x86_64")]
+    if super::kit::has_avx2() {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        ox = unsafe { conv4_avx2(out, cells, kern, nz, oy, scale) };
+    }
+    while ox + 4 <= gw {
+        let mut acc = [0f32; 4];
+        for iy in 0..gh {
+            if !nz[iy] {
+                continue;
+            }
+            let a = &cells[iy * gw..][..gw];
+            let base = (iy + gh - 1 - oy) * kw + (gw - 1 - ox);
+            let s = dot4(
+                a,
+                [&kern[base..][..gw], &kern[base - 1..][..gw], &kern[base - 2..][..gw], &kern[base - 3..][..gw]],
+            );
+            for j in 0..4 {
+                acc[j] += s[j];
+            }
+        }
+        for j in 0..4 {
+            out[ox + j] = acc[j] * scale;
+        }
+        ox += 4;
+    }
+    for (ox, o) in out.iter_mut().enumerate().skip(ox) {
+        let mut acc = 0f32;
+        for iy in 0..gh {
+            if !nz[iy] {
+                continue;
+            }
+            // K(o - i) for ix = 0..gw: the PSF is symmetric, so K(o - i) = K(i - o), a
+            // contiguous run of the kernel row dy = iy - oy from dx = -ox.
+            let krow = &kern[(iy + gh - 1 - oy) * kw + (gw - 1 - ox)..][..gw];
+            acc += dot(&cells[iy * gw..][..gw], krow);
+        }
+        *o = acc * scale;
+    }
+}
+
+/// The four-output groups of [`conv_row`] on AVX2 (returns the outputs done, a multiple of 4):
+/// lane l of output j's register is [`dot`]'s partial sum l; the partial sums are combined as
+/// `((l0 + l4) + (l1 + l5)) + ((l2 + l6) + (l3 + l7))` (two `hadd`s pair them so), then the
+/// remainder products are added in order, then the dot to the output's sum: [`dot`]'s values.
+///
+/// # Safety
+/// AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn conv4_avx2(out: &mut [f32], cells: &[f32], kern: &[f32], nz: &[bool], oy: usize, scale: f32) -> usize {
+    use std::arch::x86_64::*;
+    let (gw, gh) = (out.len(), nz.len());
+    let kw = 2 * gw - 1;
+    let n8 = gw / 8 * 8;
+    let mut ox = 0;
+    while ox + 4 <= gw {
+        let mut acc = _mm_setzero_ps();
+        for iy in 0..gh {
+            if !nz[iy] {
+                continue;
+            }
+            let a = &cells[iy * gw..][..gw];
+            let base = (iy + gh - 1 - oy) * kw + (gw - 1 - ox);
+            // Rows base - j .. base - j + gw lie inside the kernel (base >= 3: ox + 4 <= gw).
+            let k = &kern[base - 3..base + gw];
+            let mut v = [_mm256_setzero_ps(); 4];
+            let mut i = 0;
+            while i < n8 {
+                // SAFETY: i + 8 <= gw: inside a (gw long) and k (gw + 3 long, row j at 3 - j).
+                unsafe {
+                    let x = _mm256_loadu_ps(a.as_ptr().add(i));
+                    for (j, vj) in v.iter_mut().enumerate() {
+                        let y = _mm256_loadu_ps(k.as_ptr().add(3 - j + i));
+                        *vj = _mm256_add_ps(*vj, _mm256_mul_ps(x, y));
+                    }
+                }
+                i += 8;
+            }
+            let e = v.map(|r| _mm_add_ps(_mm256_castps256_ps128(r), _mm256_extractf128_ps(r, 1)));
+            let mut s = _mm_hadd_ps(_mm_hadd_ps(e[0], e[1]), _mm_hadd_ps(e[2], e[3]));
+            for i in n8..gw {
+                let y = _mm_setr_ps(k[3 + i], k[2 + i], k[1 + i], k[i]);
+                s = _mm_add_ps(s, _mm_mul_ps(_mm_set1_ps(a[i]), y));
+            }
+            acc = _mm_add_ps(acc, s);
+        }
+        let r = _mm_mul_ps(acc, _mm_set1_ps(scale));
+        // SAFETY: ox + 4 <= gw = out.len().
+        unsafe { _mm_storeu_ps(out.as_mut_ptr().add(ox), r) };
+        ox += 4;
+    }
+    ox
+}
+
+/// [`dot`] of `a` with four rows at once: each result is computed in exactly [`dot`]'s order.
+#[inline(always)]
+fn dot4(a: &[f32], b: [&[f32]; 4]) -> [f32; 4] {
+    let n = a.len();
+    let n8 = n / 8 * 8;
+    let b = b.map(|r| &r[..n]);
+    let mut acc = [[0f32; 8]; 4];
+    let mut i = 0;
+    while i < n8 {
+        let x = &a[i..i + 8];
+        for j in 0..4 {
+            let y = &b[j][i..i + 8];
+            for l in 0..8 {
+                acc[j][l] += x[l] * y[l];
+            }
+        }
+        i += 8;
+    }
+    let mut s = [0f32; 4];
+    for j in 0..4 {
+        let c = &acc[j];
+        s[j] = ((c[0] + c[4]) + (c[1] + c[5])) + ((c[2] + c[6]) + (c[3] + c[7]));
+        for (x, y) in a[n8..].iter().zip(&b[j][n8..]) {
+            s[j] += x * y;
+        }
+    }
+    s
 }
 
 impl Effect for VeilingGlare {
@@ -321,24 +440,11 @@ impl Effect for VeilingGlare {
         }
         // Glare density at each cell centre: fraction / b² * sum_i S_i K(o - i). Parallel over
         // output cell rows; each output is a fixed-order sum.
-        let kw = 2 * gw - 1;
         let scale = (f / (b * b) as f64) as f32;
         let (kern, cells, nz) = (&self.kern, &self.cells, &self.row_nonzero);
         self.glare.par_chunks_mut(gw).enumerate().for_each(|(k, out)| {
             let (c, oy) = (k / gh, k % gh);
-            for (ox, o) in out.iter_mut().enumerate() {
-                let mut acc = 0f32;
-                for iy in 0..gh {
-                    if !nz[c * gh + iy] {
-                        continue;
-                    }
-                    // K(o - i) for ix = 0..gw: the PSF is symmetric, so K(o - i) = K(i - o), a
-                    // contiguous run of the kernel row dy = iy - oy from dx = -ox.
-                    let krow = &kern[(iy + gh - 1 - oy) * kw + (gw - 1 - ox)..][..gw];
-                    acc += dot(&cells[c * plane + iy * gw..][..gw], krow);
-                }
-                *o = acc * scale;
-            }
+            conv_row(out, &cells[c * plane..][..plane], kern, &nz[c * gh..][..gh], oy, scale);
         });
         let (glare, scratch) = (&self.glare, &mut self.scratch);
         let cols = (&self.runs[..], &self.tx[..]);
@@ -358,6 +464,33 @@ mod tests {
         p.set("core_px", core).unwrap();
         p.set("slope", slope).unwrap();
         VeilingGlare::default().apply(f, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
+    }
+
+    /// The grid convolution's kernels (AVX2 four-output groups, the portable four-output groups)
+    /// give every output exactly the value of the one-at-a-time [`dot`] sum, on odd grid sizes
+    /// (partial 8-lane chunks, groups of four with a tail) and with skipped (all-zero) rows.
+    #[test]
+    fn conv_rows_equal_the_one_at_a_time_sums() {
+        let mut rng = crate::rng::Rng::new(11);
+        for (gw, gh) in
+            [(1usize, 1usize), (3, 2), (4, 5), (7, 3), (8, 8), (9, 4), (13, 7), (17, 11), (48, 30), (48, 27)]
+        {
+            let kern = kernel(7, gw, gh, 9.0, 1.7);
+            let cells: Vec<f32> = (0..gw * gh).map(|_| rng.uniform_f32() * 4000.0).collect();
+            let nz: Vec<bool> = (0..gh).map(|i| i % 3 != 1).collect();
+            let kw = 2 * gw - 1;
+            for oy in 0..gh {
+                let mut got = vec![0f32; gw];
+                conv_row(&mut got, &cells, &kern, &nz, oy, 0.37);
+                for (ox, &g) in got.iter().enumerate() {
+                    let mut acc = 0f32;
+                    for iy in (0..gh).filter(|&iy| nz[iy]) {
+                        acc += dot(&cells[iy * gw..][..gw], &kern[(iy + gh - 1 - oy) * kw + (gw - 1 - ox)..][..gw]);
+                    }
+                    assert_eq!((acc * 0.37).to_bits(), g.to_bits(), "gw {gw} gh {gh} oy {oy} ox {ox}");
+                }
+            }
+        }
     }
 
     /// The shared kernel is the kernel: a miss builds it, a hit returns the same allocation, and
