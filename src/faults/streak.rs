@@ -1354,20 +1354,38 @@ mod simd {
         let src: &[u16] = if g == 0 { b } else { u };
         let aa = a.unsigned_abs() as u16;
         let (aa1, aa2, sm) = (set(aa), set(aa << 1), set(if a < 0 { u16::MAX } else { 0 }));
-        let (off, offv, dmv, one, top) =
-            (set(super::OFF), set(super::mulhi(super::OFF, dm)), set(dm), set(1), set(255));
+        let (off, offv, dmv, zero) = (set(super::OFF), set(super::mulhi(super::OFF, dm)), set(dm), set(0));
         let cnt = _mm_cvtsi32_si128(ds as i32 - 1);
-        for i in (0..n).step_by(16) {
+        // The 16 results from position i before the saturating pack to bytes: `((x >> (ds - 1)) + 1)
+        // >> 1` (16-bit wrapping) is `avg(x >> (ds - 1), 0)` except that `avg` gives 2^15 where the
+        // sum wraps to 0; both are at most 2^15 and pack to the same byte (2^15 is negative as a
+        // signed 16-bit value: 0; 256..2^15 - 1: 255, as the scalar `min(255)`).
+        let q = |i: usize| {
             // SAFETY: AVX2 (the caller's contract); every load reads 16 values of `src` below
-            // `i + 16 + 2 ch <= m` (`b` or `u`, both at least m long) and the store writes 16
-            // bytes of `out` below n (asserted).
+            // `i + 16 + 2 ch <= m` (`b` or `u`, both at least m long) for `i + 16 <= n`.
             unsafe {
                 let l = |o: usize| _mm256_loadu_si256(src.as_ptr().add(i + o).cast::<__m256i>());
                 let (ul, uc, ur) = (l(0), l(ch), l(2 * ch));
                 let t = _mm256_sub_epi16(_mm256_add_epi16(mulhi(ul, aa1), mulhi(ur, aa1)), mulhi(uc, aa2));
                 let v = _mm256_add_epi16(_mm256_add_epi16(off, uc), _mm256_sub_epi16(_mm256_xor_si256(t, sm), sm));
                 let q = _mm256_subs_epu16(mulhi(v, dmv), offv);
-                let q = _mm256_min_epu16(_mm256_srli_epi16(_mm256_add_epi16(_mm256_srl_epi16(q, cnt), one), 1), top);
+                _mm256_avg_epu16(_mm256_srl_epi16(q, cnt), zero)
+            }
+        };
+        // 32 outputs at a time (one pack and one 32-byte store), then 16.
+        let mut i = 0;
+        while i + 32 <= n {
+            // SAFETY: AVX2 (the caller's contract); the store writes 32 bytes of `out` below n.
+            unsafe {
+                let r = _mm256_permute4x64_epi64::<0xd8>(_mm256_packus_epi16(q(i), q(i + 16)));
+                _mm256_storeu_si256(out.as_mut_ptr().add(i).cast::<__m256i>(), r);
+            }
+            i += 32;
+        }
+        if i < n {
+            let q = q(i);
+            // SAFETY: AVX2 (the caller's contract); the store writes 16 bytes of `out` below n.
+            unsafe {
                 let r = _mm_packus_epi16(_mm256_castsi256_si128(q), _mm256_extracti128_si256(q, 1));
                 _mm_storeu_si128(out.as_mut_ptr().add(i).cast::<__m128i>(), r);
             }
@@ -1416,8 +1434,8 @@ mod simd {
         let src: &[u16] = if g == 0 { b } else { u };
         let aa = a.unsigned_abs() as u16;
         let (aa1, aa2, sm) = (set(aa), set(aa << 1), set(if a < 0 { u16::MAX } else { 0 }));
-        let (off, offv, dmv, one, top) =
-            (set(super::OFF), set(super::mulhi(super::OFF, dm)), set(dm), set(1), set(255));
+        let (off, offv, dmv, zero, top) =
+            (set(super::OFF), set(super::mulhi(super::OFF, dm)), set(dm), set(0), set(255));
         let cnt = _mm_cvtsi32_si128(ds as i32 - 1);
         for i in (0..n).step_by(32) {
             // SAFETY: AVX-512 F/BW (the caller's contract); every load reads 32 values of `src`
@@ -1429,8 +1447,10 @@ mod simd {
                 let t = _mm512_sub_epi16(_mm512_add_epi16(mulhi512(ul, aa1), mulhi512(ur, aa1)), mulhi512(uc, aa2));
                 let v = _mm512_add_epi16(_mm512_add_epi16(off, uc), _mm512_sub_epi16(_mm512_xor_si512(t, sm), sm));
                 let q = _mm512_subs_epu16(mulhi512(v, dmv), offv);
-                let q = _mm512_min_epu16(_mm512_srli_epi16::<1>(_mm512_add_epi16(_mm512_srl_epi16(q, cnt), one)), top);
-                // Every value is at most 255: the narrowing keeps it.
+                // `avg(x >> (ds - 1), 0)` as in [`unshear`], then the signed minimum: 2^15 is
+                // negative, so 0 (where the wrapping sum gives 0), 256..2^15 - 1 give 255.
+                let q = _mm512_min_epi16(_mm512_avg_epu16(_mm512_srl_epi16(q, cnt), zero), top);
+                // Every value is 0..=255: the narrowing keeps it.
                 _mm256_storeu_si256(out.as_mut_ptr().add(i).cast::<__m256i>(), _mm512_cvtepi16_epi8(q));
             }
         }
