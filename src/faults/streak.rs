@@ -1853,6 +1853,40 @@ mod tests {
     }
 
     #[test]
+    fn unshear_levels_equal_the_scalar_over_the_whole_16_bit_range() {
+        // Random `B` over all of 0..2^16 (the wrapping and the rounding's edges: results above
+        // 255 and the saturating packs), both signs of the cross tap, ds 1..=4, g = 0 and not.
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        let mut rnd = || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x
+        };
+        for ch in [1usize, 3] {
+            for n in [16usize, 31, 32, 48, 64, 95, 130] {
+                for case in 0..24 {
+                    let b: Vec<u16> = (0..n + 3 * ch + 40).map(|_| rnd() as u16).collect();
+                    let g = if case % 3 == 0 { 0 } else { (rnd() % 64) as u8 };
+                    let a = (rnd() % 30000) as i32 * if case % 2 == 0 { 1 } else { -1 };
+                    let ds = 1 + (case as u32 % 4);
+                    let dm = (4 + rnd() % 65532) as u16;
+                    let run = |lv: u8| {
+                        let mut out = vec![0u8; n];
+                        let mut u = vec![0u16; b.len()];
+                        unshear_d(lv, &mut out, &b, &mut u, ch, g, a, dm, ds);
+                        out
+                    };
+                    let want = run(0);
+                    for lv in [1, 2] {
+                        assert_eq!(run(lv), want, "ch {ch} n {n} g {g} a {a} dm {dm} ds {ds} lv {lv}");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
     fn every_kernel_level_and_thread_count_gives_the_same_bytes() {
         use crate::frame::{FrameData, PixelFormat};
         for (w, h, format) in [(203u32, 131u32, PixelFormat::Rgb8), (150, 190, PixelFormat::Mono8)] {
