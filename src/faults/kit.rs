@@ -608,15 +608,6 @@ multiversion! {
 }
 
 multiversion! {
-    /// `v = round(v + g)` (f32, half up, clipped to the sample range) with one addend per sample.
-    pub fn add_round_row<T: Sample>(row: &mut [T], add: &[f32]) {
-        for (v, &g) in row.iter_mut().zip(add) {
-            *v = T::from_f32(v.to_f32() + g);
-        }
-    }
-}
-
-multiversion! {
     /// `out += a * x` element by element (f32, no fused multiply-add: the same rounding on every
     /// path).
     pub fn axpy_row<T: Copy>(out: &mut [f32], a: f32, x: &[f32], _t: T) {
@@ -1291,7 +1282,7 @@ multiversion! {
     /// `c1 = min(c0 + 1, gw - 1)`) and channel c, `v = round(v + (p + t * (q - p)))` with
     /// `p = cells[c0 ch + c]`, `q = cells[c1 ch + c]` (cells interleaved, `gw x ch`) and `t` the
     /// sample's weight (`t[x ch + c]`). f32, a multiply then an add (no fused multiply-add);
-    /// rounded half up and clipped as [`add_round_row`]: the same values on every path, without
+    /// rounded half up and clipped to the sample range (`Sample::from_f32`): the same values on every path, without
     /// writing the addends out.
     pub fn add_lerp_runs_row<T: Sample>(row: &mut [T], t: &[f32], runs: &[(u32, u32, u32)], cells: &[f32], ch: usize) {
         #[cfg(target_arch = "x86_64")]
