@@ -279,37 +279,17 @@ fn add_glare<T: Sample>(
 
 /// Output cell row `oy` of one channel of the grid convolution: `out[ox] = scale * sum over the
 /// nonzero input rows iy (in order) of dot(cells row iy, K(iy - oy, . - ox))`, each dot as
-/// [`dot`] computes it. Four outputs at a time (their dots interleaved, each in its own fixed
-/// order: the same values as one at a time; on AVX2 CPUs with 8-lane registers).
+/// [`dot`] computes it. On AVX2 CPUs four outputs at a time ([`conv4_avx2`]: their dots
+/// interleaved, each in its own fixed order, so the same values), the rest one at a time.
 fn conv_row(out: &mut [f32], cells: &[f32], kern: &[f32], nz: &[bool], oy: usize, scale: f32) {
     let (gw, gh) = (out.len(), nz.len());
     let kw = 2 * gw - 1;
+    #[allow(unused_mut)]
     let mut ox = 0;
     #[cfg(target_arch = "x86_64")]
     if super::kit::has_avx2() {
         // SAFETY: the CPU supports AVX2 (checked just above).
         ox = unsafe { conv4_avx2(out, cells, kern, nz, oy, scale) };
-    }
-    while ox + 4 <= gw {
-        let mut acc = [0f32; 4];
-        for iy in 0..gh {
-            if !nz[iy] {
-                continue;
-            }
-            let a = &cells[iy * gw..][..gw];
-            let base = (iy + gh - 1 - oy) * kw + (gw - 1 - ox);
-            let s = dot4(
-                a,
-                [&kern[base..][..gw], &kern[base - 1..][..gw], &kern[base - 2..][..gw], &kern[base - 3..][..gw]],
-            );
-            for j in 0..4 {
-                acc[j] += s[j];
-            }
-        }
-        for j in 0..4 {
-            out[ox + j] = acc[j] * scale;
-        }
-        ox += 4;
     }
     for (ox, o) in out.iter_mut().enumerate().skip(ox) {
         let mut acc = 0f32;
@@ -380,35 +360,6 @@ unsafe fn conv4_avx2(out: &mut [f32], cells: &[f32], kern: &[f32], nz: &[bool], 
     ox
 }
 
-/// [`dot`] of `a` with four rows at once: each result is computed in exactly [`dot`]'s order.
-#[inline(always)]
-fn dot4(a: &[f32], b: [&[f32]; 4]) -> [f32; 4] {
-    let n = a.len();
-    let n8 = n / 8 * 8;
-    let b = b.map(|r| &r[..n]);
-    let mut acc = [[0f32; 8]; 4];
-    let mut i = 0;
-    while i < n8 {
-        let x = &a[i..i + 8];
-        for j in 0..4 {
-            let y = &b[j][i..i + 8];
-            for l in 0..8 {
-                acc[j][l] += x[l] * y[l];
-            }
-        }
-        i += 8;
-    }
-    let mut s = [0f32; 4];
-    for j in 0..4 {
-        let c = &acc[j];
-        s[j] = ((c[0] + c[4]) + (c[1] + c[5])) + ((c[2] + c[6]) + (c[3] + c[7]));
-        for (x, y) in a[n8..].iter().zip(&b[j][n8..]) {
-            s[j] += x * y;
-        }
-    }
-    s
-}
-
 impl Effect for VeilingGlare {
     fn info(&self) -> &'static EffectInfo {
         &INFO
@@ -466,8 +417,8 @@ mod tests {
         VeilingGlare::default().apply(f, &p, &mut EffectCtx::new(0, 0, 0)).unwrap();
     }
 
-    /// The grid convolution's kernels (AVX2 four-output groups, the portable four-output groups)
-    /// give every output exactly the value of the one-at-a-time [`dot`] sum, on odd grid sizes
+    /// The grid convolution's kernels (AVX2 four-output groups, the rest one at a time) give
+    /// every output exactly the value of the one-at-a-time [`dot`] sum, on odd grid sizes
     /// (partial 8-lane chunks, groups of four with a tail) and with skipped (all-zero) rows.
     #[test]
     fn conv_rows_equal_the_one_at_a_time_sums() {
