@@ -1450,7 +1450,8 @@ mod simd {
                 // `avg(x >> (ds - 1), 0)` as in [`unshear`], then the signed minimum: 2^15 is
                 // negative, so 0 (where the wrapping sum gives 0), 256..2^15 - 1 give 255.
                 let q = _mm512_min_epi16(_mm512_avg_epu16(_mm512_srl_epi16(q, cnt), zero), top);
-                // Every value is 0..=255: the narrowing keeps it.
+                // Every value is 0..=255, kept by the (truncating) narrowing, or -2^15, whose low
+                // byte is 0.
                 _mm256_storeu_si256(out.as_mut_ptr().add(i).cast::<__m256i>(), _mm512_cvtepi16_epi8(q));
             }
         }
